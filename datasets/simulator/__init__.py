@@ -1,0 +1,1 @@
+"""2D LiDAR + odometry simulator on real floor plans (true house, distortion, route, ray casting)."""

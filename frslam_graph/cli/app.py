@@ -1,0 +1,26 @@
+"""The typer application object shared by the command modules, and its error handling.
+
+Command modules (``frslam_graph.cli.<name>``) import ``app`` (or a sub-app) from here and add
+their commands. Only the CLI prints; library code raises :class:`~frslam_graph.errors.FrslamError`,
+which :func:`main` turns into one red line naming the file and the problem, and exit code 2.
+"""
+
+from __future__ import annotations
+
+import typer
+from rich.console import Console
+
+app = typer.Typer(
+    name="frslam",
+    help="FR-SLAM: floor-plan registration + factor-graph 2D SLAM.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+plan_app = typer.Typer(help="Floor plans: show, convert.", no_args_is_help=True)
+map_app = typer.Typer(help="Occupancy maps (ROS map_server YAML + image): show.", no_args_is_help=True)
+app.add_typer(plan_app, name="plan")
+app.add_typer(map_app, name="map")
+
+console = Console()
+err_console = Console(stderr=True)

@@ -1,0 +1,45 @@
+"""Exceptions raised by frslam for bad input.
+
+Every error names *where* (file, line or field) and *what was expected*, so a user can fix
+the input without reading a traceback from inside numpy, OpenCV or GTSAM. All derive from
+:class:`FrslamError`; the CLI turns them into a one-line message and exit code 2.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class FrslamError(Exception):
+    """Base class of all frslam input errors.
+
+    ``FrslamError(message, source=path, where="rooms[3].polygon")`` renders as
+    ``"plan.json: rooms[3].polygon: message"``.
+    """
+
+    def __init__(self, message: str, source: str | Path | None = None, where: str | None = None):
+        self.message = message
+        self.source = str(source) if source is not None else None
+        self.where = where
+        parts = [p for p in (self.source, where) if p]
+        super().__init__(": ".join([*parts, message]))
+
+
+class FloorPlanError(FrslamError, ValueError):
+    """A floor plan file or object is malformed (JSON, R2V, room segmentation, HouseExpo)."""
+
+
+class MapError(FrslamError, ValueError):
+    """An occupancy map (map_server YAML + image) is malformed or unreadable."""
+
+
+class RecordingError(FrslamError, ValueError):
+    """A recording (CARMEN log, ROS bag, point-cloud folder, simulator output) is unreadable."""
+
+
+class ConfigError(FrslamError, ValueError):
+    """A configuration value is out of range or of the wrong type."""
+
+
+class TrajectoryError(FrslamError, ValueError):
+    """A trajectory / ground-truth / relations file is malformed."""

@@ -1,0 +1,1 @@
+"""MFR registration of a floor plan to an occupancy grid."""
