@@ -1,0 +1,204 @@
+"""Configuration of the SLAM backend (odometry, motion model, graph, floor-plan updates).
+
+Units: metres, radians (angles in the config are given in **degrees** where the field name ends
+in ``_deg``), seconds. ``FRSlamConfig()`` gives sane indoor defaults for a 2D LiDAR with 360–1080
+beams; ``FRSlamConfig.load(path)`` reads YAML or JSON; ``FRSlamConfig.from_dict(d)`` validates a
+mapping. Any invalid value raises :class:`frslam_graph.errors.ConfigError` naming the field
+(e.g. ``odometry.voxel_size``) and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from frslam_graph.errors import ConfigError
+
+
+class _Section(BaseModel):
+    """A config section: unknown keys are errors; errors become ConfigError naming the field."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise _config_error(exc, None, prefix=_SECTION_NAMES.get(type(self).__name__)) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        try:
+            super().__setattr__(name, value)
+        except ValidationError as exc:
+            raise _config_error(exc, None, prefix=_SECTION_NAMES.get(type(self).__name__)) from None
+
+
+class OdometryConfig(_Section):
+    """KISS-ICP scan odometry (planar scans as z = 0 points) and keyframe selection."""
+
+    voxel_size: float = Field(0.1, gt=0.0, le=5.0)
+    max_range: float = Field(30.0, gt=0.0)
+    min_range: float = Field(0.05, ge=0.0)
+    initial_threshold: float = Field(2.0, gt=0.0)
+    fixed_threshold: float | None = Field(None, gt=0.0)
+    min_motion: float = Field(0.1, ge=0.0)
+    max_points_per_voxel: int = Field(20, ge=1)
+    max_iterations: int = Field(500, ge=1)
+    convergence_criterion: float = Field(1e-4, gt=0.0)
+    num_threads: int = Field(1, ge=0)  # 0 = all cores; the first KissICP fixes it process-wide
+    min_points: int = Field(20, ge=3)  # fewer valid beams -> no ICP, motion-model fallback
+    keyframe_distance: float = Field(0.3, gt=0.0)
+    keyframe_angle_deg: float = Field(10.0, gt=0.0, le=180.0)
+    # ICP noise model: point-to-line residual sigma (m) -> covariance from the scan's Hessian,
+    # inflated by ``icp_cov_inflation`` and floored by the sigma floors below.
+    icp_sigma: float = Field(0.03, gt=0.0)
+    icp_cov_inflation: float = Field(4.0, ge=1.0)
+    icp_sigma_floor_xy: float = Field(0.005, gt=0.0)
+    icp_sigma_floor_theta_deg: float = Field(0.1, gt=0.0)
+    # Degeneracy: smallest / largest eigenvalue of the summed point normals' outer products.
+    degeneracy_threshold: float = Field(0.04, gt=0.0, lt=0.5)
+    degenerate_sigma: float = Field(10.0, gt=0.0)  # ICP sigma (m) along a degenerate axis
+    normal_neighbours: int = Field(2, ge=1, le=10)
+    # Wheel odometry noise: sigma_d = dist_frac * d, sigma_theta = rot_per_m * d + rot_frac * |dtheta|.
+    wheel_dist_frac: float = Field(0.02, gt=0.0)
+    wheel_rot_per_m_deg: float = Field(1.0, ge=0.0)
+    wheel_rot_frac: float = Field(0.02, ge=0.0)
+    wheel_sigma_floor_xy: float = Field(0.002, gt=0.0)
+    wheel_sigma_floor_theta_deg: float = Field(0.1, gt=0.0)
+    # Constant-velocity prediction (no wheel odometry): per-second random-walk sigmas.
+    cv_sigma_xy_per_s: float = Field(0.5, gt=0.0)
+    cv_sigma_theta_deg_per_s: float = Field(30.0, gt=0.0)
+    # Fault gates.
+    odom_jump_gate: float = Field(
+        5.0, gt=0.0
+    )  # Mahalanobis sigma gate on (wheel - ICP) beyond which ICP is trusted
+    odom_jump_min_m: float = Field(0.15, ge=0.0)  # and the disagreement is at least this large
+    odom_jump_min_deg: float = Field(5.0, ge=0.0)
+    max_speed: float = Field(3.0, gt=0.0)  # m/s; faster wheel increments are jumps
+    max_turn_rate_deg: float = Field(360.0, gt=0.0)
+    gap_factor: float = Field(2.5, gt=1.0)  # stamp gap > gap_factor * nominal period -> dropped scans
+
+    @model_validator(mode="after")
+    def _ranges(self) -> OdometryConfig:
+        if self.min_range >= self.max_range:
+            raise ValueError("min_range must be smaller than max_range")
+        return self
+
+
+class GraphConfig(_Section):
+    """GTSAM Pose2 graph: noise floors, robust prior kernel, iSAM2 settings."""
+
+    between_sigma_floor_xy: float = Field(0.002, gt=0.0)
+    between_sigma_floor_theta_deg: float = Field(0.05, gt=0.0)
+    anchor_sigma_xy: float = Field(1e-3, gt=0.0)  # prior on the first keyframe (map == odom at start)
+    anchor_sigma_theta_deg: float = Field(1e-3, gt=0.0)
+    prior_kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
+    prior_kernel_param: float = Field(1.0, gt=0.0)  # in whitened units (sigmas)
+    prior_sigma_floor_xy: float = Field(0.02, gt=0.0)
+    prior_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
+    relinearize_threshold: float = Field(0.01, gt=0.0)
+    relinearize_skip: int = Field(1, ge=1)
+    factorization: Literal["QR", "CHOLESKY"] = "QR"
+    batch_max_iterations: int = Field(100, ge=1)
+    batch_relative_tolerance: float = Field(1e-6, gt=0.0)
+
+
+class UpdatesConfig(_Section):
+    """Floor-plan update strategy (paper Alg. 3); extended by the update-strategy owner."""
+
+    enabled: bool = True
+    register_min_growth_m2: float = Field(4.0, ge=0.0)
+    relocation_distance_D: float = Field(5.0, gt=0.0)
+    obstruction_speed: float = Field(0.02, ge=0.0)
+    obstruction_time_s: float = Field(5.0, gt=0.0)
+    max_ambiguity: float = Field(0.9, gt=0.0, le=1.0)
+    min_score: float = Field(0.5, ge=0.0, le=1.0)
+    inconsistent_chi2: float = Field(11.34, gt=0.0)  # chi2(3 dof, 99 %)
+    map_resolution: float = Field(0.05, gt=0.0)
+
+
+class FRSlamConfig(_Section):
+    """Whole-backend configuration; see the section classes for fields and units."""
+
+    odometry: OdometryConfig = OdometryConfig()
+    graph: GraphConfig = GraphConfig()
+    updates: UpdatesConfig = UpdatesConfig()
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None, source: str | Path | None = None) -> FRSlamConfig:
+        """Validate a nested mapping; raise ConfigError naming the first bad field."""
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(f"expected a mapping of sections, got {type(data).__name__}", source=source)
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise _config_error(exc, source) from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> FRSlamConfig:
+        """Read a YAML (.yaml/.yml) or JSON (.json) config file."""
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"cannot read config file ({exc.strerror})", source=path) from None
+        try:
+            if path.suffix.lower() == ".json":
+                data = json.loads(text)
+            else:
+                import yaml
+
+                data = yaml.safe_load(text)
+        except (json.JSONDecodeError, Exception) as exc:  # yaml.YAMLError has no common import here
+            raise ConfigError(f"not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}", source=path) from None
+        return cls.from_dict(data, source=path)
+
+    def save(self, path: str | Path) -> None:
+        """Write the config as YAML or JSON (by suffix)."""
+        path = Path(path)
+        data = self.model_dump()
+        if path.suffix.lower() == ".json":
+            path.write_text(json.dumps(data, indent=2), encoding="utf-8")
+        else:
+            import yaml
+
+            path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+
+    def with_updates(self, **sections: dict[str, Any]) -> FRSlamConfig:
+        """A copy with some fields changed, e.g. ``cfg.with_updates(odometry={"voxel_size": 0.2})``."""
+        data = self.model_dump()
+        for name, values in sections.items():
+            if name not in data:
+                raise ConfigError(f"unknown section (expected one of {sorted(data)})", where=name)
+            data[name].update(values)
+        return type(self).from_dict(data)
+
+
+_SECTION_NAMES = {"OdometryConfig": "odometry", "GraphConfig": "graph", "UpdatesConfig": "updates"}
+
+
+def _config_error(
+    exc: ValidationError, source: str | Path | None, prefix: str | None = None
+) -> ConfigError:
+    err = exc.errors()[0]
+    inner = (err.get("ctx") or {}).get("error")
+    if isinstance(inner, ConfigError):  # a nested section already named the field
+        return ConfigError(inner.message, source=source, where=inner.where)
+    loc = [str(p) for p in err.get("loc", ())]
+    if prefix:
+        loc.insert(0, prefix)
+    where = ".".join(loc) or None
+    msg = err.get("msg", "invalid value")
+    if err.get("type") == "value_error":
+        msg = msg.removeprefix("Value error, ")
+    elif "input" in err and err.get("type") != "missing":
+        msg = f"{msg} (got {err['input']!r})"
+    more = len(exc.errors()) - 1
+    if more:
+        msg += f"; and {more} more error(s)"
+    return ConfigError(msg, source=source, where=where)

@@ -1,0 +1,253 @@
+"""The paper's motion model x_t = g(u_t, x_{t-1}) + e_t in SE(2), and an EKF that fuses it with ICP.
+
+Poses are (x, y, theta) arrays: metres, radians, theta wrapped to [-pi, pi). ``compose(a, b)`` is
+a ⊕ b (b expressed in a's frame), ``between(a, b)`` = a⁻¹ ⊕ b. A wheel-odometry increment u_t is
+``between(odom_{t-1}, odom_t)`` (base_link motion in the previous base_link frame).
+
+:class:`MotionEKF` (filterpy ``ExtendedKalmanFilter``) keeps the pose of the current ``base_link``
+relative to the last keyframe: it predicts with g(u_t, ·) (wheel odometry or constant velocity)
+and is updated with the KISS-ICP pose relative to the same keyframe. Its output is the fused
+relative motion between keyframes and its 3×3 covariance, also given in GTSAM's Pose2 tangent
+convention (right perturbation: x_true = x ⊕ Exp(ξ)) for a ``BetweenFactorPose2``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+Pose = np.ndarray  # (3,) x, y, theta
+
+
+def wrap(theta: float | np.ndarray) -> float | np.ndarray:
+    """Angle(s) wrapped to [-pi, pi)."""
+    out = (np.asarray(theta, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    return float(out) if out.ndim == 0 else out
+
+
+def rot(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def compose(a: Pose, b: Pose) -> np.ndarray:
+    """a ⊕ b: pose b given in frame a, returned in a's parent frame."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2])])
+
+
+def inverse(a: Pose) -> np.ndarray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap(-a[2])])
+
+
+def between(a: Pose, b: Pose) -> np.ndarray:
+    """a⁻¹ ⊕ b: pose b expressed in frame a."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2])])
+
+
+def compose_jacobians(a: Pose, b: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of compose(a, b) w.r.t. the vectors a and b (additive perturbations)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]])
+    jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return ja, jb
+
+
+def compose_many(a: Pose, b: np.ndarray) -> np.ndarray:
+    """a ⊕ b[i] for an (N, 3) array b (vectorised)."""
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(a[2]), np.sin(a[2])
+    out = np.empty_like(b)
+    out[:, 0] = a[0] + c * b[:, 0] - s * b[:, 1]
+    out[:, 1] = a[1] + s * b[:, 0] + c * b[:, 1]
+    out[:, 2] = wrap(a[2] + b[:, 2])
+    return out
+
+
+def to_matrix(p: Pose) -> np.ndarray:
+    """3×3 homogeneous matrix of an SE(2) pose."""
+    c, s = np.cos(p[2]), np.sin(p[2])
+    return np.array([[c, -s, p[0]], [s, c, p[1]], [0.0, 0.0, 1.0]])
+
+
+def from_matrix(m: np.ndarray) -> np.ndarray:
+    """(x, y, theta) of a 3×3 SE(2) or 4×4 SE(3) matrix (the latter projected to the plane)."""
+    m = np.asarray(m)
+    if m.shape == (4, 4):
+        return np.array([m[0, 3], m[1, 3], np.arctan2(m[1, 0], m[0, 0])])
+    return np.array([m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0])])
+
+
+def to_matrix4(p: Pose) -> np.ndarray:
+    """4×4 SE(3) matrix of a planar pose (z = 0, rotation about z)."""
+    c, s = np.cos(p[2]), np.sin(p[2])
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[0, 3], m[1, 3] = p[0], p[1]
+    return m
+
+
+def tangent_cov(pose: Pose, cov_vec: np.ndarray) -> np.ndarray:
+    """Covariance of additive (x, y, theta) errors -> GTSAM Pose2 tangent (body-frame) covariance."""
+    a = np.eye(3)
+    a[:2, :2] = rot(pose[2]).T
+    return a @ cov_vec @ a.T
+
+
+def vector_cov(pose: Pose, cov_tangent: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`tangent_cov`: body-frame covariance -> additive (x, y, theta) covariance."""
+    a = np.eye(3)
+    a[:2, :2] = rot(pose[2])
+    return a @ cov_tangent @ a.T
+
+
+def wheel_increment(odom_prev: Pose, odom_curr: Pose) -> np.ndarray:
+    """u_t: base_link motion between two wheel-odometry poses, in the previous base_link frame."""
+    return between(np.asarray(odom_prev, float), np.asarray(odom_curr, float))
+
+
+def wheel_noise(
+    u: Pose,
+    dist_frac: float = 0.02,
+    rot_per_m: float = np.deg2rad(1.0),
+    rot_frac: float = 0.02,
+    floor_xy: float = 0.002,
+    floor_theta: float = np.deg2rad(0.1),
+) -> np.ndarray:
+    """3×3 covariance of a wheel increment u (in its own start frame).
+
+    Translation: sigma = dist_frac · d along and across the motion (isotropic, so slip sideways is
+    covered); heading: sigma = rot_per_m · d + rot_frac · |dtheta|; both floored.
+    """
+    d = float(np.hypot(u[0], u[1]))
+    sxy = max(dist_frac * d, floor_xy)
+    sth = max(rot_per_m * d + rot_frac * abs(float(u[2])), floor_theta)
+    return np.diag([sxy * sxy, sxy * sxy, sth * sth])
+
+
+def constant_velocity(last_increment: Pose, dt_last: float, dt: float) -> np.ndarray:
+    """Predicted increment for a step of dt seconds when the previous one took dt_last seconds."""
+    if dt_last <= 0.0 or not np.isfinite(dt_last):
+        return np.zeros(3)
+    k = float(np.clip(dt / dt_last, 0.0, 20.0))
+    # exact for constant twist: scale the twist, not the pose components
+    v = _log(last_increment) * k
+    return _exp(v)
+
+
+def constant_velocity_noise(dt: float, sigma_xy_per_s: float, sigma_theta_per_s: float) -> np.ndarray:
+    dt = max(float(dt), 1e-3)
+    return np.diag([(sigma_xy_per_s * dt) ** 2] * 2 + [(sigma_theta_per_s * dt) ** 2])
+
+
+def _log(p: Pose) -> np.ndarray:
+    th = float(p[2])
+    if abs(th) < 1e-9:
+        return np.array([p[0], p[1], th])
+    half = 0.5 * th
+    a = half * np.sin(th) / (1.0 - np.cos(th))
+    vinv = np.array([[a, half], [-half, a]])
+    return np.array([*(vinv @ np.asarray(p[:2])), th])
+
+
+def _exp(v: np.ndarray) -> np.ndarray:
+    th = float(v[2])
+    if abs(th) < 1e-9:
+        return np.array([v[0], v[1], th])
+    s, c = np.sin(th), np.cos(th)
+    vm = np.array([[s, -(1.0 - c)], [1.0 - c, s]]) / th
+    return np.array([*(vm @ np.asarray(v[:2])), wrap(th)])
+
+
+def g(u: Pose, x_prev: Pose) -> np.ndarray:
+    """The motion model's mean: x_t = x_{t-1} ⊕ u_t."""
+    return compose(x_prev, u)
+
+
+class _PoseEKF(ExtendedKalmanFilter):
+    """filterpy EKF whose state prediction is the SE(2) composition x ⊕ u (not F x + B u)."""
+
+    def predict_x(self, u: np.ndarray | int = 0) -> None:
+        self.x = compose(self.x[:, 0], np.asarray(u, dtype=np.float64)).reshape(3, 1)
+
+
+class MotionEKF:
+    """EKF on the pose of base_link relative to the last keyframe (state (3,), covariance (3, 3)).
+
+    ``predict(u, cov_u)`` applies g; ``update(z, R)`` fuses a measurement of the same relative
+    pose (KISS-ICP), with an angle-wrapping residual; ``reset()`` starts a new keyframe.
+    """
+
+    def __init__(self) -> None:
+        self._kf = _PoseEKF(dim_x=3, dim_z=3)
+        self.reset()
+
+    def reset(self) -> None:
+        self._kf.x = np.zeros((3, 1))
+        self._kf.P = np.zeros((3, 3))
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._kf.x[:, 0].copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._kf.P.copy()
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._kf.x.copy(), self._kf.P.copy()
+
+    def restore(self, snap: tuple[np.ndarray, np.ndarray]) -> None:
+        self._kf.x, self._kf.P = snap[0].copy(), snap[1].copy()
+
+    def set_state(self, x: Pose, P: np.ndarray) -> None:
+        self._kf.x = np.asarray(x, float).reshape(3, 1).copy()
+        self._kf.P = np.asarray(P, float).reshape(3, 3).copy()
+
+    def predict(self, u: Pose, cov_u: np.ndarray) -> None:
+        """x ← g(u, x); P ← F P Fᵀ + G Σ_u Gᵀ."""
+        x = self._kf.x[:, 0]
+        fa, gb = compose_jacobians(x, u)
+        self._kf.F = fa
+        self._kf.Q = gb @ cov_u @ gb.T
+        self._kf.predict(u=np.asarray(u, dtype=np.float64))
+
+    def innovation(self, z: Pose, R: np.ndarray) -> tuple[np.ndarray, float]:
+        """Residual z - x (angle wrapped) and its squared Mahalanobis distance under P + R."""
+        y = _residual(np.asarray(z, float).reshape(3, 1), self._kf.x)[:, 0]
+        S = self._kf.P + R
+        return y, float(y @ np.linalg.solve(S, y))
+
+    def update(self, z: Pose, R: np.ndarray) -> None:
+        """Fuse a direct measurement z of the relative pose with covariance R (H = I)."""
+        self._kf.update(
+            np.asarray(z, float).reshape(3, 1),
+            HJacobian=_identity_jacobian,
+            Hx=_identity,
+            R=np.asarray(R, float),
+            residual=_residual,
+        )
+        self._kf.x[2, 0] = wrap(self._kf.x[2, 0])
+
+    def relative(self) -> tuple[np.ndarray, np.ndarray]:
+        """Fused relative pose since the keyframe and its covariance in GTSAM's tangent convention."""
+        x = self.x
+        cov = tangent_cov(x, 0.5 * (self._kf.P + self._kf.P.T))
+        return x, cov
+
+
+def _identity(x: np.ndarray) -> np.ndarray:
+    return x
+
+
+def _identity_jacobian(x: np.ndarray) -> np.ndarray:
+    return np.eye(3)
+
+
+def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    y = a - b
+    y[2, 0] = wrap(y[2, 0])
+    return y
