@@ -1,0 +1,269 @@
+"""2D occupancy grid in the ROS map_server / nav_msgs/OccupancyGrid convention.
+
+``data`` is int8 (H, W): -1 unknown, 0 free, 100 occupied (values in between are occupancy
+probabilities in percent). Row 0 is the *lowest* y (as in nav_msgs), so the image written to
+disk is flipped vertically. ``origin`` = (x, y, yaw) of the lower-left corner of cell (0, 0) in
+the ``map`` frame; ``resolution`` in metres per cell.
+
+Files follow map_server: a YAML (``image``, ``resolution``, ``origin``, ``negate``,
+``occupied_thresh``, ``free_thresh``, optional ``mode``: trinary | scale | raw) and a PGM/PNG
+image. Loading applies map_server's rules (p = (255 - v) / 255, or v / 255 when negated;
+p > occupied_thresh -> occupied, p < free_thresh -> free, otherwise unknown).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from frslam_graph.errors import MapError
+from frslam_graph.raster import RasterFrame
+
+UNKNOWN, FREE, OCCUPIED = -1, 0, 100
+
+
+@dataclass(frozen=True, eq=False)
+class OccupancyGrid:
+    """Occupancy grid: int8 ``data`` (H, W), ``resolution`` m/cell, ``origin`` (x, y, yaw)."""
+
+    data: np.ndarray
+    resolution: float
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        data = np.asarray(self.data)
+        if data.ndim != 2 or data.shape[0] == 0 or data.shape[1] == 0:
+            raise MapError(f"data must be a non-empty 2D array, got shape {data.shape}", self.source, "data")
+        if data.dtype != np.int8:
+            if not np.all((data >= -1) & (data <= 100)):
+                raise MapError("cell values must be -1 (unknown) or 0..100", self.source, "data")
+            data = data.astype(np.int8)
+        object.__setattr__(self, "data", data)
+        res = self.resolution
+        if isinstance(res, bool) or not isinstance(res, int | float) or not math.isfinite(res) or res <= 0:
+            raise MapError(
+                f"must be a positive number of metres per cell, got {res!r}", self.source, "resolution"
+            )
+        object.__setattr__(self, "resolution", float(res))
+        origin = tuple(float(v) for v in self.origin)
+        if len(origin) == 2:
+            origin = (*origin, 0.0)
+        if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
+            raise MapError(f"must be [x, y, yaw] finite numbers, got {self.origin!r}", self.source, "origin")
+        object.__setattr__(self, "origin", origin)
+
+    # ------------------------------------------------------------------ shape & masks
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    def free_mask(self) -> np.ndarray:
+        """Bool (H, W): known free cells (value 0..49)."""
+        return (self.data >= 0) & (self.data < 50)
+
+    def occupied_mask(self) -> np.ndarray:
+        """Bool (H, W): occupied cells (value >= 50)."""
+        return self.data >= 50
+
+    def unknown_mask(self) -> np.ndarray:
+        return self.data < 0
+
+    @property
+    def frame(self) -> RasterFrame:
+        """The grid's pixel frame (ignores yaw; see :meth:`map_from_grid` for the full transform)."""
+        return RasterFrame(self.resolution, (self.origin[0], self.origin[1]), self.shape)
+
+    def map_from_grid(self) -> np.ndarray:
+        """3×3 transform from the grid's unrotated frame (origin at cell (0,0) corner) to ``map``."""
+        x, y, yaw = self.origin
+        c, s = math.cos(yaw), math.sin(yaw)
+        return np.array([[c, -s, x], [s, c, y], [0, 0, 1.0]])
+
+    def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) map coordinates -> (N, 2) continuous cell coordinates (col, row); centres at +0.5."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        x, y, yaw = self.origin
+        d = xy - (x, y)
+        if yaw != 0.0:
+            c, s = math.cos(yaw), math.sin(yaw)
+            d = d @ np.array([[c, -s], [s, c]])  # rotate by -yaw
+        return d / self.resolution
+
+    def cell_to_world(self, colrow: np.ndarray) -> np.ndarray:
+        """(N, 2) continuous cell coordinates (col, row) -> map coordinates."""
+        colrow = np.asarray(colrow, dtype=np.float64).reshape(-1, 2)
+        d = colrow * self.resolution
+        x, y, yaw = self.origin
+        if yaw != 0.0:
+            c, s = math.cos(yaw), math.sin(yaw)
+            d = d @ np.array([[c, s], [-s, c]])  # rotate by +yaw
+        return d + (x, y)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_masks(
+        cls,
+        free: np.ndarray,
+        occupied: np.ndarray,
+        resolution: float,
+        origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> OccupancyGrid:
+        """Grid from bool masks (row 0 = lowest y); occupied wins over free; the rest unknown."""
+        data = np.full(np.shape(free), UNKNOWN, np.int8)
+        data[np.asarray(free, bool)] = FREE
+        data[np.asarray(occupied, bool)] = OCCUPIED
+        return cls(data, resolution, origin)
+
+    def crop_to_known(self, margin_cells: int = 2) -> OccupancyGrid:
+        """The smallest sub-grid holding every known cell, plus a margin (origin adjusted)."""
+        known = ~self.unknown_mask()
+        if not known.any():
+            return self
+        rows = np.flatnonzero(known.any(axis=1))
+        cols = np.flatnonzero(known.any(axis=0))
+        r0, r1 = max(0, rows[0] - margin_cells), min(self.height, rows[-1] + 1 + margin_cells)
+        c0, c1 = max(0, cols[0] - margin_cells), min(self.width, cols[-1] + 1 + margin_cells)
+        corner = self.cell_to_world(np.array([[c0, r0]]))[0]
+        return OccupancyGrid(
+            self.data[r0:r1, c0:c1].copy(),
+            self.resolution,
+            (corner[0], corner[1], self.origin[2]),
+            self.source,
+        )
+
+    # ------------------------------------------------------------------ files
+    @classmethod
+    def load(cls, yaml_path: str | Path) -> OccupancyGrid:
+        """Read a map_server YAML and its image."""
+        yaml_path = Path(yaml_path)
+        src = str(yaml_path)
+        if not yaml_path.is_file():
+            raise MapError("map YAML not found" if not yaml_path.exists() else "expected a file", src)
+        try:
+            text = yaml_path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise MapError(f"cannot read as text ({exc})", src) from None
+        if not text.strip():
+            raise MapError("file is empty (expected a map_server YAML with image, resolution, origin)", src)
+        try:
+            meta = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f"line {mark.line + 1}" if mark is not None else None
+            raise MapError(f"malformed YAML ({getattr(exc, 'problem', exc)})", src, where) from None
+        if not isinstance(meta, dict):
+            raise MapError("expected a YAML mapping with image, resolution, origin", src)
+        for key in ("image", "resolution", "origin"):
+            if key not in meta:
+                raise MapError("missing required field", src, key)
+        resolution = _number(meta["resolution"], src, "resolution", positive=True)
+        origin = meta["origin"]
+        if not isinstance(origin, list | tuple) or len(origin) not in (2, 3):
+            raise MapError(f"expected [x, y, yaw], got {origin!r}", src, "origin")
+        origin = tuple(_number(v, src, f"origin[{i}]") for i, v in enumerate(origin))
+        negate = int(_number(meta.get("negate", 0), src, "negate"))
+        occ_t = _number(meta.get("occupied_thresh", 0.65), src, "occupied_thresh")
+        free_t = _number(meta.get("free_thresh", 0.196), src, "free_thresh")
+        if not (0.0 <= free_t <= occ_t <= 1.0):
+            raise MapError(
+                f"need 0 <= free_thresh ({free_t}) <= occupied_thresh ({occ_t}) <= 1", src, "free_thresh"
+            )
+        mode = str(meta.get("mode", "trinary"))
+        if mode not in ("trinary", "scale", "raw"):
+            raise MapError(f"unknown mode {mode!r} (expected trinary, scale or raw)", src, "mode")
+        image_path = Path(str(meta["image"]))
+        if not image_path.is_absolute():
+            image_path = yaml_path.parent / image_path
+        img = _read_image(image_path, src)
+        data = _image_to_occupancy(img, negate, occ_t, free_t, mode)
+        return cls(np.flipud(data).copy(), resolution, origin, src)
+
+    def save(self, yaml_path: str | Path, image_format: str = "pgm") -> Path:
+        """Write a trinary map_server map: ``<name>.yaml`` + ``<name>.pgm`` (0 occupied, 254 free,
+        205 unknown), as ROS map_saver does. Returns the YAML path."""
+        yaml_path = Path(yaml_path)
+        if image_format not in ("pgm", "png"):
+            raise ValueError(f"image_format must be 'pgm' or 'png', got {image_format!r}")
+        yaml_path.parent.mkdir(parents=True, exist_ok=True)
+        image_path = yaml_path.with_suffix(f".{image_format}")
+        img = np.full(self.shape, 205, np.uint8)
+        img[self.free_mask()] = 254
+        img[self.occupied_mask()] = 0
+        if not cv2.imwrite(str(image_path), np.flipud(img)):
+            raise MapError("could not write the map image", str(image_path))
+        meta: dict[str, Any] = {
+            "image": image_path.name,
+            "resolution": float(self.resolution),
+            "origin": [float(v) for v in self.origin],
+            "negate": 0,
+            "occupied_thresh": 0.65,
+            "free_thresh": 0.196,
+            "mode": "trinary",
+        }
+        yaml_path.write_text(yaml.safe_dump(meta, sort_keys=False))
+        return yaml_path
+
+    def __repr__(self) -> str:
+        counts = f"free={int(self.free_mask().sum())} occ={int(self.occupied_mask().sum())}"
+        return f"OccupancyGrid({self.height}x{self.width}, res={self.resolution} m, origin={self.origin}, {counts})"
+
+
+def _number(value: Any, src: str, field: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise MapError(f"expected a finite number, got {value!r}", src, field)
+    if positive and value <= 0:
+        raise MapError(f"expected a positive number, got {value!r}", src, field)
+    return float(value)
+
+
+def _read_image(path: Path, src: str) -> np.ndarray:
+    if not path.is_file():
+        raise MapError(f"the YAML's image {str(path)!r} does not exist", src, "image")
+    if path.stat().st_size == 0:
+        raise MapError(f"the image {str(path)!r} is an empty file", src, "image")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise MapError(f"{str(path)!r} is not a readable image (expected PGM or PNG)", src, "image")
+    if img.ndim == 3:
+        if img.shape[2] == 4:  # map_server: alpha ignored in trinary mode, colour averaged
+            img = img[:, :, :3]
+        img = img.mean(axis=2)
+    if img.dtype == np.uint16:
+        img = img / 257.0
+    return img.astype(np.float64)
+
+
+def _image_to_occupancy(img: np.ndarray, negate: int, occ_t: float, free_t: float, mode: str) -> np.ndarray:
+    if mode == "raw":
+        out = np.clip(img, 0, 255)
+        out = np.where(out > 100, -1, out)
+        return out.astype(np.int8)
+    p = img / 255.0 if negate else (255.0 - img) / 255.0
+    data = np.full(img.shape, UNKNOWN, np.int8)
+    if mode == "trinary":
+        data[p > occ_t] = OCCUPIED
+        data[p < free_t] = FREE
+    else:  # scale
+        mid = (p >= free_t) & (p <= occ_t)
+        data[p > occ_t] = OCCUPIED
+        data[p < free_t] = FREE
+        scaled = np.round(99.0 * (p - free_t) / max(occ_t - free_t, 1e-9)).astype(np.int16)
+        data[mid] = np.clip(scaled[mid], 0, 100).astype(np.int8)
+        # map_server scale mode: intermediate values are probabilities; 205-grey stays unknown
+        data[img == 205] = UNKNOWN
+    return data
