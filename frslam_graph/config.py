@@ -55,9 +55,9 @@ class OdometryConfig(_Section):
     # ICP noise model: point-to-line residual sigma (m) -> covariance from the scan's Hessian,
     # inflated by ``icp_cov_inflation`` and floored by the sigma floors below.
     icp_sigma: float = Field(0.03, gt=0.0)
-    icp_cov_inflation: float = Field(4.0, ge=1.0)
-    icp_sigma_floor_xy: float = Field(0.005, gt=0.0)
-    icp_sigma_floor_theta_deg: float = Field(0.1, gt=0.0)
+    icp_cov_inflation: float = Field(1.0, ge=1.0)
+    icp_sigma_floor_xy: float = Field(0.001, gt=0.0)
+    icp_sigma_floor_theta_deg: float = Field(0.01, gt=0.0)
     # Degeneracy: smallest / largest eigenvalue of the summed point normals' outer products.
     degeneracy_threshold: float = Field(0.04, gt=0.0, lt=0.5)
     degenerate_sigma: float = Field(10.0, gt=0.0)  # ICP sigma (m) along a degenerate axis
@@ -67,7 +67,9 @@ class OdometryConfig(_Section):
     wheel_rot_per_m_deg: float = Field(1.0, ge=0.0)
     wheel_rot_frac: float = Field(0.02, ge=0.0)
     wheel_sigma_floor_xy: float = Field(0.002, gt=0.0)
-    wheel_sigma_floor_theta_deg: float = Field(0.1, gt=0.0)
+    # Per-step heading floor: wheel heading errors are systematic (not white), so a generous floor
+    # keeps ICP in charge of the heading wherever the scan observes it.
+    wheel_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
     # Constant-velocity prediction (no wheel odometry): per-second random-walk sigmas.
     cv_sigma_xy_per_s: float = Field(0.5, gt=0.0)
     cv_sigma_theta_deg_per_s: float = Field(30.0, gt=0.0)

@@ -5,8 +5,9 @@ A :class:`RasterFrame` ties pixels to a metric (or plan-unit) frame exactly like
 ``y in [y0 + r*res, y0 + (r+1)*res)``: row 0 is the *lowest* y. Pixel centres are at
 ``(c + 0.5, r + 0.5)`` in continuous pixel coordinates returned by :meth:`RasterFrame.to_pixel`.
 
-Polygons are filled with ``cv2.fillPoly`` at sub-pixel precision (8 fractional bits) after a
-half-pixel inset, so a pixel is filled when its centre lies inside: areas are unbiased.
+Polygons are filled by a vectorised scanline (winding numbers at pixel centres): a pixel is
+inside exactly when its centre is, at any sub-pixel position, so areas are unbiased and masks
+change smoothly with the transform (which registration refinement relies on).
 """
 
 from __future__ import annotations
@@ -14,13 +15,10 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import shapely
+import shapely.geometry.polygon
 from shapely.geometry import MultiPolygon, Polygon
-
-_SHIFT = 8  # fractional bits for cv2.fillPoly
-_SCALE = float(1 << _SHIFT)
 
 
 @dataclass(frozen=True)
@@ -91,45 +89,57 @@ class RasterFrame:
         return RasterFrame(self.resolution * factor, self.origin, (h, w))
 
 
-def _pixel_geometries(polygons: Iterable, m: np.ndarray) -> list:
-    """Polygons mapped to continuous pixel coordinates and inset by half a pixel.
-
-    ``cv2.fillPoly`` fills every pixel a polygon touches; insetting by 0.5 px first makes the
-    result (almost exactly) the set of pixels whose *centre* lies inside the polygon, so filled
-    areas are unbiased (a 2 m² room at 0.05 m/px would otherwise gain about 15 %).
-    """
-    geoms = [
-        Polygon(np.asarray(p, dtype=np.float64).reshape(-1, 2)) if isinstance(p, np.ndarray) else p
-        for p in polygons
-    ]
-    if not geoms:
-        return []
-    arr = np.asarray(geoms, dtype=object)
-    a = m[:2, :2]
-    t = m[:2, 2]
-    arr = shapely.transform(arr, lambda xy: xy @ a.T + t)
-    return list(shapely.buffer(arr, -0.5, join_style="mitre", mitre_limit=4.0))
-
-
-def _rings(geom) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Exterior and hole rings of a (Multi)Polygon in cv2 fixed-point pixel coordinates."""
+def _oriented_rings(geom, m: np.ndarray) -> list[np.ndarray]:
+    """Rings of a (Multi)Polygon / (N, 2) array in continuous pixel coordinates, exterior
+    counter-clockwise and holes clockwise, so that winding numbers add up correctly."""
+    if isinstance(geom, np.ndarray):
+        geom = Polygon(np.asarray(geom, dtype=np.float64).reshape(-1, 2))
     if geom is None or geom.is_empty:
-        return [], []
+        return []
     if isinstance(geom, MultiPolygon):
-        ext, holes = [], []
-        for g in geom.geoms:
-            e, h = _rings(g)
-            ext += e
-            holes += h
-        return ext, holes
+        return [r for g in geom.geoms for r in _oriented_rings(g, m)]
     if not isinstance(geom, Polygon):
-        return [], []
+        return []
+    geom = shapely.geometry.polygon.orient(geom, sign=1.0)
+    a, t = m[:2, :2], m[:2, 2]
+    rings = [np.asarray(geom.exterior.coords)[:, :2]] + [np.asarray(h.coords)[:, :2] for h in geom.interiors]
+    out = [r @ a.T + t for r in rings]
+    if np.linalg.det(a) < 0:  # a reflection reverses orientation: restore exterior CCW
+        out = [r[::-1] for r in out]
+    return out
 
-    def fixed(coords) -> np.ndarray:
-        # pixel centre (c + 0.5) sits on cv2's integer coordinate c
-        return np.round((np.asarray(coords)[:, :2] - 0.5) * _SCALE).astype(np.int32).reshape(-1, 1, 2)
 
-    return [fixed(geom.exterior.coords)], [fixed(h.coords) for h in geom.interiors]
+def _winding(rings: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """Winding number at every pixel centre (exact pixel-centre rule, vectorised scanline).
+
+    Each edge crossing the horizontal line through row r's centres (y = r + 0.5, half-open in y)
+    adds ±1 (by its direction) at the first column whose centre lies right of the crossing; a
+    cumulative sum along the row gives the winding number at each centre.
+    """
+    h, w = shape
+    if not rings:
+        return np.zeros(shape, np.int32)
+    p0 = np.concatenate([r[:-1] for r in rings])
+    p1 = np.concatenate([r[1:] for r in rings])
+    ylo, yhi = np.minimum(p0[:, 1], p1[:, 1]), np.maximum(p0[:, 1], p1[:, 1])
+    r_start = np.clip(np.ceil(ylo - 0.5), 0, h).astype(np.int64)
+    r_end = np.clip(np.ceil(yhi - 0.5), 0, h).astype(np.int64)
+    counts = r_end - r_start
+    keep = counts > 0
+    if not keep.any():
+        return np.zeros(shape, np.int32)
+    p0, p1, r_start, counts = p0[keep], p1[keep], r_start[keep], counts[keep]
+    edge = np.repeat(np.arange(len(counts)), counts)
+    offsets = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts)
+    rows = r_start[edge] + offsets
+    yc = rows + 0.5
+    x0, y0 = p0[edge, 0], p0[edge, 1]
+    dx, dy = p1[edge, 0] - x0, p1[edge, 1] - y0
+    x = x0 + (yc - y0) * dx / dy
+    cols = np.clip(np.ceil(x - 0.5), 0, w).astype(np.int64)
+    direction = np.where(dy > 0, 1, -1)
+    delta = np.bincount(rows * (w + 1) + cols, weights=direction, minlength=h * (w + 1))
+    return np.cumsum(delta.reshape(h, w + 1)[:, :w], axis=1).astype(np.int32)
 
 
 def rasterise_polygons(
@@ -147,30 +157,14 @@ def rasterise_polygons(
     m = frame.pixel_matrix()
     if transform is not None:
         m = m @ np.asarray(transform, dtype=np.float64)
-    geoms = _pixel_geometries(polygons, m)
+    polygons = list(polygons)
     if values is None:
-        img = np.zeros(frame.shape, np.uint8)
-        exts, holes = [], []
-        for g in geoms:
-            e, h = _rings(g)
-            exts += e
-            holes += h
-        if exts:
-            cv2.fillPoly(img, exts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        if holes:
-            cv2.fillPoly(img, holes, 0, lineType=cv2.LINE_8, shift=_SHIFT)
-        return img
+        rings = [r for p in polygons for r in _oriented_rings(p, m)]
+        return (_winding(rings, frame.shape) != 0).astype(np.uint8)
     img = np.zeros(frame.shape, np.int32)
-    mask = np.zeros(frame.shape, np.uint8)
-    for g, value in zip(geoms, values, strict=True):
-        e, h = _rings(g)
-        if not e:
-            continue
-        mask[:] = 0
-        cv2.fillPoly(mask, e, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        if h:
-            cv2.fillPoly(mask, h, 0, lineType=cv2.LINE_8, shift=_SHIFT)
-        img[mask.astype(bool)] = int(value)
+    for poly, value in zip(polygons, values, strict=True):
+        inside = _winding(_oriented_rings(poly, m), frame.shape) != 0
+        img[inside] = int(value)
     return img
 
 

@@ -1,0 +1,414 @@
+"""Scan odometry: KISS-ICP on planar scans, fused with wheel odometry through the motion model.
+
+Frames (REP-105): every pose here is ``base_link`` in ``odom`` (metres, radians). ``odom`` starts
+at the first scan's wheel-odometry pose (or at the origin without wheel odometry) and is
+continuous: it never jumps. Input points are planar, in ``base_link`` (the caller applies the
+laser's mounting offset).
+
+Per scan: the wheel increment u_t (or a constant-velocity guess) seeds KISS-ICP through
+``last_delta``; the ICP pose relative to the last keyframe is fused with u_t in
+:class:`~frslam_graph.motion_model.MotionEKF`. The ICP covariance comes from the point-to-line
+Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by a residual sigma;
+when the normals span only one direction (a featureless corridor) the scan is *degenerate*: the
+covariance is inflated along the corridor axis so the motion model carries that direction.
+Scans without enough valid points (all-NaN) fall back to the motion model. Wheel increments that
+are physically impossible or disagree with ICP beyond a Mahalanobis gate are *odometry jumps*:
+ICP is trusted. Stamp gaps larger than ``gap_factor`` nominal periods count as dropped scans.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from frslam_graph.config import OdometryConfig
+from frslam_graph.errors import RecordingError
+from frslam_graph.motion_model import (
+    MotionEKF,
+    between,
+    compose,
+    constant_velocity,
+    constant_velocity_noise,
+    from_matrix,
+    to_matrix4,
+    vector_cov,
+    wheel_increment,
+    wheel_noise,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryResult:
+    """Odometry of one scan.
+
+    ``pose``: base_link in odom. ``keyframe``: index of the keyframe this scan hangs from (its own
+    index when ``is_keyframe``). ``relative``: pose relative to that keyframe (zero for a keyframe).
+    For a keyframe after the first, ``between`` / ``covariance`` are the fused motion from the
+    previous keyframe and its 3×3 covariance in GTSAM's Pose2 tangent convention; otherwise
+    ``between`` is None and ``covariance`` the covariance of ``relative``.
+    """
+
+    stamp: float
+    pose: np.ndarray
+    keyframe: int
+    is_keyframe: bool
+    relative: np.ndarray
+    between: np.ndarray | None
+    covariance: np.ndarray
+    degenerate: bool = False
+    degenerate_axis: np.ndarray | None = None  # unit vector in base_link
+    fallback: bool = False
+    odom_jump: bool = False
+    dropped: int = 0
+    n_points: int = 0
+
+
+@dataclass(slots=True)
+class OdometryStats:
+    """Counters of everything unusual the odometry handled."""
+
+    scans: int = 0
+    keyframes: int = 0
+    empty_scans: int = 0
+    fallbacks: int = 0
+    degenerate_scans: int = 0
+    odom_jumps: int = 0
+    dropped_scans: int = 0
+    gaps: int = 0
+    out_of_order: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class ScanGeometry:
+    """Point-to-line information of a scan: 3×3 Hessian (per sigma²), normal eigen-analysis."""
+
+    hessian: np.ndarray
+    n_normals: int
+    eig_ratio: float  # smallest / largest eigenvalue of sum(n nᵀ)
+    weak_axis: np.ndarray  # unit vector of the smallest eigenvalue
+
+
+def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) -> ScanGeometry:
+    """Normals from beam-ordered points and the point-to-line Hessian of a planar registration.
+
+    Normals are perpendicular to p[i+k] - p[i-k] where both neighbours are close (continuous
+    surface); points are thinned to one per voxel so the information does not grow with the beam
+    count. Row i of the Jacobian is [n_x, n_y, n_y p_x - n_x p_y].
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    k = int(neighbours)
+    if len(pts) < 2 * k + 3:
+        return ScanGeometry(np.zeros((3, 3)), 0, 0.0, np.array([1.0, 0.0]))
+    prev, nxt, mid = pts[: -2 * k], pts[2 * k :], pts[k:-k]
+    t = nxt - prev
+    tl = np.hypot(t[:, 0], t[:, 1])
+    # continuity: both neighbours close to the point (scaled with range for grazing walls)
+    rng = np.hypot(mid[:, 0], mid[:, 1])
+    max_gap = np.maximum(4.0 * voxel_size, 0.05 * rng) * k
+    d1 = np.hypot(*(mid - prev).T)
+    d2 = np.hypot(*(nxt - mid).T)
+    ok = (tl > 1e-6) & (d1 < max_gap) & (d2 < max_gap)
+    # collinearity: the middle point lies near the chord
+    n = np.column_stack((-t[:, 1], t[:, 0])) / np.maximum(tl, 1e-12)[:, None]
+    off = np.abs(np.einsum("ij,ij->i", mid - prev, n))
+    ok &= off < np.maximum(0.5 * voxel_size, 0.01 * rng)
+    if not np.any(ok):
+        return ScanGeometry(np.zeros((3, 3)), 0, 0.0, np.array([1.0, 0.0]))
+    p, n = mid[ok], n[ok]
+    # one point per voxel
+    cells = np.floor(p / voxel_size).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    p, n = p[first], n[first]
+    J = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]))
+    H = J.T @ J
+    w, v = np.linalg.eigh(H[:2, :2])
+    ratio = float(w[0] / w[1]) if w[1] > 1e-12 else 0.0
+    return ScanGeometry(H, len(p), max(ratio, 0.0), v[:, 0])
+
+
+class ScanOdometry:
+    """KISS-ICP odometry of planar scans fused with wheel odometry; keyframe selection.
+
+    ``process(stamp, points, odom=None)`` takes (M, 2) points in base_link and the wheel pose
+    (x, y, theta) in the wheel-odometry frame (or None); returns an :class:`OdometryResult`, or
+    None for a scan whose stamp is not after the previous one (counted in ``stats.out_of_order``).
+    """
+
+    def __init__(self, config: OdometryConfig | None = None):
+        from kiss_icp.config import KISSConfig
+        from kiss_icp.config.config import (
+            AdaptiveThresholdConfig,
+            DataConfig,
+            MappingConfig,
+            RegistrationConfig,
+        )
+        from kiss_icp.kiss_icp import KissICP
+
+        self.config = cfg = config or OdometryConfig()
+        # every field explicit so that KISS_ICP_* environment variables cannot change behaviour
+        kcfg = KISSConfig(
+            out_dir=os.devnull,
+            data=DataConfig(max_range=cfg.max_range, min_range=cfg.min_range, deskew=False),
+            mapping=MappingConfig(voxel_size=cfg.voxel_size, max_points_per_voxel=cfg.max_points_per_voxel),
+            registration=RegistrationConfig(
+                max_num_iterations=cfg.max_iterations,
+                convergence_criterion=cfg.convergence_criterion,
+                max_num_threads=cfg.num_threads,
+            ),
+            adaptive_threshold=AdaptiveThresholdConfig(
+                fixed_threshold=cfg.fixed_threshold,
+                initial_threshold=cfg.initial_threshold,
+                min_motion_th=cfg.min_motion,
+            ),
+        )
+        self._icp = KissICP(kcfg)
+        self._ekf = MotionEKF()
+        self.stats = OdometryStats()
+        self._empty_ts = np.zeros(0)
+        self._kf_dist = cfg.keyframe_distance
+        self._kf_angle = np.deg2rad(cfg.keyframe_angle_deg)
+        self._wheel_args = dict(
+            dist_frac=cfg.wheel_dist_frac,
+            rot_per_m=np.deg2rad(cfg.wheel_rot_per_m_deg),
+            rot_frac=cfg.wheel_rot_frac,
+            floor_xy=cfg.wheel_sigma_floor_xy,
+            floor_theta=np.deg2rad(cfg.wheel_sigma_floor_theta_deg),
+        )
+        self._floor = np.diag(
+            [cfg.icp_sigma_floor_xy**2] * 2 + [np.deg2rad(cfg.icp_sigma_floor_theta_deg) ** 2]
+        )
+        # state
+        self._stamp: float | None = None
+        self._dt_hist: list[float] = []
+        self._last_dt = 0.0
+        self._last_increment = np.zeros(3)
+        self._prev_wheel: np.ndarray | None = None
+        self._prev_rel = np.zeros(3)  # fused pose relative to keyframe at the previous scan
+        self._kf_index = -1
+        self._kf_pose = np.zeros(3)  # keyframe pose in odom (fused chain)
+        self._kf_icp = np.zeros(3)  # keyframe pose in KISS-ICP's frame
+
+    # ------------------------------------------------------------------ public
+    @property
+    def pose(self) -> np.ndarray:
+        """Current base_link pose in odom."""
+        return compose(self._kf_pose, self._ekf.x)
+
+    @property
+    def keyframe_index(self) -> int:
+        return self._kf_index
+
+    def nominal_period(self) -> float:
+        """Median of recent scan periods (s); 0 before two scans."""
+        return float(np.median(self._dt_hist)) if self._dt_hist else 0.0
+
+    def process(
+        self, stamp: float, points: np.ndarray, odom: tuple[float, float, float] | None = None
+    ) -> OdometryResult | None:
+        cfg = self.config
+        stamp = float(stamp)
+        if not np.isfinite(stamp):
+            raise RecordingError(f"scan stamp must be a finite number, got {stamp!r}", where="stamp")
+        pts = _valid_points(points, cfg.min_range, cfg.max_range)
+        wheel = None
+        if odom is not None:
+            wheel = np.asarray(odom, dtype=np.float64).reshape(-1)
+            if wheel.shape != (3,):
+                raise RecordingError(f"odom must be (x, y, theta), got shape {wheel.shape}", where="odom")
+            if not np.all(np.isfinite(wheel)):
+                wheel = None
+        self.stats.scans += 1
+        if self._stamp is None:
+            return self._first(stamp, pts, wheel)
+        if stamp <= self._stamp:
+            self.stats.out_of_order += 1
+            self.stats.scans -= 1
+            return None
+        dt = stamp - self._stamp
+        dropped = self._count_gap(dt)
+        self._stamp = stamp
+
+        # --- prediction u_t, Σ_u (wheel odometry, or constant velocity)
+        cv_u = constant_velocity(self._last_increment, self._last_dt, dt)
+        cv_cov = constant_velocity_noise(dt, cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
+        u, cov_u, used_wheel, jump = cv_u, cv_cov, False, False
+        if wheel is not None and self._prev_wheel is not None:
+            uw = wheel_increment(self._prev_wheel, wheel)
+            if np.hypot(uw[0], uw[1]) > cfg.max_speed * dt + 0.05 or abs(uw[2]) > np.deg2rad(
+                cfg.max_turn_rate_deg
+            ) * dt + np.deg2rad(2.0):
+                jump = True
+            else:
+                u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args), True
+        if wheel is not None:
+            self._prev_wheel = wheel
+
+        snap = self._ekf.snapshot()
+        prev_rel = self._ekf.x
+        degenerate, fallback, axis = False, False, None
+        if len(pts) < cfg.min_points:
+            self.stats.empty_scans += 1
+            fallback = True
+            self._ekf.predict(u, cov_u)
+            self._resync_icp(u)
+            R_body = None
+        else:
+            self._icp.last_delta = to_matrix4(u)
+            self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
+            icp_pose = from_matrix(self._icp.last_pose)
+            z = between(self._kf_icp, icp_pose)
+            geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
+            R_body, degenerate, fallback, axis = self._icp_covariance(geo)
+            R = vector_cov(z, R_body)
+            self._ekf.predict(u, cov_u)
+            if used_wheel and not fallback:
+                y, m2 = self._ekf.innovation(z, R)
+                if (
+                    m2 > cfg.odom_jump_gate**2
+                    and (
+                        np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
+                        or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
+                    )
+                    and not degenerate
+                ):
+                    # wheel odometry inconsistent with ICP: trust ICP (constant-velocity prior)
+                    jump = True
+                    self._ekf.restore(snap)
+                    self._ekf.predict(cv_u, cv_cov)
+            self._ekf.update(z, R)
+            if degenerate or fallback:
+                # keep KISS-ICP on the fused estimate along the unobservable axis
+                self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
+        if jump:
+            self.stats.odom_jumps += 1
+        if degenerate:
+            self.stats.degenerate_scans += 1
+        if fallback:
+            self.stats.fallbacks += 1
+
+        rel = self._ekf.x
+        self._last_increment = between(prev_rel, rel)
+        self._last_dt = dt
+        is_kf = np.hypot(rel[0], rel[1]) >= self._kf_dist or abs(rel[2]) >= self._kf_angle
+        if is_kf:
+            return self._new_keyframe(stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, len(pts))
+        _, cov_t = self._ekf.relative()
+        return OdometryResult(
+            stamp,
+            compose(self._kf_pose, rel),
+            self._kf_index,
+            False,
+            rel,
+            None,
+            cov_t,
+            degenerate,
+            axis,
+            fallback,
+            jump,
+            dropped,
+            len(pts),
+        )
+
+    # ----------------------------------------------------------------- helpers
+    def _first(self, stamp: float, pts: np.ndarray, wheel: np.ndarray | None) -> OdometryResult:
+        self._stamp = stamp
+        self._prev_wheel = wheel
+        start = wheel.copy() if wheel is not None else np.zeros(3)
+        self._kf_pose = start
+        fallback = len(pts) < self.config.min_points
+        if fallback:
+            self.stats.empty_scans += 1
+            self.stats.fallbacks += 1
+        else:
+            self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
+        self._kf_icp = from_matrix(self._icp.last_pose)
+        self._kf_index = 0
+        self.stats.keyframes += 1
+        self._ekf.reset()
+        return OdometryResult(
+            stamp,
+            start.copy(),
+            0,
+            True,
+            np.zeros(3),
+            None,
+            np.zeros((3, 3)),
+            fallback=fallback,
+            n_points=len(pts),
+        )
+
+    def _count_gap(self, dt: float) -> int:
+        period = self.nominal_period()
+        dropped = 0
+        if period > 0.0 and dt > self.config.gap_factor * period:
+            dropped = max(int(round(dt / period)) - 1, 1)
+            self.stats.dropped_scans += dropped
+            self.stats.gaps += 1
+        else:
+            self._dt_hist.append(dt)
+            if len(self._dt_hist) > 50:
+                self._dt_hist.pop(0)
+        return dropped
+
+    def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:
+        """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
+        cfg = self.config
+        if geo.n_normals < 10:
+            big = np.diag([cfg.degenerate_sigma**2] * 2 + [np.pi**2])
+            return big, True, True, None
+        H = geo.hessian + 1e-9 * np.eye(3)
+        cov = np.linalg.inv(H) * (cfg.icp_sigma**2 * cfg.icp_cov_inflation)
+        cov = 0.5 * (cov + cov.T) + self._floor
+        degenerate = geo.eig_ratio < cfg.degeneracy_threshold
+        axis = None
+        if degenerate:
+            axis = geo.weak_axis / np.linalg.norm(geo.weak_axis)
+            a3 = np.array([axis[0], axis[1], 0.0])
+            cov = cov + cfg.degenerate_sigma**2 * np.outer(a3, a3)
+        # an ill-conditioned Hessian also gives a huge inverse along the axis; cap it
+        cov = np.minimum(cov, np.diag([cfg.degenerate_sigma**2] * 2 + [np.pi**2]).max())
+        return cov, degenerate, False, axis
+
+    def _resync_icp(self, u: np.ndarray) -> None:
+        self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
+        self._icp.last_delta = to_matrix4(u)
+
+    def _new_keyframe(self, stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, n_points):
+        between_pose, cov = self._ekf.relative()
+        self._kf_pose = compose(self._kf_pose, rel)
+        self._kf_icp = (
+            compose(self._kf_icp, rel) if (fallback or degenerate) else from_matrix(self._icp.last_pose)
+        )
+        self._kf_index += 1
+        self.stats.keyframes += 1
+        self._ekf.reset()
+        return OdometryResult(
+            stamp,
+            self._kf_pose.copy(),
+            self._kf_index,
+            True,
+            np.zeros(3),
+            between_pose,
+            cov,
+            degenerate,
+            axis,
+            fallback,
+            jump,
+            dropped,
+            n_points,
+        )
+
+
+def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 2:
+        raise RecordingError(f"scan points must be an (M, 2) array, got shape {pts.shape}", where="points")
+    pts = pts[:, :2]
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    ok = np.isfinite(r) & (r >= max(min_range, 1e-6)) & (r <= max_range)
+    return pts[ok]
+
+
+__all__ = ["OdometryResult", "OdometryStats", "ScanGeometry", "ScanOdometry", "scan_geometry"]

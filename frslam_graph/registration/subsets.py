@@ -1,0 +1,209 @@
+"""Connected room subsets of a floor plan, as bit masks, and their area moments.
+
+A robot's partial map covers a connected part of the house: the rooms it drove through. The
+candidate plan images are therefore the *connected* subsets of the room graph (rooms linked by a
+door, or by a shared wall where the plan has no door information), not just "living room plus a
+combination of bedrooms" as in the paper's Alg. 1. Subsets are ``uint64`` bit masks over
+``plan.rooms`` (bit i = room i), enumerated level by level (size 1, 2, ...) with numpy, so a
+12-room plan (at most 4,095 subsets) costs about a millisecond; larger plans are capped per level
+by a caller-supplied cost (beam search).
+
+Moments are in plan units: area ``m00``, first moments ``m10, m01`` and second moments
+``m20, m11, m02`` about the plan origin (Green's theorem on the polygon rings), and the axis-aligned
+bounding box, all per room, so the moments of any subset are a matrix product.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely.geometry import LineString, Polygon
+
+MAX_ROOMS = 64  # bit masks are uint64
+
+
+def ring_moments(xy: np.ndarray) -> np.ndarray:
+    """Signed (m00, m10, m01, m20, m11, m02) of a closed ring (N, 2) (last point may repeat the first)."""
+    x0, y0 = xy[:, 0], xy[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    c = x0 * y1 - x1 * y0
+    m00 = c.sum() / 2.0
+    m10 = ((x0 + x1) * c).sum() / 6.0
+    m01 = ((y0 + y1) * c).sum() / 6.0
+    m20 = ((x0 * x0 + x0 * x1 + x1 * x1) * c).sum() / 12.0
+    m02 = ((y0 * y0 + y0 * y1 + y1 * y1) * c).sum() / 12.0
+    m11 = ((x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0) * c).sum() / 24.0
+    return np.array([m00, m10, m01, m20, m11, m02])
+
+
+def polygon_moments(poly: Polygon, rotation: np.ndarray | None = None) -> np.ndarray:
+    """(m00, m10, m01, m20, m11, m02) of a polygon with holes, optionally after a 2×2 ``rotation``."""
+
+    def ring(coords) -> np.ndarray:
+        xy = np.asarray(coords, dtype=np.float64)
+        if rotation is not None:
+            xy = xy @ rotation.T
+        return ring_moments(xy)
+
+    m = ring(poly.exterior.coords)
+    m = m * np.sign(m[0]) if m[0] != 0 else m
+    for hole in poly.interiors:
+        h = ring(hole.coords)
+        m = m - (h * np.sign(h[0]) if h[0] != 0 else h)
+    return m
+
+
+def adjacency_masks(
+    rooms: list,
+    doors: list,
+    mode: str = "doors",
+    touch_tol: float = 0.0,
+) -> np.ndarray:
+    """(n,) uint64: bit j of entry i set when rooms i and j are neighbours.
+
+    ``mode``: ``"doors"`` (rooms a door connects; rooms that no door links to anything get their
+    touching neighbours so the graph stays connected), ``"touch"`` (rooms whose polygons are within
+    ``touch_tol`` of each other) or ``"both"``.
+    """
+    n = len(rooms)
+    index = {r.id: i for i, r in enumerate(rooms)}
+    adj = np.zeros(n, np.uint64)
+
+    def link(i: int, j: int) -> None:
+        if i != j:
+            adj[i] |= np.uint64(1) << np.uint64(j)
+            adj[j] |= np.uint64(1) << np.uint64(i)
+
+    if mode in ("doors", "both"):
+        for d in doors:
+            ids = [index[r] for r in d.rooms if r in index]
+            if len(ids) == 2:
+                link(ids[0], ids[1])
+    need_touch = mode in ("touch", "both") or bool(np.any(adj == 0))
+    if need_touch and n > 1:
+        geoms = np.array([r.polygon for r in rooms], dtype=object)
+        tree = shapely.STRtree(geoms)
+        pairs = tree.query(geoms, predicate="dwithin", distance=touch_tol)
+        for i, j in zip(pairs[0].tolist(), pairs[1].tolist(), strict=True):
+            if i < j and (mode != "doors" or adj[i] == 0 or adj[j] == 0):
+                link(i, j)
+    return adj
+
+
+def door_links(rooms: list, doors: list, tol: float) -> list[tuple[int, int]]:
+    """Room index pairs a door segment touches (within ``tol``), for doors without room ids."""
+    geoms = np.array([r.polygon for r in rooms], dtype=object)
+    tree = shapely.STRtree(geoms)
+    out = []
+    for d in doors:
+        seg = LineString([d.a, d.b])
+        idx = tree.query(seg, predicate="dwithin", distance=tol)
+        if len(idx) >= 2:
+            mid = shapely.Point(d.midpoint)
+            near = sorted(idx.tolist(), key=lambda i: geoms[i].distance(mid))[:2]
+            out.append((near[0], near[1]))
+    return out
+
+
+def _neighbours(masks: np.ndarray, adj: np.ndarray) -> np.ndarray:
+    nb = np.zeros_like(masks)
+    for i, a in enumerate(adj):
+        bit = np.uint64(1) << np.uint64(i)
+        nb |= np.where((masks & bit) != 0, a, np.uint64(0))
+    return nb & ~masks
+
+
+def connected_subsets(
+    adj: np.ndarray,
+    *,
+    seeds: np.ndarray | None = None,
+    max_size: int | None = None,
+    max_per_level: int = 4096,
+    cost: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """All connected subsets (uint64 masks) of the graph ``adj``, smallest first.
+
+    ``seeds``: room indices a subset must contain (one of them suffices: each seed starts its own
+    growth), default every room. When a level holds more than ``max_per_level`` subsets, the ones
+    with the lowest ``cost(masks)`` are kept (beam search); without ``cost`` the first ones are.
+    """
+    n = len(adj)
+    if n == 0:
+        return np.zeros(0, np.uint64)
+    if n > MAX_ROOMS:
+        raise ValueError(f"at most {MAX_ROOMS} rooms supported, got {n}")
+    if seeds is None:
+        seeds = np.arange(n)
+    level = np.unique((np.uint64(1) << np.asarray(seeds, dtype=np.uint64)).astype(np.uint64))
+    out = [level]
+    max_size = n if max_size is None else min(n, max_size)
+    for _ in range(1, max_size):
+        nb = _neighbours(level, adj)
+        grown = []
+        for i in range(n):
+            bit = np.uint64(1) << np.uint64(i)
+            sel = (nb & bit) != 0
+            if sel.any():
+                grown.append(level[sel] | bit)
+        if not grown:
+            break
+        level = np.unique(np.concatenate(grown))
+        if len(level) > max_per_level:
+            if cost is not None:
+                keep = np.argsort(cost(level), kind="stable")[:max_per_level]
+                level = level[np.sort(keep)]
+            else:
+                level = level[:max_per_level]
+        out.append(level)
+    return np.concatenate(out)
+
+
+def mask_matrix(masks: np.ndarray, n: int) -> np.ndarray:
+    """(S, n) bool membership matrix of the masks."""
+    shifts = np.arange(n, dtype=np.uint64)
+    return ((masks[:, None] >> shifts[None, :]) & np.uint64(1)).astype(bool)
+
+
+def mask_ids(mask: int | np.uint64, ids: list[str]) -> tuple[str, ...]:
+    """Room ids of one mask, in plan order."""
+    m = int(mask)
+    return tuple(rid for i, rid in enumerate(ids) if (m >> i) & 1)
+
+
+@dataclass(frozen=True)
+class SubsetGeometry:
+    """Area moments and bounding boxes of room subsets (plan units, in some rotated plan frame).
+
+    Arrays are (S,): ``area``, centroid ``cx, cy``, central second moments per unit area
+    ``vxx, vxy, vyy`` and the bounding box ``x0, y0, x1, y1``.
+    """
+
+    area: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    vxx: np.ndarray
+    vxy: np.ndarray
+    vyy: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    x1: np.ndarray
+    y1: np.ndarray
+
+    @classmethod
+    def of(cls, member: np.ndarray, room_moments: np.ndarray, room_bounds: np.ndarray) -> SubsetGeometry:
+        """From the (S, n) membership, (n, 6) room moments and (n, 4) room bounds."""
+        m = member.astype(np.float64) @ room_moments
+        area = np.maximum(m[:, 0], 1e-12)
+        cx, cy = m[:, 1] / area, m[:, 2] / area
+        vxx = np.maximum(m[:, 3] / area - cx * cx, 1e-12)
+        vyy = np.maximum(m[:, 5] / area - cy * cy, 1e-12)
+        vxy = m[:, 4] / area - cx * cy
+        inf = np.inf
+        x0 = np.where(member, room_bounds[None, :, 0], inf).min(axis=1)
+        y0 = np.where(member, room_bounds[None, :, 1], inf).min(axis=1)
+        x1 = np.where(member, room_bounds[None, :, 2], -inf).max(axis=1)
+        y1 = np.where(member, room_bounds[None, :, 3], -inf).max(axis=1)
+        return cls(area, cx, cy, vxx, vxy, vyy, x0, y0, x1, y1)
