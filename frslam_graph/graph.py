@@ -1,0 +1,336 @@
+"""GTSAM Pose2 pose graph of keyframes: iSAM2 online, Levenberg-Marquardt batch offline.
+
+Variables are keyframe poses of ``base_link`` in ``map`` (metres, radians), keyed
+``gtsam.symbol('x', i)``. Keyframe 0 carries an *anchor* prior (map == odom at start, REP-105);
+consecutive keyframes are linked by odometry between-factors; floor-plan measurements enter as
+robust priors (:mod:`frslam_graph.factors.floorplan_prior`) and return a :class:`PriorHandle`
+so a prior later proven wrong can be removed from iSAM2 by its factor index.
+
+``map_to_odom(i, odom_pose)`` = T_map_base(i) · T_odom_base(i)⁻¹: the correction a floor-plan
+prior applies; odometry itself is never changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from frslam_graph.config import GraphConfig
+from frslam_graph.errors import FrslamError
+from frslam_graph.factors.between import between_factor, pose2, regularise_covariance
+from frslam_graph.factors.floorplan_prior import (
+    KernelName,
+    PriorKind,
+    floorplan_prior,
+    prior_chi2,
+    prior_covariance,
+    robust_noise,
+)
+from frslam_graph.motion_model import compose, inverse
+
+_CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345}
+
+
+def key(i: int) -> int:
+    """GTSAM key of keyframe i."""
+    return gtsam.symbol("x", int(i))
+
+
+@dataclass(slots=True)
+class PriorHandle:
+    """A floor-plan prior in the graph. ``active`` turns False once removed."""
+
+    id: int
+    keyframe: int
+    kind: str
+    pose: np.ndarray
+    covariance: np.ndarray  # the floored covariance block used (3×3, 2×2 or 1×1)
+    kernel: str
+    source: str = ""
+    factor_index: int = -1  # index in iSAM2's factor graph
+    active: bool = True
+    info: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class PriorResidual:
+    """How well the current estimate agrees with a prior.
+
+    ``error``: residual in tangent units; ``chi2``: its squared Mahalanobis norm under the prior's
+    Gaussian covariance (ignoring the kernel); ``weight``: the robust kernel's weight at that
+    error (1 = fully trusted, → 0 = rejected as an outlier); ``consistent``: chi2 below the 99 %
+    quantile for the prior's dimension.
+    """
+
+    handle_id: int
+    error: np.ndarray
+    chi2: float
+    weight: float
+    consistent: bool
+
+
+class PoseGraph:
+    """Keyframe pose graph (iSAM2 with QR factorisation; LM batch on demand)."""
+
+    def __init__(self, config: GraphConfig | None = None):
+        self.config = cfg = config or GraphConfig()
+        self._floor_xy = cfg.between_sigma_floor_xy
+        self._floor_th = np.deg2rad(cfg.between_sigma_floor_theta_deg)
+        self._isam = self._new_isam()
+        self._factors: list[gtsam.NonlinearFactor | None] = []  # mirror of iSAM2's factor slots
+        self._n = 0
+        self._estimate_cache: np.ndarray | None = None
+        self._latest = np.zeros(3)
+        self._priors: dict[int, PriorHandle] = {}
+        self._next_prior = 0
+        self.anchor: PriorHandle | None = None
+
+    # ------------------------------------------------------------------ build
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setFactorization(self.config.factorization)
+        params.relinearizeSkip = self.config.relinearize_skip
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        return gtsam.ISAM2(params)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _update(
+        self, factors: list, values: gtsam.Values | None = None, remove: list[int] | None = None
+    ) -> list[int]:
+        graph = gtsam.NonlinearFactorGraph()
+        for f in factors:
+            graph.add(f)
+        result = self._isam.update(graph, values or gtsam.Values(), remove or [])
+        idx = list(result.getNewFactorsIndices())
+        for f, i in zip(factors, idx, strict=True):
+            while len(self._factors) <= i:
+                self._factors.append(None)
+            self._factors[i] = f
+        for i in remove or []:
+            self._factors[i] = None
+        self._estimate_cache = None
+        if self._n:
+            self._latest = _vec(self._isam.calculateEstimatePose2(key(self._n - 1)))
+        return idx
+
+    def add_first(self, pose: np.ndarray = (0.0, 0.0, 0.0)) -> int:
+        """Keyframe 0 at ``pose`` in map, held by the anchor prior. Returns 0."""
+        if self._n:
+            raise FrslamError("the graph already has keyframes", where="add_first")
+        cfg = self.config
+        cov = np.diag([cfg.anchor_sigma_xy**2] * 2 + [np.deg2rad(cfg.anchor_sigma_theta_deg) ** 2])
+        p = np.asarray(pose, dtype=np.float64)
+        factor = gtsam.PriorFactorPose2(key(0), pose2(p), gtsam.noiseModel.Gaussian.Covariance(cov))
+        values = gtsam.Values()
+        values.insert(key(0), pose2(p))
+        self._n = 1
+        (idx,) = self._update([factor], values)
+        self.anchor = PriorHandle(-1, 0, "full", p.copy(), cov, "none", "anchor", idx)
+        return 0
+
+    def add_keyframe(
+        self, relative: np.ndarray, covariance: np.ndarray, initial: np.ndarray | None = None
+    ) -> int:
+        """Append keyframe n linked to n-1 by the odometry ``relative`` (tangent ``covariance``)."""
+        if not self._n:
+            raise FrslamError("add_first() must come before add_keyframe()", where="add_keyframe")
+        i = self._n
+        factor = between_factor(key(i - 1), key(i), relative, covariance, self._floor_xy, self._floor_th)
+        guess = (
+            np.asarray(initial, float)
+            if initial is not None
+            else compose(self._latest, np.asarray(relative, float))
+        )
+        values = gtsam.Values()
+        values.insert(key(i), pose2(guess))
+        self._n = i + 1
+        self._update([factor], values)
+        return i
+
+    def add_prior(
+        self,
+        keyframe: int,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        kind: PriorKind = "full",
+        kernel: KernelName | None = None,
+        kernel_param: float | None = None,
+        source: str = "",
+        info: dict | None = None,
+        extra_iterations: int = 2,
+    ) -> PriorHandle:
+        """Add a robust floor-plan prior on a keyframe; returns its handle (for removal/residuals)."""
+        cfg = self.config
+        if not 0 <= keyframe < self._n:
+            raise FrslamError(f"no keyframe {keyframe} (graph has {self._n})", where="keyframe")
+        kernel = kernel or cfg.prior_kernel
+        param = kernel_param if kernel_param is not None else cfg.prior_kernel_param
+        fxy, fth = cfg.prior_sigma_floor_xy, np.deg2rad(cfg.prior_sigma_floor_theta_deg)
+        factor = floorplan_prior(key(keyframe), pose, covariance, kind, kernel, param, fxy, fth)
+        (idx,) = self._update([factor])
+        for _ in range(extra_iterations):
+            self._update([])
+        handle = PriorHandle(
+            self._next_prior,
+            int(keyframe),
+            kind,
+            np.asarray(pose, float).copy(),
+            prior_covariance(covariance, kind, fxy, fth),
+            kernel,
+            source,
+            idx,
+            True,
+            dict(info or {}),
+        )
+        self._priors[handle.id] = handle
+        self._next_prior += 1
+        return handle
+
+    def remove_prior(self, handle: PriorHandle, extra_iterations: int = 2) -> None:
+        """Remove a prior (or the anchor) from iSAM2 by its factor index."""
+        if not handle.active:
+            return
+        if self._factors[handle.factor_index] is None:
+            raise FrslamError(f"prior {handle.id} is not in the graph", where="handle")
+        self._update([], remove=[handle.factor_index])
+        for _ in range(extra_iterations):
+            self._update([])
+        handle.active = False
+
+    def priors(self, active_only: bool = True) -> list[PriorHandle]:
+        return [h for h in self._priors.values() if h.active or not active_only]
+
+    # -------------------------------------------------------------- estimates
+    def estimate(self, i: int | None = None) -> np.ndarray:
+        """Pose (x, y, theta) of keyframe i (default: the latest) in map."""
+        if not self._n:
+            raise FrslamError("the graph is empty", where="estimate")
+        if i is None or i == self._n - 1:
+            return self._latest.copy()
+        if self._estimate_cache is not None:
+            return self._estimate_cache[i].copy()
+        return _vec(self._isam.calculateEstimatePose2(key(i)))
+
+    def estimates(self) -> np.ndarray:
+        """(N, 3) poses of all keyframes in map."""
+        if self._estimate_cache is None:
+            values = self._isam.calculateEstimate()
+            self._estimate_cache = _values_array(values, self._n)
+        return self._estimate_cache.copy()
+
+    def marginal_covariance(self, i: int | None = None) -> np.ndarray:
+        """3×3 marginal covariance (tangent, body frame) of keyframe i (default: latest)."""
+        i = self._n - 1 if i is None else i
+        return np.asarray(self._isam.marginalCovariance(key(i)))
+
+    def prior_residual(self, handle: PriorHandle) -> PriorResidual:
+        """Residual of a prior at the current estimate: chi2, robust weight, consistency."""
+        est = self.estimate(handle.keyframe)
+        e, chi2 = prior_chi2(est, handle.pose, _full3(handle), handle.kind)
+        dim = len(e)
+        noise = robust_noise(handle.covariance, handle.kernel, self.config.prior_kernel_param)
+        weight = float(noise.robust().weight(np.sqrt(chi2))) if handle.kernel != "none" else 1.0
+        return PriorResidual(handle.id, e, chi2, weight, chi2 <= _CHI2_99[dim])
+
+    def map_to_odom(self, keyframe: int, odom_pose: np.ndarray) -> np.ndarray:
+        """T_map_odom = T_map_base(keyframe) · T_odom_base⁻¹, as (x, y, theta)."""
+        return compose(self.estimate(keyframe), inverse(np.asarray(odom_pose, float)))
+
+    def error(self) -> float:
+        """Total (robust) factor-graph error at the current estimate."""
+        return float(self._graph().error(self._isam.calculateEstimate()))
+
+    # ------------------------------------------------------------ batch / re-anchoring
+    def _graph(self) -> gtsam.NonlinearFactorGraph:
+        g = gtsam.NonlinearFactorGraph()
+        for f in self._factors:
+            if f is not None:
+                g.add(f)
+        return g
+
+    def optimize_batch(self) -> np.ndarray:
+        """Levenberg-Marquardt on the whole graph from the iSAM2 estimate; iSAM2 is rebuilt on the
+        result so streaming can continue. Returns the (N, 3) optimised poses."""
+        if not self._n:
+            return np.zeros((0, 3))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.config.batch_max_iterations)
+        params.setRelativeErrorTol(self.config.batch_relative_tolerance)
+        values = gtsam.LevenbergMarquardtOptimizer(
+            self._graph(), self._isam.calculateEstimate(), params
+        ).optimize()
+        self._rebuild(values)
+        return self.estimates()
+
+    def transform_map(self, transform: np.ndarray) -> None:
+        """Re-express the whole graph in a new map frame: every pose p becomes transform ⊕ p.
+
+        For the first floor-plan registration (which defines ``map``): apply it before adding the
+        priors so the robust kernels start near their minimum. The anchor prior moves with it.
+        """
+        t = np.asarray(transform, dtype=np.float64)
+        est = self.estimates()
+        values = gtsam.Values()
+        for i, p in enumerate(est):
+            values.insert(key(i), pose2(compose(t, p)))
+        if self.anchor is not None and self.anchor.active:
+            new_anchor = compose(t, self.anchor.pose)
+            f = gtsam.PriorFactorPose2(
+                key(0), pose2(new_anchor), gtsam.noiseModel.Gaussian.Covariance(self.anchor.covariance)
+            )
+            self._factors[self.anchor.factor_index] = f
+            self.anchor.pose = new_anchor
+        self._rebuild(values)
+
+    def _rebuild(self, values: gtsam.Values) -> None:
+        """Fresh iSAM2 over the live factors (indices are re-mapped in the handles)."""
+        old = self._factors
+        self._isam = self._new_isam()
+        self._factors = []
+        live = [(i, f) for i, f in enumerate(old) if f is not None]
+        graph = gtsam.NonlinearFactorGraph()
+        for _, f in live:
+            graph.add(f)
+        result = self._isam.update(graph, values)
+        new_idx = list(result.getNewFactorsIndices())
+        remap = {}
+        for (oi, f), ni in zip(live, new_idx, strict=True):
+            while len(self._factors) <= ni:
+                self._factors.append(None)
+            self._factors[ni] = f
+            remap[oi] = ni
+        for h in [*self._priors.values(), *([self.anchor] if self.anchor else [])]:
+            if h.active:
+                h.factor_index = remap[h.factor_index]
+        self._estimate_cache = None
+        self._latest = _vec(self._isam.calculateEstimatePose2(key(self._n - 1)))
+
+
+def _vec(p: gtsam.Pose2) -> np.ndarray:
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def _values_array(values: gtsam.Values, n: int) -> np.ndarray:
+    out = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+    if len(out) != n:  # pragma: no cover - only keyframe Pose2 variables live in the graph
+        raise FrslamError(f"graph holds {len(out)} poses, expected {n}", where="values")
+    return out
+
+
+def _full3(handle: PriorHandle) -> np.ndarray:
+    """The handle's covariance embedded in 3×3 for prior_chi2 (which slices per kind)."""
+    c = np.eye(3)
+    if handle.kind == "full":
+        return handle.covariance
+    if handle.kind == "translation":
+        c[:2, :2] = handle.covariance
+    else:
+        c[2:, 2:] = handle.covariance
+    return c
+
+
+__all__ = ["PoseGraph", "PriorHandle", "PriorResidual", "key", "regularise_covariance"]
