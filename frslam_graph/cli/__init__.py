@@ -16,6 +16,7 @@ from frslam_graph.errors import FrslamError
 COMMAND_MODULES = (
     "plan",
     "map",
+    "demo",
 )
 
 for _name in COMMAND_MODULES:
