@@ -129,7 +129,15 @@ def _make_detector(kind: str) -> tuple[Any, int]:
     if kind == "sift":
         return cv2.SIFT_create(nfeatures=3000), cv2.NORM_L2
     if kind == "akaze":
-        return cv2.AKAZE_create(), cv2.NORM_HAMMING
+        # OpenCV 5 moved AKAZE out of the main modules (opencv-contrib's xfeatures2d has it)
+        create = getattr(cv2, "AKAZE_create", None) or getattr(
+            getattr(cv2, "xfeatures2d", None), "AKAZE_create", None
+        )
+        if create is None:
+            raise ValueError(
+                f"AKAZE is not available in this OpenCV build ({cv2.__version__}); install opencv-contrib"
+            )
+        return create(), cv2.NORM_HAMMING
     raise ValueError(f"unknown feature type {kind!r}")
 
 

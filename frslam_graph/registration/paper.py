@@ -202,6 +202,6 @@ def register_paper(
         rooms=tuple(subset),
         method="paper",
         time_s=time.perf_counter() - t0,
-        candidates=[(float(v[0]), f, 90.0 * kk) for (f, kk), v in ranked],
+        candidates=[(float(v[0]), f, (90.0 * kk + 179.0) % 360.0 - 179.0) for (f, kk), v in ranked],
         details={"S_H": h1 / h2, "S_V": v1 / v2, "n_subsets": len(subsets), "map_bbox_m": (h2, v2)},
     )
