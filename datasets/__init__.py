@@ -1,4 +1,67 @@
-"""Recording readers (CARMEN, ROS 1/2 bags, PCD/PLY folders, simulator output) and the 2D LiDAR simulator."""
+"""Recording readers (CARMEN, ROS 1/2 bags, PCD/PLY folders, simulator output) and the 2D LiDAR simulator.
+
+``open_recording(path)`` picks the reader from the file: ``.clf`` / ``.log`` (optionally ``.gz`` /
+``.bz2``) -> :class:`CarmenLog`; ``.bag``, ``.mcap``, ``.db3``, a rosbag2 folder (``metadata.yaml``)
+or a simulator output folder (``bag/metadata.yaml``) -> :class:`RosBag`; a folder of ``.pcd`` /
+``.ply`` files -> :class:`PointCloudFolder`. Every reader is a :class:`Recording`: ``len(rec)``,
+``for scan in rec`` (:class:`Scan`), ``rec.stats``, ``rec.odometry()``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from frslam_graph.datasets.recording import Recording, RecordingStats, RecordingWarning
 from frslam_graph.datasets.scan import Scan
 
-__all__ = ["Scan"]
+from frslam_graph.errors import RecordingError
+
+__all__ = [
+    "CarmenLog",
+    "PointCloudFolder",
+    "Recording",
+    "RecordingStats",
+    "RecordingWarning",
+    "RosBag",
+    "Scan",
+    "open_recording",
+]
+
+
+def open_recording(path: str | Path, **opts: Any) -> Recording:
+    """Open a recording with the reader its name / content calls for; ``opts`` go to the reader.
+
+    Raises :class:`~frslam_graph.errors.RecordingError` for a missing path or an unknown kind.
+    """
+    from frslam_graph.datasets.carmen import CarmenLog, is_carmen
+    from frslam_graph.datasets.pointcloud_folder import PointCloudFolder, cloud_files
+    from frslam_graph.datasets.rosbag import RosBag, bag_path
+
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError("no such file or folder", source=p)
+    if p.is_file() and is_carmen(p):
+        return CarmenLog(p, **opts)
+    if bag_path(p) is not None:
+        return RosBag(p, **opts)
+    if p.is_dir() and cloud_files(p):
+        return PointCloudFolder(p, **opts)
+    raise RecordingError(
+        "unknown recording kind: expected a CARMEN log (.clf/.log[.gz|.bz2]), a ROS bag (.bag, .mcap, "
+        ".db3, a folder with metadata.yaml or bag/metadata.yaml) or a folder of .pcd/.ply files",
+        source=p,
+    )
+
+
+def __getattr__(name: str) -> Any:
+    modules = {
+        "CarmenLog": "carmen",
+        "RosBag": "rosbag",
+        "PointCloudFolder": "pointcloud_folder",
+    }
+    if name in modules:
+        import importlib
+
+        return getattr(importlib.import_module(f"frslam_graph.datasets.{modules[name]}"), name)
+    raise AttributeError(f"module 'frslam_graph.datasets' has no attribute {name!r}")

@@ -1,0 +1,356 @@
+"""CARMEN log reader (``.clf`` / ``.log``, plain, ``.gz`` or ``.bz2``): FLASER, RLASER, ROBOTLASER1/2, ODOM.
+
+One message per line, ``NAME fields... ipc_timestamp ipc_hostname logger_timestamp``::
+
+    FLASER n r1..rn x y theta odom_x odom_y odom_theta ipc_timestamp host logger_timestamp
+    ROBOTLASER1 type start_angle fov resolution max_range accuracy remission_mode
+                n r1..rn m e1..em x y theta odom_x odom_y odom_theta tv rv fsd ssd turn_axis
+                ipc_timestamp host logger_timestamp
+    ODOM x y theta tv rv accel ipc_timestamp host logger_timestamp
+
+A scan's stamp is its ``ipc_timestamp`` (the stamps of Kümmerle's relation files). ``x y theta``
+is the laser's pose and ``odom_x odom_y odom_theta`` the robot's (``base_link``), both in ``odom``;
+the scan's ``odom`` is the robot pose and ``sensor_offset`` the laser pose in ``base_link``.
+FLASER / RLASER carry no angles: CARMEN's convention (``carmen_laser_guess_angle_increment``) is a
+first beam at -90° and 1° steps for 180/181 beams, 0.5° for 360/361, 0.25° for 400/401, otherwise
+180° over ``n - 1`` steps. Units: metres, radians, seconds.
+
+Ranges that are non-finite, <= 0 or >= the maximum range become ``nan``. Without an explicit
+``max_range`` it is CARMEN's 80 m (or the log's ``PARAM robot_front_laser_max``), lowered to the
+log's saturation value when the first laser lines show one repeated often (ACES saturates at 50 m).
+
+The log is streamed: the constructor makes one fast pass (record counts, ODOM table, sanity of
+each laser line), iteration a second, parsing one line at a time.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import math
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Literal, NamedTuple
+
+import numpy as np
+from frslam_graph.datasets.recording import Recording, RecordingStats, interpolate_poses
+from frslam_graph.datasets.scan import Scan
+
+from frslam_graph.errors import RecordingError
+
+FRONT = ("FLASER", "ROBOTLASER1")
+REAR = ("RLASER", "ROBOTLASER2")
+LASERS = {"front": FRONT, "rear": REAR, "all": FRONT + REAR}
+# Record types CARMEN logs contain that carry no scan: counted, not warned about.
+OTHER_TYPES = frozenset(
+    "PARAM SYNC ODOM TRUEPOS NMEAGGA NMEARMC NMEA-GGA NMEA-RMC GPSNMEA RAWLASER1 RAWLASER2 RAWLASER3"
+    " RAWLASER4 LASER1 LASER2 LASER3 LASER4 ROBOTLASER0 SONAR BUMPER VELOCITY VECTORMOVE FOLLOWTRAJECTORY"
+    " IMU ARMSTATE BASEVELOCITY SCANMARK POSITIONLASER ODOM_ACK FLASER_ACK".split()
+)
+CARMEN_MAX_RANGE = 80.0  # carmen_string_to_robot_laser_message_orig's maximum_range
+SATURATION_SAMPLE = 300  # laser lines inspected for a saturation value
+SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
+
+
+def is_carmen(path: Path) -> bool:
+    """True when the file name has a CARMEN suffix (.clf / .log, optionally .gz / .bz2)."""
+    return path.name.lower().endswith(SUFFIXES)
+
+
+def carmen_angle_increment(n: int) -> float:
+    """CARMEN's guess of the beam spacing of an FLASER/RLASER line with ``n`` readings (radians)."""
+    if n in (180, 181):
+        return math.pi / 180.0
+    if n in (360, 361):
+        return math.pi / 360.0
+    if n in (400, 401):
+        return math.pi / 720.0
+    return math.pi / max(n - 1, 1)
+
+
+def _open_text(path: Path) -> IO[str]:
+    name = path.name.lower()
+    if name.endswith(".gz"):
+        return gzip.open(path, "rt", encoding="latin-1")
+    if name.endswith(".bz2"):
+        return bz2.open(path, "rt", encoding="latin-1")
+    return open(path, encoding="latin-1")  # noqa: SIM115
+
+
+def _lines(path: Path, stats: RecordingStats | None) -> Iterator[tuple[int, str]]:
+    """Numbered lines (1-based); a damaged compressed stream ends the file with a problem noted."""
+    lineno = 0
+    try:
+        with _open_text(path) as f:
+            for lineno, line in enumerate(f, 1):  # noqa: B007
+                yield lineno, line
+    except (EOFError, OSError, ValueError) as exc:  # truncated .gz/.bz2, corrupt stream
+        if stats is None:
+            raise RecordingError(f"unreadable after line {lineno}: {exc}", source=path) from None
+        stats.skip(f"rest of file unreadable ({exc})", f"{path.name}:{lineno + 1}")
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+class _Parsed(NamedTuple):
+    """One laser line, parsed."""
+
+    stamp: float
+    ranges: np.ndarray
+    start: float  # angle of the first beam, rad
+    increment: float  # rad
+    max_range: float | None  # from the line (ROBOTLASER), else None
+    laser: list[float]  # laser pose x, y, theta in odom
+    robot: list[float]  # robot pose x, y, theta in odom
+
+
+def _check_fields(kind: str, tok: list[str]) -> str | None:
+    """None when a laser line has the right number of fields, else what is wrong."""
+    try:
+        if kind in ("FLASER", "RLASER"):
+            n = int(tok[1])
+            need = n + 11
+        else:
+            n = int(tok[8])
+            m = int(tok[9 + n])
+            need = n + m + 24
+    except (ValueError, IndexError):
+        return "malformed laser record (bad beam count)"
+    if n <= 0:
+        return "laser record with no beams"
+    if len(tok) != need:
+        return f"malformed laser record (expected {need} fields, found {len(tok)})"
+    return None
+
+
+def _parse_laser(kind: str, tok: list[str]) -> _Parsed:
+    """Parse a laser line whose field count was checked; raises ValueError on a bad number."""
+    if kind in ("FLASER", "RLASER"):
+        n = int(tok[1])
+        ranges = np.array(tok[2 : 2 + n], dtype=np.float64)
+        v = [float(x) for x in tok[2 + n : 2 + n + 7]]
+        inc = carmen_angle_increment(n)
+        return _Parsed(v[6], ranges, -math.pi / 2.0, inc, None, v[0:3], v[3:6])
+    start, _fov, res, max_range = (float(x) for x in tok[2:6])
+    n = int(tok[8])
+    ranges = np.array(tok[9 : 9 + n], dtype=np.float64)
+    m = int(tok[9 + n])
+    p = 10 + n + m
+    v = [float(x) for x in tok[p : p + 6]]
+    stamp = float(tok[p + 11])
+    return _Parsed(stamp, ranges, start, res, max_range, v[0:3], v[3:6])
+
+
+class CarmenLog(Recording):
+    """A CARMEN log as a stream of :class:`Scan`.
+
+    Args:
+        path: ``.clf`` / ``.log`` file, optionally ``.gz`` / ``.bz2``.
+        laser: ``"front"`` (FLASER, ROBOTLASER1; default), ``"rear"`` or ``"all"``.
+        odom: ``"laser"`` takes the robot pose written in each laser line (default); ``"odom"``
+            interpolates the ODOM records at the scan stamps; ``"none"`` attaches none.
+        max_range: readings at or beyond it become ``nan``; ``None`` = detect (see module doc).
+        backwards: a scan stamped before an earlier line's scan is ``"keep"`` (kept in file
+            order, counted in the warning: the Intel log has 1,612 such FLASER lines, and its
+            odometry shows that the file order is the true one), ``"skip"`` (the rest is then
+            monotonic) or ``"error"`` (RecordingError).
+        odom_tolerance: with ``odom="odom"``, seconds a scan may lie outside the ODOM records.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        laser: Literal["front", "rear", "all"] = "front",
+        odom: Literal["laser", "odom", "none"] = "laser",
+        max_range: float | None = None,
+        backwards: Literal["keep", "skip", "error"] = "keep",
+        odom_tolerance: float = 0.5,
+    ):
+        super().__init__(path)
+        if laser not in LASERS:
+            raise RecordingError(f"laser must be one of {sorted(LASERS)}, got {laser!r}", source=path)
+        if odom not in ("laser", "odom", "none"):
+            raise RecordingError(f"odom must be 'laser', 'odom' or 'none', got {odom!r}", source=path)
+        if backwards not in ("keep", "skip", "error"):
+            raise RecordingError(
+                f"backwards must be 'keep', 'skip' or 'error', got {backwards!r}", source=path
+            )
+        if not self.path.is_file():
+            raise RecordingError("no such file", source=self.path)
+        self.laser_types = LASERS[laser]
+        self.odom_mode = odom
+        self.backwards = backwards
+        self.odom_tolerance = float(odom_tolerance)
+        self.counts: Counter = Counter()  # record type -> lines, from the first pass
+        self._len = 0
+        self._odom = np.zeros((0, 4))
+        self._first_stamp = self._last_stamp = float("nan")
+        sample_max, sample_hits, sample_beams, param_max = self._index()
+        if self._len == 0:
+            found = ", ".join(f"{k} {v}" for k, v in self.counts.most_common()) or "no records"
+            raise RecordingError(f"no {'/'.join(self.laser_types)} laser records ({found})", source=self.path)
+        if max_range is not None:
+            self.max_range, self.max_range_source = float(max_range), "given"
+        else:
+            self.max_range, self.max_range_source = (
+                param_max or CARMEN_MAX_RANGE,
+                ("PARAM robot_front_laser_max" if param_max else "CARMEN default"),
+            )
+            # A value repeated on >= 0.5 % of the sampled beams is the sensor's "no return".
+            if 0 < sample_max < self.max_range and sample_hits >= max(5, 0.005 * sample_beams):
+                self.max_range, self.max_range_source = sample_max, "saturation value of the log"
+
+    # ---------------------------------------------------------------- first pass
+    def _index(self) -> tuple[float, int, int, float | None]:
+        odom_rows: list[tuple[float, float, float, float]] = []
+        sample_max, sample_hits, sample_beams, sampled = 0.0, 0, 0, 0
+        param_max: float | None = None
+        stamps_first = stamps_last = float("nan")
+        for _lineno, line in _lines(self.path, None):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            kind = tok[0]
+            self.counts[kind] += 1
+            if kind == "ODOM":
+                if len(tok) >= 8:
+                    try:
+                        odom_rows.append((float(tok[-3]), float(tok[1]), float(tok[2]), float(tok[3])))
+                    except ValueError:
+                        pass
+            elif kind in self.laser_types:
+                if _check_fields(kind, tok) is not None:
+                    continue
+                self._len += 1
+                try:
+                    stamp = float(tok[-3])
+                except ValueError:
+                    continue
+                if not math.isfinite(stamps_first):
+                    stamps_first = stamp
+                stamps_last = stamp
+                if sampled < SATURATION_SAMPLE and kind in ("FLASER", "RLASER"):
+                    sampled += 1
+                    try:
+                        r = np.array(tok[2 : 2 + int(tok[1])], dtype=np.float64)
+                    except ValueError:
+                        continue
+                    r = r[np.isfinite(r)]
+                    if r.size:
+                        top = float(r.max())
+                        if top > sample_max:
+                            sample_max, sample_hits = top, 0
+                        sample_hits += int(np.count_nonzero(r == sample_max))
+                        sample_beams += r.size
+            elif kind == "PARAM" and len(tok) >= 3 and tok[1] == "robot_front_laser_max":
+                try:
+                    param_max = float(tok[2])
+                except ValueError:
+                    pass
+        self._first_stamp, self._last_stamp = stamps_first, stamps_last
+        if odom_rows:
+            table = np.array(odom_rows, dtype=np.float64)
+            keep = np.ones(len(table), dtype=bool)  # drop records stamped before their predecessor
+            keep[1:] = table[1:, 0] > np.maximum.accumulate(table[:, 0])[:-1]
+            self._odom = table[keep]
+        return sample_max, sample_hits, sample_beams, param_max
+
+    def __len__(self) -> int:
+        return self._len
+
+    @property
+    def duration(self) -> float:
+        """Seconds between the first and the last laser line's stamp (file order)."""
+        return float(self._last_stamp - self._first_stamp)
+
+    def odometry(self) -> np.ndarray:
+        """(M, 4) ODOM records ``stamp, x, y, theta`` with increasing stamps (others dropped)."""
+        return self._odom.copy()
+
+    # ---------------------------------------------------------------- iteration
+    def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
+        angles_cache: dict[tuple[int, float, float], np.ndarray] = {}
+        last_stamp = -math.inf
+        name = self.path.name
+        use_odom_table = self.odom_mode == "odom"
+        odom_table = self._odom
+        for lineno, line in _lines(self.path, stats):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            kind = tok[0]
+            stats.records[kind] += 1
+            where = f"{name}:{lineno}"
+            if kind not in self.laser_types:
+                if kind in FRONT or kind in REAR:
+                    stats.flag(
+                        f"{kind} records not selected (laser={'rear' if kind in FRONT else 'front'!r})", where
+                    )
+                elif kind not in OTHER_TYPES:
+                    stats.skip(f"unknown record type {kind!r}", where)
+                continue
+            problem = _check_fields(kind, tok)
+            if problem is not None:
+                if not line.endswith("\n"):
+                    problem = "laser record cut short at end of file"
+                stats.skip(problem, where)
+                continue
+            try:
+                rec = _parse_laser(kind, tok)
+            except ValueError:
+                stats.skip("laser record with a non-numeric field", where)
+                continue
+            if not math.isfinite(rec.stamp):
+                stats.skip("laser record with a non-finite stamp", where)
+                continue
+            if rec.stamp < last_stamp:
+                if self.backwards == "error":
+                    raise RecordingError(
+                        f"stamp {rec.stamp:.6f} earlier than an earlier scan's {last_stamp:.6f}",
+                        source=self.path,
+                        where=f"line {lineno}",
+                    )
+                if self.backwards == "skip":
+                    stats.skip("scans stamped before an earlier scan", where)
+                    continue
+                stats.flag("scans stamped before an earlier scan (kept in file order)", where)
+            last_stamp = max(last_stamp, rec.stamp)
+            if not all(math.isfinite(v) for v in (*rec.laser, *rec.robot)):
+                stats.skip("laser record with a non-finite pose", where)
+                continue
+            ranges = rec.ranges
+            max_range = rec.max_range if rec.max_range and rec.max_range > 0 else self.max_range
+            bad = ~np.isfinite(ranges) | (ranges < 0.0)
+            if bad.any():
+                stats.flag("scans with NaN/inf/negative ranges (set to nan)", where)
+            invalid = bad | ~(ranges > 0.0) | (ranges >= max_range)
+            if invalid.any():
+                ranges = ranges.copy()
+                ranges[invalid] = np.nan
+            key = (ranges.size, rec.start, rec.increment)
+            angles = angles_cache.get(key)
+            if angles is None:
+                angles = rec.start + rec.increment * np.arange(ranges.size, dtype=np.float64)
+                angles.flags.writeable = False
+                angles_cache[key] = angles
+            rx, ry, rth = rec.robot
+            lx, ly, lth = rec.laser
+            c, s = math.cos(rth), math.sin(rth)
+            dx, dy = lx - rx, ly - ry
+            offset = (c * dx + s * dy, -s * dx + c * dy, _wrap(lth - rth))
+            if self.odom_mode == "laser":
+                odom = (rx, ry, rth)
+            elif use_odom_table:
+                pose, ok = interpolate_poses(odom_table, np.array([rec.stamp]), self.odom_tolerance)
+                if ok[0]:
+                    odom = (float(pose[0, 0]), float(pose[0, 1]), float(pose[0, 2]))
+                else:
+                    odom = None
+                    stats.flag("scans outside the ODOM records (odom None)", where)
+            else:
+                odom = None
+            yield Scan(rec.stamp, ranges, angles, odom, float(max_range), offset)

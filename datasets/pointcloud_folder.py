@@ -1,0 +1,104 @@
+"""A folder of ``.pcd`` / ``.ply`` point clouds (read by open3d) as a stream of planar scans.
+
+Each cloud is sliced to the plane ``|z - plane_z| < plane_tol`` (sensor frame, metres) and
+projected to (x, y): one :class:`Scan` per file, built with ``Scan.from_points``. Files are taken
+in name order; when every file name (without suffix) is a number they are ordered by that number
+and it is the stamp (seconds, or nanoseconds when larger than 1e15), otherwise the stamp is
+``index / rate``. Clouds carry no odometry (``odom`` is None). An unreadable or empty file is
+skipped and counted in the warning; a folder without clouds raises RecordingError.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from frslam_graph.datasets.recording import Recording, RecordingStats
+from frslam_graph.datasets.scan import Scan
+
+from frslam_graph.errors import RecordingError
+
+SUFFIXES = (".pcd", ".ply")
+
+
+def _number(stem: str) -> float | None:
+    try:
+        value = float(stem)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def cloud_files(folder: Path) -> list[Path]:
+    """The ``.pcd`` / ``.ply`` files directly in ``folder`` (any letter case)."""
+    return [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES]
+
+
+class PointCloudFolder(Recording):
+    """Point-cloud files of one folder, sliced to a plane.
+
+    Args:
+        path: the folder.
+        plane_z, plane_tol: the slice kept, metres.
+        rate: clouds per second, for stamps when the file names are not numbers.
+    """
+
+    def __init__(
+        self, path: str | Path, *, plane_z: float = 0.0, plane_tol: float = 0.05, rate: float = 10.0
+    ):
+        super().__init__(path)
+        if not self.path.is_dir():
+            raise RecordingError("no such folder", source=self.path)
+        if not (rate > 0 and math.isfinite(rate)):
+            raise RecordingError(f"rate must be a positive number of clouds per second, got {rate!r}")
+        self.plane_z, self.plane_tol = float(plane_z), float(plane_tol)
+        files = cloud_files(self.path)
+        if not files:
+            raise RecordingError("no .pcd or .ply files in the folder", source=self.path)
+        numbers = [_number(p.stem) for p in files]
+        if all(n is not None for n in numbers):
+            order = sorted(range(len(files)), key=lambda i: (numbers[i], files[i].name))
+            scale = 1e-9 if max(numbers) > 1e15 else 1.0  # type: ignore[type-var]
+            self.files = [files[i] for i in order]
+            self.stamps = np.array([numbers[i] * scale for i in order], dtype=np.float64)  # type: ignore[operator]
+            self.stamp_source = "file names"
+        else:
+            self.files = sorted(files, key=lambda p: p.name)
+            self.stamps = np.arange(len(files), dtype=np.float64) / float(rate)
+            self.stamp_source = f"index / {rate:g} Hz"
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    @property
+    def duration(self) -> float:
+        return float(self.stamps[-1] - self.stamps[0])
+
+    def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
+        import open3d as o3d
+
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+        last = -math.inf
+        for path, stamp in zip(self.files, self.stamps, strict=True):
+            stats.records[path.suffix.lower()] += 1
+            try:
+                cloud = o3d.io.read_point_cloud(str(path))
+                xyz = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
+            except Exception as exc:  # open3d raises RuntimeError on some broken files
+                stats.skip(f"unreadable cloud files ({type(exc).__name__})", path.name)
+                continue
+            if xyz.shape[0] == 0:
+                stats.skip("empty or unreadable cloud files", path.name)
+                continue
+            if stamp == last:
+                stats.flag("clouds with the same stamp as the previous one", path.name)
+            last = stamp
+            finite = np.isfinite(xyz).all(axis=1)
+            if not finite.all():
+                stats.flag("clouds with non-finite points (dropped)", path.name)
+            keep = finite & (np.abs(xyz[:, 2] - self.plane_z) < self.plane_tol)
+            if not keep.any():
+                stats.flag("clouds with no point in the slice", path.name)
+            yield Scan.from_points(float(stamp), xyz[keep, :2])

@@ -1,0 +1,133 @@
+"""The common shape of every recording reader: a sized iterable of :class:`Scan` with statistics.
+
+A reader streams its file: ``len(rec)`` comes from a cheap first pass (or the bag's index), and
+``for scan in rec`` parses one record at a time. Each full iteration fills ``rec.stats`` afresh
+(records per type, scans yielded, beams, invalid beams, records skipped and why, with the first
+place each problem occurred) and ends with one :class:`RecordingWarning` when anything was skipped
+or repaired, so nothing valid or invalid disappears silently. Unreadable input raises
+:class:`~frslam_graph.errors.RecordingError` naming the file and the line / message.
+
+Units: seconds (stamps), metres, radians. ``odometry()`` returns the recording's wheel-odometry
+records as an (M, 4) array ``stamp, x, y, theta`` of ``base_link`` in ``odom`` (REP-105).
+"""
+
+from __future__ import annotations
+
+import warnings
+from abc import ABC, abstractmethod
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from frslam_graph.datasets.scan import Scan
+
+
+class RecordingWarning(UserWarning):
+    """Part of a recording was skipped or repaired; the message names the file and where."""
+
+
+@dataclass
+class RecordingStats:
+    """What one pass over a recording saw. ``skipped``/``problems`` map a reason to a count."""
+
+    records: Counter = field(default_factory=Counter)  # record / message type -> count seen
+    scans: int = 0  # scans yielded
+    beams: int = 0  # beams in the yielded scans
+    invalid_beams: int = 0  # of which nan (no return, out of range, non-finite)
+    skipped: Counter = field(default_factory=Counter)  # reason -> records not yielded
+    problems: Counter = field(default_factory=Counter)  # reason -> records yielded but flagged
+    first: dict[str, str] = field(default_factory=dict)  # reason -> where it first happened
+    first_stamp: float = float("nan")
+    last_stamp: float = float("nan")
+
+    def skip(self, reason: str, where: str) -> None:
+        self.skipped[reason] += 1
+        self.first.setdefault(reason, where)
+
+    def flag(self, reason: str, where: str) -> None:
+        self.problems[reason] += 1
+        self.first.setdefault(reason, where)
+
+    def add_scan(self, scan: Scan) -> None:
+        self.scans += 1
+        self.beams += scan.ranges.size
+        self.invalid_beams += int(np.count_nonzero(np.isnan(scan.ranges)))
+        if not np.isfinite(self.first_stamp):
+            self.first_stamp = scan.stamp
+        self.last_stamp = scan.stamp
+
+    @property
+    def duration(self) -> float:
+        """Seconds between the first and the last yielded scan (0 when fewer than two)."""
+        if self.scans < 2:
+            return 0.0
+        return float(self.last_stamp - self.first_stamp)
+
+    def summary(self) -> str:
+        """One line per problem: ``count reason (first at where)``; empty when all was clean."""
+        parts = [f"{n} skipped: {r} (first at {self.first.get(r, '?')})" for r, n in self.skipped.items()]
+        parts += [f"{n} {r} (first at {self.first.get(r, '?')})" for r, n in self.problems.items()]
+        return "; ".join(parts)
+
+
+class Recording(ABC):
+    """A recorded 2D laser stream. Subclasses implement :meth:`_scans` and :meth:`__len__`."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.stats = RecordingStats()
+
+    @property
+    def name(self) -> str:
+        """The recording's file or folder name."""
+        return self.path.name
+
+    @abstractmethod
+    def __len__(self) -> int:
+        """Number of scan records (from the first pass / the index)."""
+
+    @abstractmethod
+    def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
+        """Yield the scans, recording everything skipped or flagged in ``stats``."""
+
+    def __iter__(self) -> Iterator[Scan]:
+        stats = RecordingStats()
+        self.stats = stats
+        for scan in self._scans(stats):
+            stats.add_scan(scan)
+            yield scan
+        text = stats.summary()
+        if text:
+            warnings.warn(f"{self.path}: {text}", RecordingWarning, stacklevel=2)
+
+    def odometry(self) -> np.ndarray:
+        """(M, 4) wheel-odometry records ``stamp, x, y, theta`` (empty when the recording has none)."""
+        return np.zeros((0, 4))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.path)!r}, scans={len(self)})"
+
+
+def interpolate_poses(
+    table: np.ndarray, stamps: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate an (M, 4) ``stamp, x, y, theta`` table (stamps increasing) at ``stamps``.
+
+    Returns ``(poses (K, 3), ok (K,) bool)``; ``ok`` is False where a stamp lies more than
+    ``tolerance`` seconds outside the table (those poses are nan). Heading is unwrapped first.
+    """
+    stamps = np.asarray(stamps, dtype=np.float64)
+    poses = np.full((stamps.size, 3), np.nan)
+    if table.shape[0] == 0:
+        return poses, np.zeros(stamps.size, dtype=bool)
+    t = table[:, 0]
+    ok = (stamps >= t[0] - tolerance) & (stamps <= t[-1] + tolerance)
+    theta = np.unwrap(table[:, 3])
+    poses[:, 0] = np.interp(stamps, t, table[:, 1])
+    poses[:, 1] = np.interp(stamps, t, table[:, 2])
+    heading = np.interp(stamps, t, theta)
+    poses[:, 2] = np.arctan2(np.sin(heading), np.cos(heading))
+    poses[~ok] = np.nan
+    return poses, ok

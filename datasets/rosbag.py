@@ -1,0 +1,382 @@
+"""ROS 1 / ROS 2 bag reader (through rosbags): LaserScan or PointCloud2 scans, nav_msgs/Odometry.
+
+Accepts a ROS 1 ``.bag``, a rosbag2 folder (``metadata.yaml``), a bare ``.mcap`` / ``.db3`` file or
+a simulator output folder (``bag/`` + ``ground_truth.tum`` + ``meta.json``). The scan topic is the
+only LaserScan topic (else the only PointCloud2 topic; a topic named ``scan`` wins a tie) unless
+``scan_topic`` is given; the odometry topic is the only nav_msgs/Odometry topic, or among several
+the one whose name says ``odom`` (not ``ground_truth``), unless ``odom_topic`` is given. Odometry
+poses are interpolated at the scan stamps (header stamps; the bag time when a header stamp is 0).
+
+A PointCloud2 is sliced to the plane ``|z - plane_z| < plane_tol`` (sensor frame) and projected
+to (x, y). LaserScan ranges that are non-finite, below ``range_min`` / <= 0, or >= ``range_max``
+become ``nan``. ROS 1 bags that rosbags' index reader rejects (the shared ``scan_tools_demo.bag``)
+are read sequentially by :mod:`frslam_graph.datasets.ros1_raw`; ``reader`` forces either path.
+
+Units: seconds, metres, radians; frames: the scan in its sensor frame, odometry ``base_link`` in
+``odom`` (REP-105).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from frslam_graph.datasets.recording import Recording, RecordingStats, interpolate_poses
+from frslam_graph.datasets.ros1_raw import Ros1RawBag
+from frslam_graph.datasets.scan import Scan
+
+from frslam_graph.errors import RecordingError
+
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+_PC2_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def _normalise_type(msgtype: str) -> str:
+    """``sensor_msgs/LaserScan`` (ROS 1) -> ``sensor_msgs/msg/LaserScan``."""
+    parts = msgtype.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
+
+
+def bag_path(path: Path) -> Path | None:
+    """The bag inside ``path`` (file, rosbag2 folder or simulator folder), or None if none is."""
+    if path.is_file() and path.suffix.lower() in (".bag", ".mcap", ".db3"):
+        return path
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return path
+        if (path / "bag" / "metadata.yaml").is_file():
+            return path / "bag"
+    return None
+
+
+class _AnySource:
+    """rosbags' AnyReader: ROS 1 (indexed) and ROS 2 (folder, .mcap, .db3)."""
+
+    def __init__(self, path: Path):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = path
+        ros1 = path.suffix.lower() == ".bag"
+        self._default = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        self._reader_cls = AnyReader
+        self.problems: dict[str, int] = {}
+        self.first_problem: dict[str, str] = {}
+        with AnyReader([path], default_typestore=self._default) as reader:
+            self._topics: dict[str, tuple[str, int]] = {}
+            for c in reader.connections:
+                msgtype, n = self._topics.get(c.topic, (c.msgtype, 0))
+                self._topics[c.topic] = (msgtype, n + c.msgcount)
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        return dict(self._topics)
+
+    def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
+        with self._reader_cls([self.path], default_typestore=self._default) as reader:
+            conns = [c for c in reader.connections if c.topic in topics]
+            for c, t, raw in reader.messages(connections=conns):
+                try:
+                    msg = reader.deserialize(raw, c.msgtype)
+                except Exception as exc:  # corrupt message: reported by the caller
+                    msg = exc
+                yield c.topic, c.msgtype, t, msg
+
+
+class _RawSource:
+    """Our sequential ROS 1 reader, for bags whose index rosbags rejects."""
+
+    def __init__(self, path: Path):
+        self.bag = Ros1RawBag(path)
+        self.problems = self.bag.problems
+        self.first_problem = self.bag.first_problem
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        return {t: (_normalise_type(m), n) for t, (m, n) in self.bag.topics().items()}
+
+    def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
+        for c, t, raw in self.bag.messages(topics):
+            msgtype = _normalise_type(c.msgtype)
+            try:
+                msg = self.bag.deserialize(raw, msgtype)
+            except Exception as exc:  # corrupt message or unknown type: reported by the caller
+                msg = exc
+            yield c.topic, msgtype, t, msg
+
+
+def _stamp(msg: Any, bag_ns: int) -> float:
+    st = msg.header.stamp
+    ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+    return (ns if ns > 0 else bag_ns) * 1e-9
+
+
+def _yaw(q: Any) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def pointcloud2_xyz(msg: Any) -> np.ndarray:
+    """(N, 3) float64 x, y, z of a sensor_msgs/PointCloud2 (padding and row_step respected)."""
+    fields = {f.name: f for f in msg.fields}
+    if not all(k in fields for k in "xyz"):
+        raise ValueError(f"PointCloud2 without x/y/z fields (has {sorted(fields)})")
+    end = ">" if msg.is_bigendian else "<"
+    for k in "xyz":
+        if fields[k].datatype not in _PC2_TYPES:
+            raise ValueError(f"PointCloud2 field {k} has unknown datatype {fields[k].datatype}")
+    dt = np.dtype(
+        {
+            "names": list("xyz"),
+            "formats": [end + _PC2_TYPES[fields[k].datatype] for k in "xyz"],
+            "offsets": [fields[k].offset for k in "xyz"],
+            "itemsize": int(msg.point_step),
+        }
+    )
+    h, w, step = int(msg.height), int(msg.width), int(msg.point_step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if data.size < h * int(msg.row_step) or w * step > int(msg.row_step):
+        raise ValueError("PointCloud2 data shorter than height * row_step")
+    rows = data[: h * int(msg.row_step)].reshape(h, int(msg.row_step))[:, : w * step]
+    arr = np.frombuffer(np.ascontiguousarray(rows).tobytes(), dtype=dt, count=h * w)
+    return np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64)
+
+
+class RosBag(Recording):
+    """A ROS 1 / ROS 2 bag (or simulator output folder) as a stream of :class:`Scan`.
+
+    Args:
+        path: ``.bag``, rosbag2 folder, ``.mcap``, ``.db3`` or simulator output folder.
+        scan_topic, odom_topic: topics to use (auto-detected when None; ``odom_topic=""`` = none).
+        plane_z, plane_tol: slice of a PointCloud2 kept as the 2D scan, metres (sensor frame).
+        reader: ``"auto"`` (rosbags, falling back to the sequential ROS 1 reader when rosbags
+            rejects the bag), ``"rosbags"`` or ``"sequential"`` (ROS 1 only).
+        backwards: scans stamped before an earlier scan are ``"keep"`` (flagged), ``"skip"`` or
+            ``"error"``.
+        odom_tolerance: seconds a scan may lie outside the odometry records and still get a pose.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        scan_topic: str | None = None,
+        odom_topic: str | None = None,
+        plane_z: float = 0.0,
+        plane_tol: float = 0.05,
+        reader: Literal["auto", "rosbags", "sequential"] = "auto",
+        backwards: Literal["keep", "skip", "error"] = "keep",
+        odom_tolerance: float = 0.5,
+    ):
+        super().__init__(path)
+        bag = bag_path(self.path)
+        if bag is None:
+            if not self.path.exists():
+                raise RecordingError("no such file or folder", source=self.path)
+            raise RecordingError(
+                "not a bag (.bag, .mcap, .db3, a folder with metadata.yaml or with bag/metadata.yaml)",
+                source=self.path,
+            )
+        self.bag = bag
+        self.plane_z, self.plane_tol = float(plane_z), float(plane_tol)
+        self.backwards = backwards
+        self.odom_tolerance = float(odom_tolerance)
+        self.reader_used, self.fallback_reason = self._open(reader)
+        self.topics = self.source.topics()
+        self.scan_topic, self.scan_type = self._pick_scan_topic(scan_topic)
+        self.odom_topic = self._pick_odom_topic(odom_topic)
+        self._len = self.topics[self.scan_topic][1]
+        if self._len == 0:
+            raise RecordingError(f"topic {self.scan_topic} has no messages", source=self.bag)
+        self._odom: np.ndarray | None = None
+        self._odom_stats = RecordingStats()
+
+    def _open(self, reader: str) -> tuple[str, str]:
+        is_ros1 = self.bag.suffix.lower() == ".bag"
+        if reader == "sequential":
+            if not is_ros1:
+                raise RecordingError("the sequential reader reads ROS 1 .bag files only", source=self.bag)
+            self.source = _RawSource(self.bag)
+            return "sequential", ""
+        if reader not in ("auto", "rosbags"):
+            raise RecordingError(f"reader must be 'auto', 'rosbags' or 'sequential', got {reader!r}")
+        try:
+            self.source = _AnySource(self.bag)
+            return "rosbags", ""
+        except Exception as exc:  # rosbags raises AssertionError, ReaderError, ... on odd bags
+            reason = f"{type(exc).__name__}: {exc}".strip(": ")
+            if reader == "rosbags" or not is_ros1:
+                raise RecordingError(f"rosbags cannot read it ({reason})", source=self.bag) from None
+        self.source = _RawSource(self.bag)
+        return "sequential", reason
+
+    def _pick_scan_topic(self, wanted: str | None) -> tuple[str, str]:
+        listing = ", ".join(f"{t} [{m}]" for t, (m, _n) in sorted(self.topics.items())) or "none"
+        if wanted is not None:
+            if wanted not in self.topics:
+                raise RecordingError(f"no topic {wanted!r} (topics: {listing})", source=self.bag)
+            msgtype = self.topics[wanted][0]
+            if msgtype not in (LASER_SCAN, POINT_CLOUD2):
+                raise RecordingError(
+                    f"topic {wanted} has type {msgtype}; expected LaserScan or PointCloud2", source=self.bag
+                )
+            return wanted, msgtype
+        for msgtype in (LASER_SCAN, POINT_CLOUD2):
+            cands = [t for t, (m, n) in self.topics.items() if m == msgtype and n > 0]
+            if len(cands) > 1:
+                named = [t for t in cands if t.rstrip("/").rsplit("/", 1)[-1] in ("scan", "points")]
+                if len(named) != 1:
+                    raise RecordingError(
+                        f"several {msgtype} topics ({', '.join(sorted(cands))}): choose one with scan_topic=",
+                        source=self.bag,
+                    )
+                cands = named
+            if cands:
+                return cands[0], msgtype
+        raise RecordingError(f"no LaserScan or PointCloud2 messages (topics: {listing})", source=self.bag)
+
+    def _pick_odom_topic(self, wanted: str | None) -> str | None:
+        if wanted == "":
+            return None
+        if wanted is not None:
+            if wanted not in self.topics:
+                raise RecordingError(f"no topic {wanted!r}", source=self.bag)
+            if self.topics[wanted][0] != ODOMETRY:
+                raise RecordingError(
+                    f"topic {wanted} has type {self.topics[wanted][0]}; expected {ODOMETRY}", source=self.bag
+                )
+            return wanted
+        cands = [t for t, (m, _n) in self.topics.items() if m == ODOMETRY]
+        if len(cands) > 1:
+            cands = [t for t in cands if "odom" in t.lower() and "truth" not in t.lower()]
+            if len(cands) != 1:
+                raise RecordingError(
+                    "several Odometry topics and none clearly wheel odometry: choose one with odom_topic=",
+                    source=self.bag,
+                )
+        return cands[0] if cands else None
+
+    def __len__(self) -> int:
+        return self._len
+
+    @property
+    def ground_truth_path(self) -> Path | None:
+        """``ground_truth.tum`` next to the bag of a simulator output folder, if present."""
+        p = self.bag.parent / "ground_truth.tum" if self.bag.name == "bag" else None
+        return p if p is not None and p.is_file() else None
+
+    def ground_truth(self) -> np.ndarray:
+        """(N, 4) ``stamp, x, y, theta`` from a simulator folder's ``ground_truth.tum``."""
+        from frslam_graph.metrics import load_tum
+
+        if self.ground_truth_path is None:
+            raise RecordingError("no ground_truth.tum next to the bag", source=self.path)
+        return load_tum(self.ground_truth_path)
+
+    def odometry(self) -> np.ndarray:
+        """(M, 4) ``stamp, x, y, theta`` of the odometry topic (increasing stamps; others dropped)."""
+        if self._odom is None:
+            self._odom = self._read_odometry()
+        return self._odom.copy()
+
+    def _read_odometry(self) -> np.ndarray:
+        if self.odom_topic is None:
+            return np.zeros((0, 4))
+        rows = []
+        stats = self._odom_stats
+        last = -math.inf
+        for i, (_topic, _msgtype, t, msg) in enumerate(self.source.messages({self.odom_topic})):
+            where = f"{self.odom_topic} message {i}"
+            if isinstance(msg, Exception):
+                stats.skip(f"undecodable {ODOMETRY} messages", where)
+                continue
+            p = msg.pose.pose
+            row = (_stamp(msg, t), p.position.x, p.position.y, _yaw(p.orientation))
+            if not all(math.isfinite(v) for v in row):
+                stats.skip("odometry messages with non-finite values", where)
+                continue
+            if row[0] <= last:
+                stats.skip("odometry messages not after the previous one", where)
+                continue
+            last = row[0]
+            rows.append(row)
+        return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+    def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
+        odom = self.odometry()
+        for reason, n in self._odom_stats.skipped.items():
+            stats.skipped[reason] += n
+            stats.first.setdefault(reason, self._odom_stats.first[reason])
+        angles_cache: dict[tuple[int, float, float], np.ndarray] = {}
+        last_stamp = -math.inf
+        for i, (topic, msgtype, t, msg) in enumerate(self.source.messages({self.scan_topic})):
+            where = f"{topic} message {i}"
+            stats.records[msgtype] += 1
+            if isinstance(msg, Exception):
+                stats.skip(f"undecodable {msgtype} messages", where)
+                continue
+            stamp = _stamp(msg, t)
+            if stamp < last_stamp:
+                if self.backwards == "error":
+                    raise RecordingError(
+                        f"stamp {stamp:.6f} earlier than an earlier scan's {last_stamp:.6f}",
+                        source=self.bag,
+                        where=where,
+                    )
+                if self.backwards == "skip":
+                    stats.skip("scans stamped before an earlier scan", where)
+                    continue
+                stats.flag("scans stamped before an earlier scan (kept in bag order)", where)
+            last_stamp = max(last_stamp, stamp)
+            pose = None
+            if odom.shape[0]:
+                p, ok = interpolate_poses(odom, np.array([stamp]), self.odom_tolerance)
+                if ok[0]:
+                    pose = (float(p[0, 0]), float(p[0, 1]), float(p[0, 2]))
+                else:
+                    stats.flag("scans outside the odometry records (odom None)", where)
+            if msgtype == LASER_SCAN:
+                scan = self._laser_scan(msg, stamp, pose, angles_cache, stats, where)
+            else:
+                scan = self._cloud_scan(msg, stamp, pose, stats, where)
+            if scan is not None:
+                yield scan
+        for reason, n in self.source.problems.items():
+            stats.problems[reason] += n
+            stats.first.setdefault(reason, self.source.first_problem.get(reason, "?"))
+
+    def _laser_scan(self, msg, stamp, pose, cache, stats: RecordingStats, where: str) -> Scan | None:
+        ranges = np.asarray(msg.ranges, dtype=np.float64)
+        a0, inc = float(msg.angle_min), float(msg.angle_increment)
+        if ranges.size == 0 or not (math.isfinite(a0) and math.isfinite(inc)):
+            stats.skip("LaserScan messages with no beams or non-finite angles", where)
+            return None
+        rmax = float(msg.range_max) if math.isfinite(msg.range_max) and msg.range_max > 0 else math.inf
+        rmin = float(msg.range_min) if math.isfinite(msg.range_min) else 0.0
+        bad = ~np.isfinite(ranges) | (ranges < 0.0)
+        if bad.any():
+            stats.flag("scans with NaN/inf/negative ranges (set to nan)", where)
+        invalid = bad | ~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax)
+        if invalid.any():
+            ranges[invalid] = np.nan
+        key = (ranges.size, a0, inc)
+        angles = cache.get(key)
+        if angles is None:
+            angles = a0 + inc * np.arange(ranges.size, dtype=np.float64)
+            angles.flags.writeable = False
+            cache[key] = angles
+        return Scan(stamp, ranges, angles, pose, rmax)
+
+    def _cloud_scan(self, msg, stamp, pose, stats: RecordingStats, where: str) -> Scan | None:
+        try:
+            xyz = pointcloud2_xyz(msg)
+        except ValueError as exc:
+            stats.skip(f"unusable PointCloud2 messages ({exc})", where)
+            return None
+        finite = np.isfinite(xyz).all(axis=1)
+        if not finite.all():
+            stats.flag("clouds with non-finite points (dropped)", where)
+        keep = finite & (np.abs(xyz[:, 2] - self.plane_z) < self.plane_tol)
+        return Scan.from_points(stamp, xyz[keep, :2], pose)
