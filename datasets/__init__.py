@@ -9,6 +9,7 @@ or a simulator output folder (``bag/metadata.yaml``) -> :class:`RosBag`; a folde
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
@@ -41,12 +42,19 @@ def open_recording(path: str | Path, **opts: Any) -> Recording:
     p = Path(path)
     if not p.exists():
         raise RecordingError("no such file or folder", source=p)
+    reader: type[Recording] | None = None
     if p.is_file() and is_carmen(p):
-        return CarmenLog(p, **opts)
-    if bag_path(p) is not None:
-        return RosBag(p, **opts)
-    if p.is_dir() and cloud_files(p):
-        return PointCloudFolder(p, **opts)
+        reader = CarmenLog
+    elif bag_path(p) is not None:
+        reader = RosBag
+    elif p.is_dir() and cloud_files(p):
+        reader = PointCloudFolder
+    if reader is not None:
+        accepted = inspect.signature(reader.__init__).parameters
+        unknown = sorted(k for k in opts if k not in accepted or k in ("self", "path"))
+        if unknown:
+            raise RecordingError(f"{reader.__name__} takes no option {', '.join(unknown)}", source=p)
+        return reader(p, **opts)
     raise RecordingError(
         "unknown recording kind: expected a CARMEN log (.clf/.log[.gz|.bz2]), a ROS bag (.bag, .mcap, "
         ".db3, a folder with metadata.yaml or bag/metadata.yaml) or a folder of .pcd/.ply files",

@@ -17,6 +17,8 @@ COMMAND_MODULES = (
     "plan",
     "map",
     "demo",
+    "inspect",
+    "evaluate",
 )
 
 for _name in COMMAND_MODULES:
