@@ -1,0 +1,436 @@
+"""Streaming FR-SLAM backend: scans in, poses in ``map`` out (REP-105; metres, radians, seconds).
+
+``FRSlam.add_scan(stamp, ranges, angle_min, angle_increment, odom=None)`` runs the scan odometry
+(KISS-ICP fused with wheel odometry, :mod:`frslam_graph.odometry`); every keyframe becomes a
+Pose2 variable of the :class:`~frslam_graph.graph.PoseGraph` (iSAM2). Non-keyframe scans hang off
+their keyframe by their odometry pose relative to it, so the whole trajectory follows the graph.
+
+Seams for the floor-plan update strategy (paper Alg. 3):
+
+- ``update_strategy``: any object with ``on_keyframe(slam, keyframe: KeyframeInfo)`` (or a plain
+  callable with that signature), called after each keyframe is in the graph. It may read
+  ``slam.occupancy_grid()``, ``slam.keyframes()``, ``slam.graph``; add priors with
+  ``slam.add_floorplan_prior(...)``, remove them with ``slam.remove_prior(...)``, re-express the
+  map with ``slam.transform_map(...)`` and record decisions with ``slam.log_event(...)``.
+- ``finish()`` runs the final LM batch; ``process(recording)`` is the offline loop.
+
+The decision log (``slam.log``) is a list of :class:`DecisionEvent`; nothing is printed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import gtsam
+import numpy as np
+
+from frslam_graph.config import FRSlamConfig
+from frslam_graph.errors import ConfigError, RecordingError
+from frslam_graph.graph import PoseGraph, PriorHandle
+from frslam_graph.motion_model import compose, compose_many, inverse
+from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
+
+
+@dataclass(frozen=True, slots=True)
+class DecisionEvent:
+    """One entry of the decision log: what happened, when, and the numbers behind it."""
+
+    stamp: float
+    kind: str  # e.g. odom_jump, empty_scan, dropped_scans, degenerate_start, prior_added, ...
+    message: str
+    keyframe: int | None = None
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class KeyframeInfo:
+    """A keyframe: graph index, stamp, index of its scan, poses in map (current) and odom."""
+
+    index: int
+    stamp: float
+    scan_index: int
+    pose_map: np.ndarray
+    pose_odom: np.ndarray
+
+
+class UpdateStrategy(Protocol):
+    def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo) -> None: ...
+
+
+@dataclass(slots=True)
+class SlamResult:
+    """Output of :meth:`FRSlam.process`."""
+
+    trajectory: np.ndarray  # (N, 4) stamp, x, y, theta in map
+    keyframes: np.ndarray  # (K, 4) stamp, x, y, theta in map
+    odometry: np.ndarray  # (N, 4) stamp, x, y, theta in odom
+    map_to_odom: np.ndarray  # (3,)
+    stats: OdometryStats
+    log: list[DecisionEvent]
+    latencies: np.ndarray  # (N,) seconds per add_scan
+    wall_time: float  # seconds for the whole run (incl. the batch)
+    duration: float  # recording time span, seconds
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.duration / self.wall_time if self.wall_time > 0 else float("inf")
+
+
+@dataclass(slots=True)
+class _Keyframe:
+    stamp: float
+    scan_index: int
+    pose_odom: np.ndarray
+    points: np.ndarray  # (M, 2) float32 in base_link
+    sensor_origin: np.ndarray  # (2,) in base_link
+
+
+class FRSlam:
+    """Streaming 2D SLAM backend with floor-plan priors (see module docstring)."""
+
+    def __init__(
+        self,
+        config: FRSlamConfig | dict | str | Path | None = None,
+        floor_plan: Any = None,
+        update_strategy: UpdateStrategy | Callable[[FRSlam, KeyframeInfo], None] | None = None,
+    ):
+        self.config = _as_config(config)
+        self.floor_plan = floor_plan
+        self.update_strategy = update_strategy
+        self.odometry = ScanOdometry(self.config.odometry)
+        self.graph = PoseGraph(self.config.graph)
+        self.log: list[DecisionEvent] = []
+        self._kfs: list[_Keyframe] = []
+        self._stamps: list[float] = []
+        self._scan_kf: list[int] = []
+        self._scan_rel: list[np.ndarray] = []
+        self._scan_odom: list[np.ndarray] = []
+        self._was_degenerate = False
+        self._angles_cache: tuple[float, float, int, np.ndarray] | None = None
+
+    # ----------------------------------------------------------------- input
+    def add_scan(
+        self,
+        stamp: float,
+        ranges: np.ndarray,
+        angle_min: float,
+        angle_increment: float,
+        odom: tuple[float, float, float] | None = None,
+        range_max: float | None = None,
+        sensor_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> tuple[float, float, float]:
+        """Add a laser scan (sensor frame, sensor_msgs/LaserScan layout); return base_link in map.
+
+        ``ranges`` (N,): nan / inf / <= 0 / >= range_max are no returns. ``odom``: wheel pose
+        (x, y, theta) in the wheel-odometry frame at ``stamp``, or None.
+        """
+        r = np.asarray(ranges, dtype=np.float64)
+        if r.ndim != 1:
+            raise RecordingError(f"ranges must be a 1-D array, got shape {r.shape}", where="ranges")
+        if not (np.isfinite(angle_min) and np.isfinite(angle_increment) and angle_increment != 0.0):
+            raise RecordingError(
+                f"angle_min / angle_increment must be finite and the increment non-zero, got "
+                f"{angle_min!r}, {angle_increment!r}",
+                where="angle_increment",
+            )
+        ang = self._angles(float(angle_min), float(angle_increment), len(r))
+        rmax = self.config.odometry.max_range if range_max is None else float(range_max)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(r) & (r > 0.0) & (r < rmax)
+        pts = np.column_stack((r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])))
+        return self.add_points(stamp, pts, odom, sensor_offset)
+
+    def add(self, scan: Any) -> tuple[float, float, float]:
+        """Add a :class:`frslam_graph.datasets.Scan`."""
+        return self.add_points(scan.stamp, scan.points, scan.odom, scan.sensor_offset)
+
+    def add_points(
+        self,
+        stamp: float,
+        points: np.ndarray,
+        odom: tuple[float, float, float] | None = None,
+        sensor_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> tuple[float, float, float]:
+        """Add planar end points (M, 2) in the sensor frame; return base_link in map."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        off = np.asarray(sensor_offset, dtype=np.float64)
+        if np.any(off != 0.0):
+            pts = compose_many(off, np.column_stack((pts, np.zeros(len(pts)))))[:, :2]
+        res = self.odometry.process(stamp, pts, odom)
+        if res is None:
+            self.log_event(
+                "out_of_order", f"scan stamp {stamp} not after the previous one; skipped", stamp=stamp
+            )
+            return self.pose()
+        self._record(res, pts, off)
+        return self.pose()
+
+    # ------------------------------------------------------------ internals
+    def _angles(self, angle_min: float, inc: float, n: int) -> np.ndarray:
+        c = self._angles_cache
+        if c is None or c[0] != angle_min or c[1] != inc or c[2] != n:
+            self._angles_cache = c = (angle_min, inc, n, angle_min + inc * np.arange(n))
+        return c[3]
+
+    def _record(self, res: OdometryResult, pts: np.ndarray, off: np.ndarray) -> None:
+        stamp = res.stamp
+        if res.dropped:
+            self.log_event(
+                "dropped_scans",
+                f"stamp gap: about {res.dropped} scan(s) missing",
+                stamp=stamp,
+                count=res.dropped,
+            )
+        if res.fallback:
+            self.log_event(
+                "motion_model_fallback",
+                f"{res.n_points} valid points: motion model used instead of ICP",
+                stamp=stamp,
+                n_points=res.n_points,
+            )
+        if res.odom_jump:
+            self.log_event("odom_jump", "wheel odometry inconsistent with ICP; ICP trusted", stamp=stamp)
+        if res.degenerate != self._was_degenerate:
+            kind = "degenerate_start" if res.degenerate else "degenerate_end"
+            data = {"axis": res.degenerate_axis.tolist()} if res.degenerate_axis is not None else {}
+            self.log_event(
+                kind,
+                "scan geometry degenerate (corridor)"
+                if res.degenerate
+                else "scan geometry constrained again",
+                stamp=stamp,
+                **data,
+            )
+            self._was_degenerate = res.degenerate
+        scan_index = len(self._stamps)
+        self._stamps.append(stamp)
+        self._scan_kf.append(res.keyframe)
+        self._scan_rel.append(res.relative)
+        self._scan_odom.append(res.pose)
+        if not res.is_keyframe:
+            return
+        if res.keyframe == 0:
+            self.graph.add_first(res.pose)  # map == odom at start
+        else:
+            self.graph.add_keyframe(res.between, res.covariance)
+        self._kfs.append(
+            _Keyframe(stamp, scan_index, res.pose.copy(), pts.astype(np.float32), off[:2].copy())
+        )
+        if self.update_strategy is not None:
+            info = self.keyframe(res.keyframe)
+            hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
+            hook(self, info)
+
+    # ------------------------------------------------------------- outputs
+    def pose(self) -> tuple[float, float, float]:
+        """Latest base_link pose in map."""
+        if not self._stamps:
+            return (0.0, 0.0, 0.0)
+        p = compose(self.graph.estimate(), self._scan_rel[-1])
+        return (float(p[0]), float(p[1]), float(p[2]))
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def keyframe(self, i: int) -> KeyframeInfo:
+        kf = self._kfs[i]
+        return KeyframeInfo(i, kf.stamp, kf.scan_index, self.graph.estimate(i), kf.pose_odom.copy())
+
+    def keyframes(self) -> list[KeyframeInfo]:
+        est = self.graph.estimates() if self._kfs else np.zeros((0, 3))
+        return [
+            KeyframeInfo(i, k.stamp, k.scan_index, est[i], k.pose_odom.copy())
+            for i, k in enumerate(self._kfs)
+        ]
+
+    def keyframe_array(self) -> np.ndarray:
+        """(K, 4) stamp, x, y, theta of the keyframes in map."""
+        if not self._kfs:
+            return np.zeros((0, 4))
+        return np.column_stack(([k.stamp for k in self._kfs], self.graph.estimates()))
+
+    def trajectory(self) -> np.ndarray:
+        """(N, 4) stamp, x, y, theta in map of every accepted scan."""
+        if not self._stamps:
+            return np.zeros((0, 4))
+        est = self.graph.estimates()
+        kf = np.asarray(self._scan_kf)
+        rel = np.asarray(self._scan_rel)
+        base = est[kf]
+        c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
+        x = base[:, 0] + c * rel[:, 0] - s * rel[:, 1]
+        y = base[:, 1] + s * rel[:, 0] + c * rel[:, 1]
+        th = (base[:, 2] + rel[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        return np.column_stack((self._stamps, x, y, th))
+
+    def odometry_trajectory(self) -> np.ndarray:
+        """(N, 4) stamp, x, y, theta in odom (the fused odometry, never corrected)."""
+        if not self._stamps:
+            return np.zeros((0, 4))
+        return np.column_stack((self._stamps, np.asarray(self._scan_odom)))
+
+    def map_to_odom(self) -> tuple[float, float, float]:
+        """T_map_odom = T_map_base · T_odom_base⁻¹ at the latest keyframe (x, y, theta)."""
+        if not self._kfs:
+            return (0.0, 0.0, 0.0)
+        i = len(self._kfs) - 1
+        t = self.graph.map_to_odom(i, self._kfs[i].pose_odom)
+        return (float(t[0]), float(t[1]), float(t[2]))
+
+    def keyframe_scans(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""
+        return [k.points for k in self._kfs], [k.sensor_origin for k in self._kfs]
+
+    def occupancy_grid(self, resolution: float = 0.05):
+        """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates."""
+        from frslam_graph.mapping import occupancy_grid
+
+        if resolution <= 0 or not np.isfinite(resolution):
+            raise ConfigError(
+                f"resolution must be a positive number of metres, got {resolution!r}", where="resolution"
+            )
+        pts, origins = self.keyframe_scans()
+        poses = self.graph.estimates() if self._kfs else np.zeros((0, 3))
+        return occupancy_grid(poses, pts, origins, resolution)
+
+    @property
+    def stats(self) -> OdometryStats:
+        return self.odometry.stats
+
+    # ------------------------------------------------------- floor-plan seam
+    def log_event(
+        self, kind: str, message: str, stamp: float | None = None, keyframe: int | None = None, **data: Any
+    ) -> DecisionEvent:
+        """Append a decision to the log (for the pipeline and the update strategy)."""
+        if stamp is None:
+            stamp = self._stamps[-1] if self._stamps else float("nan")
+        ev = DecisionEvent(float(stamp), kind, message, keyframe, dict(data))
+        self.log.append(ev)
+        return ev
+
+    def keyframe_at(self, stamp: float, tolerance: float = 1e-6) -> tuple[int, np.ndarray]:
+        """(keyframe index, pose of the scan relative to it) of the scan with this stamp."""
+        st = np.asarray(self._stamps)
+        if len(st) == 0:
+            raise RecordingError("no scans yet", where="stamp")
+        j = int(np.argmin(np.abs(st - stamp)))
+        if abs(st[j] - stamp) > tolerance:
+            raise RecordingError(f"no scan at stamp {stamp} (nearest {st[j]})", where="stamp")
+        return self._scan_kf[j], self._scan_rel[j]
+
+    def add_floorplan_prior(
+        self,
+        stamp_or_keyframe: int | float,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        source: str = "floorplan",
+        kind: str = "full",
+        kernel: str | None = None,
+        info: dict | None = None,
+    ) -> PriorHandle:
+        """Add a robust prior: ``pose`` (x, y, theta) of base_link in map at a keyframe (int) or at
+        the scan with that stamp (float; moved onto its keyframe through the odometry)."""
+        if isinstance(stamp_or_keyframe, int | np.integer):
+            kf, rel = int(stamp_or_keyframe), np.zeros(3)
+            stamp = self._kfs[kf].stamp if 0 <= kf < len(self._kfs) else float("nan")
+        else:
+            stamp = float(stamp_or_keyframe)
+            kf, rel = self.keyframe_at(stamp)
+        p = np.asarray(pose, dtype=np.float64)
+        cov = np.asarray(covariance, dtype=np.float64)
+        if np.any(rel != 0.0):
+            # prior on the scan -> prior on its keyframe: kf = pose ⊕ rel⁻¹
+            kf_pose = compose(p, inverse(rel))
+            if kind == "full":  # tangent at the keyframe: ξ_kf = Ad(rel) ξ_scan
+                ad = np.asarray(gtsam.Pose2(*rel).AdjointMap())
+                cov = ad @ cov @ ad.T
+            p = kf_pose
+        handle = self.graph.add_prior(kf, p, cov, kind=kind, kernel=kernel, source=source, info=info)
+        self.log_event(
+            "prior_added",
+            f"{kind} prior from {source} on keyframe {kf}",
+            stamp=stamp,
+            keyframe=kf,
+            prior=handle.id,
+            pose=p.tolist(),
+        )
+        return handle
+
+    def remove_prior(self, handle: PriorHandle, reason: str = "") -> None:
+        """Remove a prior proven wrong (logged with the reason)."""
+        self.graph.remove_prior(handle)
+        self.log_event(
+            "prior_removed", reason or f"prior {handle.id} removed", keyframe=handle.keyframe, prior=handle.id
+        )
+
+    def transform_map(self, transform: np.ndarray, reason: str = "") -> None:
+        """Re-express everything in a new map frame (pose p -> transform ⊕ p); map->odom changes."""
+        self.graph.transform_map(transform)
+        self.log_event(
+            "map_transformed",
+            reason or "map frame re-expressed",
+            transform=np.asarray(transform, float).tolist(),
+        )
+
+    # ---------------------------------------------------------------- offline
+    def finish(self) -> np.ndarray:
+        """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`."""
+        if self._kfs:
+            t0 = time.perf_counter()
+            before = self.graph.error()
+            self.graph.optimize_batch()
+            self.log_event(
+                "batch_optimised",
+                "final LM batch",
+                error_before=before,
+                error_after=self.graph.error(),
+                seconds=time.perf_counter() - t0,
+            )
+        return self.trajectory()
+
+    def process(self, recording: Iterable[Any], batch: bool = True) -> SlamResult:
+        """Run over every Scan of a recording (offline); LM batch at the end when ``batch``."""
+        lat = []
+        t_start = time.perf_counter()
+        first = last = None
+        for scan in recording:
+            t0 = time.perf_counter()
+            self.add(scan)
+            lat.append(time.perf_counter() - t0)
+            first = scan.stamp if first is None else first
+            last = scan.stamp
+        if batch:
+            self.finish()
+        wall = time.perf_counter() - t_start
+        return SlamResult(
+            self.trajectory(),
+            self.keyframe_array(),
+            self.odometry_trajectory(),
+            np.asarray(self.map_to_odom()),
+            self.stats,
+            self.log,
+            np.asarray(lat),
+            wall,
+            float(last - first) if first is not None else 0.0,
+        )
+
+
+def _as_config(config: FRSlamConfig | dict | str | Path | None) -> FRSlamConfig:
+    if config is None:
+        return FRSlamConfig()
+    if isinstance(config, FRSlamConfig):
+        return config
+    if isinstance(config, dict):
+        return FRSlamConfig.from_dict(config)
+    if isinstance(config, str | Path):
+        return FRSlamConfig.load(config)
+    raise ConfigError(
+        f"config must be FRSlamConfig, a mapping or a file path, got {type(config).__name__}", where="config"
+    )
+
+
+__all__ = ["DecisionEvent", "FRSlam", "KeyframeInfo", "SlamResult", "UpdateStrategy"]
