@@ -26,7 +26,7 @@ right-handed; ``units = "px"``, ``metres_per_unit = None``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,17 @@ ICON_CATEGORIES = frozenset(
     {"washing_basin", "cooking_counter", "bathtub", "toilet", "entrance", "special", "stairs", "PS", "point"}
 )
 ROOM_CATEGORIES = frozenset(
-    {"bedroom", "closet", "bathroom", "balcony", "restroom", "kitchen", "corridor", "washing_room", "living_room"}
+    {
+        "bedroom",
+        "closet",
+        "bathroom",
+        "balcony",
+        "restroom",
+        "kitchen",
+        "corridor",
+        "washing_room",
+        "living_room",
+    }
 )
 MAX_ABS_COORD = 1e7
 _SHIFT = 4  # cv2 sub-pixel bits for drawing
@@ -63,17 +73,25 @@ class R2VOptions:
     extend_frac: float = 0.25  # 'extend': up to this fraction of the plan's larger side
     close_kernels: tuple[int, ...] = (5, 9, 15, 25)  # 'close<k>': closing kernel sizes, raster px
     split_multi_label: bool = True  # split a region holding several room labels between them
+    repair: bool = True  # try the repair steps when a label is not enclosed (False: walls as drawn)
 
 
 @dataclass(frozen=True)
 class R2VLabel:
-    """A room label row: normalised type, box (x1, y1, x2, y2; R2V pixels, y down), line number,
-    and the id of the room that holds it (None when no room could be built around it)."""
+    """A labelled room: normalised type, label box (x1, y1, x2, y2; R2V pixels, y down), line
+    number, and the id of the room that holds it (None when no room could be built around it).
+
+    Label rows whose boxes coincide (IoU > 0.5) name one room; the first row gives ``type`` and
+    the others are kept in ``other_types`` / ``other_lines`` (R2V has e.g. one box labelled both
+    ``kitchen`` and ``washing_room``).
+    """
 
     type: str
     box: tuple[float, float, float, float]
     line: int
     room: str | None = None
+    other_types: tuple[str, ...] = ()
+    other_lines: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -179,7 +197,7 @@ def parse_r2v(path: str | Path) -> R2VData:
     return R2VData(
         walls=np.asarray(walls, dtype=np.float64).reshape(-1, 4),
         doors=np.asarray(doors, dtype=np.float64).reshape(-1, 4),
-        labels=_dedupe_labels(labels),
+        labels=_group_labels(labels),
         icons=icons,
         source=src,
     )
@@ -197,11 +215,19 @@ def _box(c: tuple[float, ...]) -> tuple[float, float, float, float]:
     return (min(c[0], c[2]), min(c[1], c[3]), max(c[0], c[2]), max(c[1], c[3]))
 
 
-def _dedupe_labels(labels: list[R2VLabel]) -> list[R2VLabel]:
-    """Drop repeated label rows (same type, boxes overlapping by more than half)."""
+def _group_labels(labels: list[R2VLabel]) -> list[R2VLabel]:
+    """Merge label rows whose boxes coincide (IoU > 0.5) into one labelled room."""
     kept: list[R2VLabel] = []
     for lab in labels:
-        if not any(k.type == lab.type and _box_iou(k.box, lab.box) > 0.5 for k in kept):
+        for k, other in enumerate(kept):
+            if _box_iou(other.box, lab.box) > 0.5:
+                kept[k] = replace(
+                    other,
+                    other_types=(*other.other_types, lab.type),
+                    other_lines=(*other.other_lines, lab.line),
+                )
+                break
+        else:
             kept.append(lab)
     return kept
 
@@ -267,7 +293,9 @@ def _point_segment_distance(p: np.ndarray, segs: np.ndarray) -> np.ndarray:
     return np.linalg.norm(ap - t[..., None] * d, axis=-1)
 
 
-def _extensions(data: R2VData, frame: _Frame, walls_img: np.ndarray, max_len: float, opts: R2VOptions) -> np.ndarray:
+def _extensions(
+    data: R2VData, frame: _Frame, walls_img: np.ndarray, max_len: float, opts: R2VOptions
+) -> np.ndarray:
     """Segments that extend dangling wall ends along their direction to the next wall (<= max_len)."""
     walls = data.walls
     if len(walls) == 0:
@@ -277,7 +305,10 @@ def _extensions(data: R2VData, frame: _Frame, walls_img: np.ndarray, max_len: fl
     length = length[length > 1e-6]
     allsegs = np.concatenate([walls, data.doors])
     ends = np.concatenate([walls[:, :2], walls[:, 2:]])  # (2K, 2)
-    dirs = np.concatenate([walls[:, :2] - walls[:, 2:], walls[:, 2:] - walls[:, :2]]) / np.tile(length, 2)[:, None]
+    dirs = (
+        np.concatenate([walls[:, :2] - walls[:, 2:], walls[:, 2:] - walls[:, :2]])
+        / np.tile(length, 2)[:, None]
+    )
     own = np.tile(np.arange(len(walls)), 2)
     dist = _point_segment_distance(ends, allsegs)
     dist[np.arange(len(ends)), own] = np.inf
@@ -329,7 +360,9 @@ def _label_pixels(frame: _Frame, labels: list[R2VLabel]) -> np.ndarray:
     return np.clip(px, 0, np.array(frame.shape[::-1]) - 1)
 
 
-def _assign_labels(comp: np.ndarray, outside: int, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions) -> np.ndarray:
+def _assign_labels(
+    comp: np.ndarray, outside: int, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions
+) -> np.ndarray:
     """Region id of each label (-1: outside or unresolved). A centre on a wall takes the nearest
     free pixel within the label box (or within a few wall widths)."""
     px = _label_pixels(frame, labels)
@@ -378,7 +411,9 @@ def _geodesic_split(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     return lab
 
 
-def _room_image(reg: _Regions, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions) -> tuple[np.ndarray, dict[int, str], np.ndarray]:
+def _room_image(
+    reg: _Regions, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions
+) -> tuple[np.ndarray, dict[int, str], np.ndarray]:
     """Final room label image (uint16; 0 = wall/dropped, `outside` id = outside), room types and
     the room label of each R2V label (0 = not found)."""
     comp, outside = reg.comp, reg.outside
@@ -471,6 +506,8 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
     labels = data.labels
     stages: list[tuple[str, str, int]] = [("plain", "plain", 0), ("snap", "snap", 0), ("extend", "extend", 0)]
     stages += [(f"close{k}", "extend", k) for k in opts.close_kernels]
+    if not opts.repair:
+        stages = stages[:1]
     best: tuple[int, str, np.ndarray, _Regions] | None = None
     for name_, stage, kernel in stages:
         walls_img = _wall_image(data, frame, opts, stage, kernel)
@@ -484,7 +521,7 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
     n_in, strategy, walls_img, reg = best
     room, types, label_room, outside_id = _room_image(reg, frame, labels, opts)
     missing = np.flatnonzero(label_room == 0)
-    if len(missing):
+    if len(missing) and opts.repair:
         next_id = max(types, default=0) + 1
         for i in missing.tolist():
             box = _box_room(walls_img, room, outside_id, frame, labels[i], opts)
@@ -500,7 +537,9 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
     return _to_plan(full, types, label_room, data, frame, opts, strategy, name)
 
 
-def _box_room(walls_img: np.ndarray, room: np.ndarray, outside_id: int, frame: _Frame, label: R2VLabel, opts: R2VOptions) -> np.ndarray | None:
+def _box_room(
+    walls_img: np.ndarray, room: np.ndarray, outside_id: int, frame: _Frame, label: R2VLabel, opts: R2VOptions
+) -> np.ndarray | None:
     """Fallback: the box around the label bounded by the nearest wall in each axis direction (or
     the plan's wall extent), restricted to outside pixels connected to the label centre."""
     c, r = _label_pixels(frame, [label])[0]
@@ -563,7 +602,7 @@ def _to_plan(
     if not rooms:
         raise FloorPlanError("no enclosed room could be built from the walls", source=src)
     labels = [
-        R2VLabel(lab.type, lab.box, lab.line, room_of.get(int(label_room[i])) if label_room[i] else None)
+        replace(lab, room=room_of.get(int(label_room[i])) if label_room[i] else None)
         for i, lab in enumerate(data.labels)
     ]
     doors = _doors(data, frame, full, room_of, opts)
@@ -584,7 +623,9 @@ def _clean(poly: Polygon) -> Polygon | None:
     return poly if poly.area > 0 else None
 
 
-def _doors(data: R2VData, frame: _Frame, full: np.ndarray, room_of: dict[int, str], opts: R2VOptions) -> list[Door]:
+def _doors(
+    data: R2VData, frame: _Frame, full: np.ndarray, room_of: dict[int, str], opts: R2VOptions
+) -> list[Door]:
     """Doors in plan coordinates, linked to the rooms sampled on both sides of the opening."""
     doors: list[Door] = []
     if len(data.doors) == 0:
@@ -629,7 +670,9 @@ def load_r2v_detailed(path: str | Path, options: R2VOptions | None = None) -> R2
     except FloorPlanError:
         raise
     except Exception as exc:  # any internal failure names the file instead of escaping as a bare traceback
-        raise FloorPlanError(f"could not build rooms from the walls ({type(exc).__name__}: {exc})", source=str(path)) from exc
+        raise FloorPlanError(
+            f"could not build rooms from the walls ({type(exc).__name__}: {exc})", source=str(path)
+        ) from exc
 
 
 def load_r2v(path: str | Path, **options: Any) -> FloorPlan:
