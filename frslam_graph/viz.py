@@ -1,39 +1,19 @@
-"""Drawing helpers (matplotlib, Agg backend): occupancy grids in metric axes, plan overlays.
+"""Drawing helpers (matplotlib, Agg backend): occupancy grids in metric axes, trajectories.
 
 Used by the CLI and ``tools/`` only (library code never draws on its own). Axes are the ``map``
-frame in metres with y up (REP-103).
+frame in metres with y up (REP-103). Plans are drawn by :mod:`frslam_graph.floorplan.render`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from frslam_graph.occupancy import OccupancyGrid  # noqa: E402
-
-
-def grid_image(grid: OccupancyGrid) -> np.ndarray:
-    """Grey image (H, W) float in [0, 1], row 0 = lowest y: white free, black occupied, grey unknown."""
-    img = np.full(grid.shape, 0.8)
-    img[grid.free_mask()] = 1.0
-    img[grid.occupied_mask()] = 0.0
-    return img
-
-
-def draw_grid(ax, grid: OccupancyGrid, alpha: float = 1.0) -> None:
-    """Draw a grid on ``ax`` in map metres (yaw of the origin is ignored for display)."""
-    x0, y0, _ = grid.origin
-    extent = (x0, x0 + grid.width * grid.resolution, y0, y0 + grid.height * grid.resolution)
-    ax.imshow(grid_image(grid), cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, alpha=alpha,
-              interpolation="nearest")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_aspect("equal")
+from frslam_graph.floorplan.render import draw_grid, draw_plan
+from frslam_graph.occupancy import OccupancyGrid
 
 
 def save_grid_png(grid: OccupancyGrid, out: str | Path, title: str = "") -> Path:
@@ -41,10 +21,45 @@ def save_grid_png(grid: OccupancyGrid, out: str | Path, title: str = "") -> Path
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     aspect = grid.height / max(grid.width, 1)
-    fig, ax = plt.subplots(figsize=(8, max(3.0, 8 * aspect)))
+    fig = Figure(figsize=(8, max(3.0, 8 * aspect)))
+    ax = fig.add_subplot(1, 1, 1)
     draw_grid(ax, grid)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
     ax.set_title(title)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
-    plt.close(fig)
+    return out
+
+
+def save_trajectory_png(
+    out: str | Path,
+    trajectories: dict[str, np.ndarray],
+    ground_truth: np.ndarray | None = None,
+    grid: OccupancyGrid | None = None,
+    plan: Any = None,
+    title: str = "",
+) -> Path:
+    """Trajectories ((N, 4) stamp, x, y, theta in map) over an optional map and registered plan."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = Figure(figsize=(10, 8))
+    ax = fig.add_subplot(1, 1, 1)
+    if grid is not None:
+        draw_grid(ax, grid)
+    if plan is not None:
+        draw_plan(ax, plan, alpha=0.25, labels=False, legend=False)
+    if ground_truth is not None and len(ground_truth):
+        ax.plot(ground_truth[:, 1], ground_truth[:, 2], color="black", lw=1.2, ls="--", label="ground truth")
+    for name, traj in trajectories.items():
+        if len(traj):
+            ax.plot(traj[:, 1], traj[:, 2], lw=1.2, label=name)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
     return out

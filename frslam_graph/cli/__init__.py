@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "plan",
     "map",
     "demo",
+    "run",
     "inspect",
     "evaluate",
 )

@@ -1,0 +1,206 @@
+"""``frslam run`` and ``frslam compare``: process a recording with / without floor-plan priors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from frslam_graph.cli.app import app, console
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+def _run_one(recording_path: Path, plan, config, label: str, progress: Progress):
+    from frslam_graph.datasets import open_recording
+    from frslam_graph.offline import run_recording
+
+    rec = open_recording(recording_path)
+    task = progress.add_task(label, total=len(rec), rate="")
+    import time
+
+    t0 = time.perf_counter()
+
+    def tick(i: int) -> None:
+        if i % 25 == 0 or i == len(rec):
+            dt = time.perf_counter() - t0
+            progress.update(task, completed=i, rate=f"{i / dt:.0f} scans/s" if dt > 0 else "")
+
+    run = run_recording(rec, floor_plan=plan, config=config, progress=tick)
+    progress.update(task, completed=len(rec))
+    return rec, run
+
+
+def _ground_truth(rec, ground_truth: Path | None) -> np.ndarray | None:
+    from frslam_graph.metrics import load_tum
+
+    if ground_truth is not None:
+        return load_tum(ground_truth)
+    if getattr(rec, "ground_truth_path", None) is not None:
+        return rec.ground_truth()
+    return None
+
+
+def _load_plan(path: Path | None):
+    if path is None:
+        return None
+    from frslam_graph.floorplan import FloorPlan
+
+    return FloorPlan.load(path)
+
+
+@app.command()
+def run(
+    recording: Path = typer.Argument(
+        ..., help="CARMEN log, ROS 1/2 bag, PCD/PLY folder or simulator output."
+    ),
+    floor_plan: Path | None = typer.Option(None, "--floor-plan", "-p", help="Floor plan (JSON, R2V .txt)."),
+    no_priors: bool = typer.Option(
+        False, "--no-priors", help="Ignore the floor plan: odometry + graph only."
+    ),
+    config: Path | None = typer.Option(None, "--config", "-c", help="FRSlamConfig YAML/JSON."),
+    ground_truth: Path | None = typer.Option(None, "--ground-truth", help="TUM ground truth for ATE/RPE."),
+    relations: Path | None = typer.Option(None, "--relations", help="Relations file (Kümmerle et al.)."),
+    out: Path = typer.Option(Path("out/run"), "--out", "-o", help="Output folder."),
+) -> None:
+    """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
+    from frslam_graph.metrics import load_relations
+    from frslam_graph.offline import write_outputs
+    from frslam_graph.viz import save_trajectory_png
+
+    plan = None if no_priors else _load_plan(floor_plan)
+    rel = load_relations(relations) if relations is not None else None
+    with _progress() as progress:
+        rec, result = _run_one(
+            recording, plan, config, "with priors" if plan is not None else "no priors", progress
+        )
+    gt = _ground_truth(rec, ground_truth)
+    write_outputs(result, out, gt, rel)
+    save_trajectory_png(
+        out / "trajectory.png",
+        {"estimate": result.result.trajectory},
+        gt,
+        grid=result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None,
+        plan=_registered(result),
+    )
+    _print_metrics({"run": result.metrics})
+    console.print(f"outputs in {out}: " + ", ".join(sorted(p.name for p in result.files.values())))
+
+
+def _registered(run):
+    reg = getattr(run.slam, "registered_plan", None)
+    return reg() if callable(reg) else reg
+
+
+@app.command()
+def compare(
+    recording: Path = typer.Argument(..., help="Recording to process twice."),
+    floor_plan: Path = typer.Option(..., "--floor-plan", "-p", help="Floor plan of the building."),
+    ground_truth: Path | None = typer.Option(None, "--ground-truth", help="TUM ground truth (ATE/RPE)."),
+    relations: Path | None = typer.Option(None, "--relations", help="Relations file (Kümmerle et al.)."),
+    config: Path | None = typer.Option(None, "--config", "-c", help="FRSlamConfig YAML/JSON."),
+    out: Path = typer.Option(Path("out/compare"), "--out", "-o", help="Output folder."),
+) -> None:
+    """Run with and without floor-plan priors and print the errors side by side."""
+    from frslam_graph.metrics import load_relations
+    from frslam_graph.offline import write_outputs
+    from frslam_graph.viz import save_trajectory_png
+
+    plan = _load_plan(floor_plan)
+    rel = load_relations(relations) if relations is not None else None
+    with _progress() as progress:
+        rec, without = _run_one(recording, None, config, "without priors", progress)
+        _, with_ = _run_one(recording, plan, config, "with priors", progress)
+    gt = _ground_truth(rec, ground_truth)
+    write_outputs(without, out / "without_priors", gt, rel)
+    write_outputs(with_, out / "with_priors", gt, rel)
+    save_trajectory_png(
+        out / "compare.png",
+        {"without priors": without.result.trajectory, "with priors": with_.result.trajectory},
+        gt,
+        grid=with_.slam.occupancy_grid(0.05) if len(with_.result.keyframes) else None,
+        plan=_registered(with_),
+    )
+    summary = {"without priors": without.metrics, "with priors": with_.metrics}
+    (out / "compare.json").write_text(json.dumps({k: _summary(v) for k, v in summary.items()}, indent=1))
+    _print_metrics(summary)
+    console.print(f"outputs in {out}")
+
+
+def _summary(m: dict) -> dict:
+    from frslam_graph.offline import _jsonable
+
+    keep = (
+        "scans",
+        "keyframes",
+        "realtime_factor",
+        "latency_ms",
+        "decisions",
+        "ate",
+        "ate_unaligned",
+        "rpe_1m",
+        "relations",
+    )
+    out = {k: m[k] for k in keep if k in m}
+    if "relations" in out:
+        r = out["relations"]
+        out["relations"] = {
+            k: getattr(r, k)
+            for k in ("trans_mean", "trans_std", "rot_mean", "rot_std", "matched", "unmatched")
+        }
+    return _jsonable(out)
+
+
+def _print_metrics(runs: dict[str, dict]) -> None:
+    table = Table(title="frslam results")
+    table.add_column("metric")
+    for name in runs:
+        table.add_column(name, justify="right")
+
+    def row(label: str, fn) -> None:
+        vals = []
+        for m in runs.values():
+            try:
+                vals.append(fn(m))
+            except (KeyError, AttributeError, TypeError):
+                vals.append("–")
+        if any(v != "–" for v in vals):
+            table.add_row(label, *vals)
+
+    row("scans / keyframes", lambda m: f"{m['scans']} / {m['keyframes']}")
+    row("ATE RMSE [m] (SE(2)-aligned)", lambda m: f"{m['ate'].rmse:.3f}")
+    row("ATE RMSE [m] (no alignment)", lambda m: f"{m['ate_unaligned'].rmse:.3f}")
+    row("ATE max [m]", lambda m: f"{m['ate'].max:.3f}")
+    row("RPE 1 m trans [m]", lambda m: f"{m['rpe_1m']['trans_m'].rmse:.3f}")
+    row("RPE 1 m rot [deg]", lambda m: f"{m['rpe_1m']['rot_deg'].rmse:.2f}")
+    row("relations trans [m]", lambda m: f"{m['relations'].trans_mean:.4f} ± {m['relations'].trans_std:.4f}")
+    row("relations rot [deg]", lambda m: f"{m['relations'].rot_mean:.3f} ± {m['relations'].rot_std:.3f}")
+    row("relations matched / unmatched", lambda m: f"{m['relations'].matched} / {m['relations'].unmatched}")
+    row(
+        "priors added / rejected / removed",
+        lambda m: "{} / {} / {}".format(
+            m["decisions"].get("prior_added", 0),
+            m["decisions"].get("prior_rejected", 0),
+            m["decisions"].get("prior_removed", 0),
+        ),
+    )
+    row(
+        "latency median / p99 [ms]",
+        lambda m: f"{m['latency_ms']['median']:.2f} / {m['latency_ms']['p99']:.2f}",
+    )
+    row("× real time", lambda m: f"{m['realtime_factor']:.1f}")
+    console.print(table)
