@@ -78,16 +78,14 @@ def _open_text(path: Path) -> IO[str]:
     return open(path, encoding="latin-1")  # noqa: SIM115
 
 
-def _lines(path: Path, stats: RecordingStats | None) -> Iterator[tuple[int, str]]:
-    """Numbered lines (1-based); a damaged compressed stream ends the file with a problem noted."""
+def _lines(path: Path, stats: RecordingStats) -> Iterator[tuple[int, str]]:
+    """Numbered lines (1-based); a damaged compressed stream ends the file, noted in ``stats``."""
     lineno = 0
     try:
         with _open_text(path) as f:
             for lineno, line in enumerate(f, 1):  # noqa: B007
                 yield lineno, line
     except (EOFError, OSError, ValueError) as exc:  # truncated .gz/.bz2, corrupt stream
-        if stats is None:
-            raise RecordingError(f"unreadable after line {lineno}: {exc}", source=path) from None
         stats.skip(f"rest of file unreadable ({exc})", f"{path.name}:{lineno + 1}")
 
 
@@ -192,6 +190,8 @@ class CarmenLog(Recording):
         sample_max, sample_hits, sample_beams, param_max = self._index()
         if self._len == 0:
             found = ", ".join(f"{k} {v}" for k, v in self.counts.most_common()) or "no records"
+            if self._first_pass.skipped:
+                found += "; " + self._first_pass.summary()
             raise RecordingError(f"no {'/'.join(self.laser_types)} laser records ({found})", source=self.path)
         if max_range is not None:
             self.max_range, self.max_range_source = float(max_range), "given"
@@ -210,7 +210,9 @@ class CarmenLog(Recording):
         sample_max, sample_hits, sample_beams, sampled = 0.0, 0, 0, 0
         param_max: float | None = None
         stamps_first = stamps_last = float("nan")
-        for _lineno, line in _lines(self.path, None):
+        first_pass = RecordingStats()
+        self._first_pass = first_pass
+        for _lineno, line in _lines(self.path, first_pass):
             tok = line.split()
             if not tok or tok[0].startswith("#"):
                 continue
