@@ -242,6 +242,9 @@ class ScanOdometry:
                 jump = True
             else:
                 u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args), True
+        seeds = [u]
+        if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
+            seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
         if wheel is not None:
             self._prev_wheel = wheel
 
@@ -255,8 +258,9 @@ class ScanOdometry:
             self._resync_icp(u)
             R_body = None
         else:
-            self._icp.last_delta = to_matrix4(u)
-            self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
+            chosen = self._register(pts, seeds)
+            if chosen == 1:  # the scan sides with constant velocity: the wheel increment jumped
+                jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
             icp_pose = from_matrix(self._icp.last_pose)
             z = between(self._kf_icp, icp_pose)
             geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
@@ -371,6 +375,50 @@ class ScanOdometry:
         cov = np.minimum(cov, np.diag([cfg.degenerate_sigma**2] * 2 + [np.pi**2]).max())
         return cov, degenerate, False, axis
 
+    def _disagree(self, a: np.ndarray, b: np.ndarray, cov: np.ndarray) -> bool:
+        cfg = self.config
+        d = between(b, a)
+        big = np.hypot(d[0], d[1]) > cfg.odom_jump_min_m or abs(d[2]) > np.deg2rad(cfg.odom_jump_min_deg)
+        return bool(big and d @ np.linalg.solve(cov, d) > cfg.odom_jump_gate**2)
+
+    def _register(self, pts: np.ndarray, seeds: list[np.ndarray]) -> int:
+        """KISS-ICP's register_frame with one or more seed increments; returns the seed used.
+
+        Same steps as ``KissICP.register_frame`` (preprocess, voxelise, align, update threshold /
+        map / delta / pose). With two seeds, both are aligned without touching the map and the
+        one whose result has more source points near the local map wins (ties keep seed 0).
+        """
+        icp = self._icp
+        frame = np.column_stack((pts, np.zeros(len(pts))))
+        frame = icp.preprocessor.preprocess(frame, self._empty_ts, to_matrix4(seeds[0]))
+        source, frame_ds = icp.voxelize(frame)
+        sigma = icp.adaptive_threshold.get_threshold()
+        guesses = [icp.last_pose @ to_matrix4(s) for s in seeds]
+        poses = [
+            icp.registration.align_points_to_map(
+                points=source,
+                voxel_map=icp.local_map,
+                initial_guess=g,
+                max_correspondance_distance=3 * sigma,
+                kernel=sigma,
+            )
+            for g in guesses
+        ]
+        best = 0
+        if len(poses) > 1 and not icp.local_map.empty():
+            d = between(from_matrix(poses[0]), from_matrix(poses[1]))
+            if np.hypot(d[0], d[1]) > 0.02 or abs(d[2]) > np.deg2rad(0.5):
+                scores = _inlier_fractions(
+                    icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
+                )
+                best = int(scores[1] > scores[0] + 0.05)
+        new_pose = poses[best]
+        icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guesses[best]) @ new_pose)
+        icp.local_map.update(frame_ds, new_pose)
+        icp.last_delta = np.linalg.inv(icp.last_pose) @ new_pose
+        icp.last_pose = new_pose
+        return best
+
     def _resync_icp(self, u: np.ndarray) -> None:
         self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
         self._icp.last_delta = to_matrix4(u)
@@ -399,6 +447,21 @@ class ScanOdometry:
             dropped,
             n_points,
         )
+
+
+def _inlier_fractions(
+    map_points: np.ndarray, source: np.ndarray, poses: list[np.ndarray], radius: float
+) -> list[float]:
+    """Fraction of the source points within ``radius`` of the map, for each candidate pose."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.asarray(map_points)[:, :2])
+    out = []
+    for T in poses:
+        p = source[:, :2] @ T[:2, :2].T + T[:2, 3]
+        dist, _ = tree.query(p, distance_upper_bound=radius)
+        out.append(float(np.mean(np.isfinite(dist))))
+    return out
 
 
 def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:

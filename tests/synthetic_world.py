@@ -114,3 +114,22 @@ def drifting_odometry(
 
 
 ROOM_LOOP = [(1.5, 1.5), (10.5, 1.5), (10.5, 6.2), (1.5, 6.2), (1.5, 1.5)]
+
+
+def scans_along(
+    world: np.ndarray, truth: np.ndarray, max_range: float = 10.0, noise: float = 0.01, seed: int = 1
+) -> tuple[list[np.ndarray], float, float]:
+    """Ranges of a 720-beam scan at every pose of ``truth`` (N, 4); plus angle_min, increment."""
+    rng = np.random.default_rng(seed)
+    out = []
+    amin = inc = 0.0
+    for row in truth:
+        r, amin, inc = cast(world, row[1:], max_range=max_range, noise=noise, rng=rng)
+        out.append(r)
+    return out, amin, inc
+
+
+def to_points(ranges: np.ndarray, angle_min: float, inc: float) -> np.ndarray:
+    ang = angle_min + inc * np.arange(len(ranges))
+    ok = np.isfinite(ranges)
+    return np.column_stack((ranges[ok] * np.cos(ang[ok]), ranges[ok] * np.sin(ang[ok])))
