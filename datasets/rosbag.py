@@ -55,33 +55,59 @@ def bag_path(path: Path) -> Path | None:
 
 
 class _AnySource:
-    """rosbags' AnyReader: ROS 1 (indexed) and ROS 2 (folder, .mcap, .db3)."""
+    """rosbags: its indexed ROS 1 reader, or AnyReader for ROS 2 (folder, .mcap, .db3).
+
+    ROS 1 messages are decoded with the Noetic typestore, adding the bag's own definitions only
+    for types it lacks: some recorders stored definitions without their dependencies (the demo
+    bag's LaserScan definition has no Header), on which AnyReader gives up.
+    """
 
     def __init__(self, path: Path):
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         self.path = path
-        ros1 = path.suffix.lower() == ".bag"
-        self._default = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-        self._reader_cls = AnyReader
+        self.ros1 = path.suffix.lower() == ".bag"
         self.problems: dict[str, int] = {}
         self.first_problem: dict[str, str] = {}
-        with AnyReader([path], default_typestore=self._default) as reader:
-            self._topics: dict[str, tuple[str, int]] = {}
-            for c in reader.connections:
-                msgtype, n = self._topics.get(c.topic, (c.msgtype, 0))
-                self._topics[c.topic] = (msgtype, n + c.msgcount)
+        self._topics: dict[str, tuple[str, int]] = {}
+        if self.ros1:
+            self.typestore = get_typestore(Stores.ROS1_NOETIC)
+            with self._open() as reader:
+                for c in reader.connections:
+                    self._count(c.topic, c.msgtype, c.msgcount)
+                    if c.msgtype not in self.typestore.fielddefs and c.msgdef.data:
+                        self.typestore.register(get_types_from_msg(c.msgdef.data, c.msgtype))
+        else:
+            self._default = get_typestore(Stores.ROS2_HUMBLE)
+            with self._open() as reader:
+                for c in reader.connections:
+                    self._count(c.topic, c.msgtype, c.msgcount)
+
+    def _count(self, topic: str, msgtype: str, n: int) -> None:
+        msgtype, total = self._topics.get(topic, (msgtype, 0))
+        self._topics[topic] = (msgtype, total + n)
+
+    def _open(self):
+        if self.ros1:
+            from rosbags.rosbag1 import Reader
+
+            return Reader(self.path)
+        from rosbags.highlevel import AnyReader
+
+        return AnyReader([self.path], default_typestore=self._default)
 
     def topics(self) -> dict[str, tuple[str, int]]:
         return dict(self._topics)
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
-        with self._reader_cls([self.path], default_typestore=self._default) as reader:
+        with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in topics]
             for c, t, raw in reader.messages(connections=conns):
                 try:
-                    msg = reader.deserialize(raw, c.msgtype)
+                    if self.ros1:
+                        msg = self.typestore.deserialize_ros1(raw, c.msgtype)
+                    else:
+                        msg = reader.deserialize(raw, c.msgtype)
                 except Exception as exc:  # corrupt message: reported by the caller
                     msg = exc
                 yield c.topic, c.msgtype, t, msg
