@@ -451,22 +451,9 @@ def _room_image(
         ys, xs = np.nonzero(comp == region)
         r0, r1, c0, c1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
         mask = comp[r0:r1, c0:c1] == region
-        seeds = np.zeros(mask.shape, dtype=np.uint16)
+        seeds = _centre_seeds(mask, _label_pixels(frame, [labels[i] for i in idx]) - (c0, r0))
         ids = []
         for i in idx:
-            b = frame.to_img(np.array([labels[i].box[:2], labels[i].box[2:]]))
-            a0, b0 = np.floor(b[0]).astype(int) - (c0, r0)
-            a1, b1 = np.ceil(b[1]).astype(int) - (c0, r0)
-            sl = (slice(max(b0, 0), max(b1, 0)), slice(max(a0, 0), max(a1, 0)))
-            box_mask = np.zeros(mask.shape, dtype=bool)
-            box_mask[sl] = True
-            box_mask &= mask & (seeds == 0)
-            if not box_mask.any():  # box entirely on walls: seed the nearest region pixel
-                ctr = _label_pixels(frame, [labels[i]])[0] - (c0, r0)
-                yy, xx = np.nonzero(mask)
-                k = np.argmin((yy - ctr[1]) ** 2 + (xx - ctr[0]) ** 2)
-                box_mask[yy[k], xx[k]] = True
-            seeds[box_mask] = len(ids) + 1
             ids.append(next_id)
             types[next_id] = labels[i].type
             label_room[i] = next_id
@@ -476,6 +463,19 @@ def _room_image(
         sub = room[r0:r1, c0:c1]
         sub[mask] = ids_arr[part[mask]]
     return room, types, label_room, outside_id
+
+
+def _centre_seeds(mask: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Seed image (uint16, k + 1 at seed k) with one pixel per (col, row) centre: the nearest
+    pixel of ``mask`` not taken by an earlier seed."""
+    seeds = np.zeros(mask.shape, dtype=np.uint16)
+    yy, xx = np.nonzero(mask)
+    for k, (c, r) in enumerate(centres.tolist(), start=1):
+        d2 = (yy - r) ** 2 + (xx - c) ** 2
+        d2[seeds[yy, xx] > 0] = np.iinfo(d2.dtype).max
+        j = int(np.argmin(d2))
+        seeds[yy[j], xx[j]] = k
+    return seeds
 
 
 def _merge_types(types: list[str]) -> str:
@@ -523,13 +523,11 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
     missing = np.flatnonzero(label_room == 0)
     if len(missing) and opts.repair:
         next_id = max(types, default=0) + 1
-        for i in missing.tolist():
-            box = _box_room(walls_img, room, outside_id, frame, labels[i], opts)
-            if box is not None:
-                room[box] = next_id
-                types[next_id] = labels[i].type
-                label_room[i] = next_id
-                next_id += 1
+        for i, box in _box_rooms(walls_img, room, outside_id, frame, labels, missing.tolist(), opts).items():
+            room[box] = next_id
+            types[next_id] = labels[i].type
+            label_room[i] = next_id
+            next_id += 1
         if (label_room[missing] > 0).any():
             strategy += "+box"
     full = _absorb_walls(room)
@@ -537,18 +535,53 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
     return _to_plan(full, types, label_room, data, frame, opts, strategy, name)
 
 
+def _box_rooms(
+    walls_img: np.ndarray,
+    room: np.ndarray,
+    outside_id: int,
+    frame: _Frame,
+    labels: list[R2VLabel],
+    missing: list[int],
+    opts: R2VOptions,
+) -> dict[int, np.ndarray]:
+    """Fallback for labels still outside: box rooms (see :func:`_box_room`); where the boxes of
+    several labels overlap, the pixels are shared between them by geodesic distance."""
+    boxes = {}
+    for i in missing:
+        mask = _box_room(walls_img, room, outside_id, frame, labels[i], opts)
+        if mask is not None:
+            boxes[i] = mask
+    if len(boxes) <= 1:
+        return boxes
+    union = np.logical_or.reduce(list(boxes.values()))
+    ys, xs = np.nonzero(union)
+    r0, r1, c0, c1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    crop = union[r0:r1, c0:c1]
+    seeds = _centre_seeds(crop, _label_pixels(frame, [labels[i] for i in boxes]) - (c0, r0))
+    part = _geodesic_split(crop, seeds)
+    out = {}
+    for k, i in enumerate(boxes, start=1):
+        mask = np.zeros(union.shape, dtype=bool)
+        mask[r0:r1, c0:c1] = part == k
+        out[i] = mask
+    return out
+
+
 def _box_room(
     walls_img: np.ndarray, room: np.ndarray, outside_id: int, frame: _Frame, label: R2VLabel, opts: R2VOptions
 ) -> np.ndarray | None:
-    """Fallback: the box around the label bounded by the nearest wall in each axis direction (or
-    the plan's wall extent), restricted to outside pixels connected to the label centre."""
+    """Fallback: the box around the label bounded by the nearest wall in each axis direction (an
+    open direction reaches the plan's wall extent, and at least past the label box), restricted
+    to outside pixels connected to the label centre."""
     c, r = _label_pixels(frame, [label])[0]
     h, w = walls_img.shape
     wall_pts = np.argwhere(walls_img > 0)
     if len(wall_pts) == 0:
         return None
-    rmin, cmin = wall_pts.min(axis=0)
-    rmax, cmax = wall_pts.max(axis=0)
+    (bc0, br0), (bc1, br1) = np.floor(frame.to_img(np.array([label.box[:2], label.box[2:]]))).astype(int)
+    pad = opts.wall_px
+    rmin, cmin = np.minimum(wall_pts.min(axis=0), (br0 - pad, bc0 - pad)).clip(0)
+    rmax, cmax = np.minimum(np.maximum(wall_pts.max(axis=0), (br1 + pad, bc1 + pad)), (h - 1, w - 1))
     row = walls_img[r, :]
     col = walls_img[:, c]
     left = np.flatnonzero(row[:c] > 0)
