@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import shapely
-from shapely.geometry import LineString, Polygon
+from shapely.geometry import Polygon
 
 MAX_ROOMS = 64  # bit masks are uint64
 
@@ -82,30 +82,16 @@ def adjacency_masks(
             ids = [index[r] for r in d.rooms if r in index]
             if len(ids) == 2:
                 link(ids[0], ids[1])
-    need_touch = mode in ("touch", "both") or bool(np.any(adj == 0))
+    isolated = adj == 0
+    need_touch = mode in ("touch", "both") or bool(isolated.any())
     if need_touch and n > 1:
         geoms = np.array([r.polygon for r in rooms], dtype=object)
         tree = shapely.STRtree(geoms)
         pairs = tree.query(geoms, predicate="dwithin", distance=touch_tol)
         for i, j in zip(pairs[0].tolist(), pairs[1].tolist(), strict=True):
-            if i < j and (mode != "doors" or adj[i] == 0 or adj[j] == 0):
+            if i < j and (mode != "doors" or isolated[i] or isolated[j]):
                 link(i, j)
     return adj
-
-
-def door_links(rooms: list, doors: list, tol: float) -> list[tuple[int, int]]:
-    """Room index pairs a door segment touches (within ``tol``), for doors without room ids."""
-    geoms = np.array([r.polygon for r in rooms], dtype=object)
-    tree = shapely.STRtree(geoms)
-    out = []
-    for d in doors:
-        seg = LineString([d.a, d.b])
-        idx = tree.query(seg, predicate="dwithin", distance=tol)
-        if len(idx) >= 2:
-            mid = shapely.Point(d.midpoint)
-            near = sorted(idx.tolist(), key=lambda i: geoms[i].distance(mid))[:2]
-            out.append((near[0], near[1]))
-    return out
 
 
 def _neighbours(masks: np.ndarray, adj: np.ndarray) -> np.ndarray:
