@@ -79,12 +79,13 @@ class PointCloudFolder(Recording):
     def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
         import open3d as o3d
 
-        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+        quiet = o3d.utility.VerbosityLevel.Error  # open3d reports a bad file on stdout otherwise
         last = -math.inf
         for path, stamp in zip(self.files, self.stamps, strict=True):
             stats.records[path.suffix.lower()] += 1
             try:
-                cloud = o3d.io.read_point_cloud(str(path))
+                with o3d.utility.VerbosityContextManager(quiet):
+                    cloud = o3d.io.read_point_cloud(str(path))
                 xyz = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
             except Exception as exc:  # open3d raises RuntimeError on some broken files
                 stats.skip(f"unreadable cloud files ({type(exc).__name__})", path.name)
