@@ -1,0 +1,93 @@
+"""The ``frslam`` command line: every command exists, outputs are written, bad input -> exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from frslam_graph.cli import main
+from frslam_graph.resources import bundled
+from tests import synthetic_world as sw
+
+COMMANDS = ["demo", "run", "compare", "register", "simulate", "plan", "map", "inspect", "navigate"]
+
+
+def test_every_command_is_registered(capsys):
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    missing = [c for c in COMMANDS if f" {c} " not in text]
+    assert not missing, f"commands missing from frslam --help: {missing}"
+
+
+def test_map_show_writes_png(tmp_path, capsys):
+    out = tmp_path / "m.png"
+    assert main(["map", "show", str(bundled("prbonn/GMap.yaml")), "--out", str(out)]) == 0
+    assert out.stat().st_size > 10_000
+    assert "604" in capsys.readouterr().out
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("image: nothere.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    assert main(["map", "show", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "does not exist" in err and "Traceback" not in err
+    assert main(["run", str(tmp_path / "missing.clf"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing.clf" in capsys.readouterr().err
+
+
+def _write_carmen(path, truth, odom, ranges):
+    lines = []
+    for row, o, r in zip(truth, odom, ranges, strict=True):
+        beams = np.nan_to_num(r[90:270], nan=81.9)  # CARMEN: 180 beams, -90..+89 deg; 81.9 = no return
+        vals = " ".join(f"{v:.3f}" for v in beams)
+        lines.append(f"FLASER 180 {vals} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} "
+                     f"{row[0] + 1000:.6f} host {row[0] + 1000:.6f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    d = tmp_path_factory.mktemp("log")
+    world = sw.room_world()
+    truth = sw.route(sw.ROOM_LOOP, speed=0.6, rate=5.0)
+    odom = sw.drifting_odometry(truth, scale=0.02)
+    ranges, _, _ = zip(*(sw.cast(world, p[1:], n_beams=360, max_range=20.0) for p in truth), strict=True)
+    log = d / "room.clf"
+    _write_carmen(log, truth, odom, ranges)
+    gt = truth.copy()
+    gt[:, 0] += 1000
+    from frslam_graph.metrics import save_tum
+
+    save_tum(d / "gt.tum", gt)
+    return log, d / "gt.tum"
+
+
+def test_run_writes_every_output(small_log, tmp_path, capsys):
+    log, gt = small_log
+    out = tmp_path / "run"
+    assert main(["run", str(log), "--ground-truth", str(gt), "--out", str(out)]) == 0
+    for name in ("trajectory.tum", "odometry.tum", "map.yaml", "map.pgm", "metrics.json", "log.jsonl",
+                 "trajectory.png"):
+        assert (out / name).exists(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["scans"] > 100
+    assert metrics["ate"]["rmse"] < 0.10  # KISS-ICP in a well-constrained room
+    assert "ATE RMSE" in capsys.readouterr().out
+
+
+def test_compare_with_unusable_plan_still_reports_both(small_log, tmp_path, capsys):
+    """A one-room plan cannot be registered: no priors, both runs reported, nothing lost."""
+    log, gt = small_log
+    plan = tmp_path / "one_room.json"
+    plan.write_text(json.dumps({"rooms": [{"id": "r", "type": "office",
+                                           "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]}))
+    out = tmp_path / "cmp"
+    assert main(["compare", str(log), "--floor-plan", str(plan), "--ground-truth", str(gt), "--out", str(out)]) == 0
+    summary = json.loads((out / "compare.json").read_text())
+    assert set(summary) == {"without priors", "with priors"}
+    assert summary["with priors"]["ate"]["rmse"] < 0.2
+    assert (out / "compare.png").exists()
+    assert "with priors" in capsys.readouterr().out
