@@ -98,7 +98,7 @@ class GraphConfig(_Section):
     anchor_sigma_xy: float = Field(1e-3, gt=0.0)  # prior on the first keyframe (map == odom at start)
     anchor_sigma_theta_deg: float = Field(1e-3, gt=0.0)
     prior_kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
-    prior_kernel_param: float = Field(1.0, gt=0.0)  # in whitened units (sigmas)
+    prior_kernel_param: float = Field(2.0, gt=0.0)  # in whitened units (sigmas)
     prior_sigma_floor_xy: float = Field(0.02, gt=0.0)
     prior_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
     relinearize_threshold: float = Field(0.01, gt=0.0)
@@ -184,9 +184,7 @@ class FRSlamConfig(_Section):
 _SECTION_NAMES = {"OdometryConfig": "odometry", "GraphConfig": "graph", "UpdatesConfig": "updates"}
 
 
-def _config_error(
-    exc: ValidationError, source: str | Path | None, prefix: str | None = None
-) -> ConfigError:
+def _config_error(exc: ValidationError, source: str | Path | None, prefix: str | None = None) -> ConfigError:
     err = exc.errors()[0]
     inner = (err.get("ctx") or {}).get("error")
     if isinstance(inner, ConfigError):  # a nested section already named the field

@@ -161,7 +161,7 @@ class PoseGraph:
         kernel_param: float | None = None,
         source: str = "",
         info: dict | None = None,
-        extra_iterations: int = 2,
+        extra_iterations: int = 10,
     ) -> PriorHandle:
         """Add a robust floor-plan prior on a keyframe; returns its handle (for removal/residuals)."""
         cfg = self.config
@@ -172,8 +172,7 @@ class PoseGraph:
         fxy, fth = cfg.prior_sigma_floor_xy, np.deg2rad(cfg.prior_sigma_floor_theta_deg)
         factor = floorplan_prior(key(keyframe), pose, covariance, kind, kernel, param, fxy, fth)
         (idx,) = self._update([factor])
-        for _ in range(extra_iterations):
-            self._update([])
+        self.settle(extra_iterations)
         handle = PriorHandle(
             self._next_prior,
             int(keyframe),
@@ -190,16 +189,34 @@ class PoseGraph:
         self._next_prior += 1
         return handle
 
-    def remove_prior(self, handle: PriorHandle, extra_iterations: int = 2) -> None:
+    def remove_prior(self, handle: PriorHandle, extra_iterations: int = 10) -> None:
         """Remove a prior (or the anchor) from iSAM2 by its factor index."""
         if not handle.active:
             return
         if self._factors[handle.factor_index] is None:
             raise FrslamError(f"prior {handle.id} is not in the graph", where="handle")
         self._update([], remove=[handle.factor_index])
-        for _ in range(extra_iterations):
-            self._update([])
+        self.settle(extra_iterations)
         handle.active = False
+
+    def settle(self, max_iterations: int = 10, tol: float = 1e-4) -> int:
+        """Extra iSAM2 steps (relinearising) until no pose moves more than ``tol``; returns the count.
+
+        One iSAM2 update is a single Gauss-Newton step; after a prior or a removal moves the
+        trajectory far, a few more are needed to converge.
+        """
+        prev = self.estimates()
+        it = -1
+        for it in range(max_iterations):  # noqa: B007
+            self._isam.update()
+            self._estimate_cache = None
+            cur = self.estimates()
+            moved = float(np.abs(cur - prev).max()) if len(cur) else 0.0
+            prev = cur
+            if moved < tol:
+                break
+        self._latest = prev[-1].copy() if len(prev) else self._latest
+        return it + 1 if max_iterations else 0
 
     def priors(self, active_only: bool = True) -> list[PriorHandle]:
         return [h for h in self._priors.values() if h.active or not active_only]

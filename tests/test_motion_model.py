@@ -21,9 +21,9 @@ from frslam_graph.motion_model import (
     wrap,
 )
 
-pose_st = st.tuples(
-    st.floats(-50, 50), st.floats(-50, 50), st.floats(-np.pi, np.pi)
-).map(lambda t: np.array(t))
+pose_st = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-np.pi, np.pi)).map(
+    lambda t: np.array(t)
+)
 
 
 @settings(max_examples=60, deadline=None)
@@ -53,7 +53,9 @@ def test_wheel_increment_is_motion_in_previous_base_frame():
     u = wheel_increment(prev, curr)
     np.testing.assert_allclose(u, [0.5, 0.0, 0.1], atol=1e-12)
     np.testing.assert_allclose(g(u, prev), curr, atol=1e-12)
-    cov = wheel_noise(u, dist_frac=0.02, rot_per_m=np.deg2rad(1.0), rot_frac=0.0, floor_xy=0.0, floor_theta=0.0)
+    cov = wheel_noise(
+        u, dist_frac=0.02, rot_per_m=np.deg2rad(1.0), rot_frac=0.0, floor_xy=0.0, floor_theta=0.0
+    )
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), [0.01, 0.01, np.deg2rad(0.5)])
 
 

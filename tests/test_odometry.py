@@ -4,11 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from frslam_graph.config import OdometryConfig
-from frslam_graph.errors import RecordingError
-from frslam_graph.motion_model import between
-from frslam_graph.odometry import ScanOdometry, scan_geometry
 from synthetic_world import (
     ROOM_LOOP,
     corridor_world,
@@ -18,6 +13,11 @@ from synthetic_world import (
     scans_along,
     to_points,
 )
+
+from frslam_graph.config import OdometryConfig
+from frslam_graph.errors import RecordingError
+from frslam_graph.motion_model import between
+from frslam_graph.odometry import ScanOdometry, scan_geometry
 
 CFG = OdometryConfig(max_range=10.0)
 
@@ -115,7 +115,9 @@ def test_scan_geometry_ratio_separates_room_and_corridor(room, corridor):
 def test_all_nan_scans_fall_back_to_the_motion_model(room):
     truth, points, odom = room
     bad = set(range(100, 110))
-    o, poses, results = run(points, truth, odom, mutate=lambda i, p: np.full((5, 2), np.nan) if i in bad else p)
+    o, poses, results = run(
+        points, truth, odom, mutate=lambda i, p: np.full((5, 2), np.nan) if i in bad else p
+    )
     assert o.stats.empty_scans == 10 and o.stats.fallbacks >= 10
     assert all(results[i].fallback for i in bad)
     assert end_error(truth, poses) / path_length(truth) < 0.02

@@ -1,0 +1,164 @@
+"""GTSAM Pose2 graph: robust floor-plan priors, removal, residuals, map->odom, batch."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from frslam_graph.factors.between import between_factor, regularise_covariance
+from frslam_graph.factors.floorplan_prior import floorplan_prior, m_estimator
+
+from frslam_graph.config import FRSlamConfig, GraphConfig
+from frslam_graph.errors import ConfigError, FrslamError
+from frslam_graph.graph import PoseGraph, key
+from frslam_graph.motion_model import compose, inverse
+
+ODO_COV = np.diag([0.01**2, 0.01**2, np.deg2rad(0.5) ** 2])
+PRIOR_COV = np.diag([0.05**2, 0.05**2, 0.02**2])
+
+
+def chain(n=300, kernel="cauchy", drift=0.0, prior_every=0):
+    """Straight chain along x, 0.3 m steps; odometry optionally biased by ``drift`` rad/step.
+
+    With ``prior_every``, correct priors (true pose) arrive while driving, as in the pipeline.
+    """
+    g = PoseGraph(GraphConfig(prior_kernel=kernel))
+    g.add_first()
+    for i in range(1, n):
+        g.add_keyframe([0.3, 0.0, drift], ODO_COV)
+        if prior_every and i % prior_every == 0:
+            g.add_prior(i, [0.3 * i, 0.0, 0.0], PRIOR_COV, source="plan")
+    return g
+
+
+def add_good_priors(g, n=300, every=30):
+    return [g.add_prior(i, [0.3 * i, 0.0, 0.0], PRIOR_COV, source="plan") for i in range(every, n, every)]
+
+
+@pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure"])
+def test_gross_outlier_prior_is_down_weighted(kernel):
+    g = chain(kernel=kernel)
+    add_good_priors(g)
+    before = g.estimates()
+    bad = g.add_prior(150, [45.0, 20.0, 1.0], PRIOR_COV, source="wrong room")
+    after = g.estimates()
+    assert np.abs(after - before)[:, :2].max() < 0.01
+    res = g.prior_residual(bad)
+    assert not res.consistent and res.weight < 0.01 and res.chi2 > 1e4
+
+
+def test_huber_does_not_hold_against_the_same_outlier():
+    g = chain(kernel="huber")
+    add_good_priors(g)
+    before = g.estimates()
+    g.add_prior(150, [45.0, 20.0, 1.0], PRIOR_COV, source="wrong room")
+    assert np.abs(g.estimates() - before)[:, :2].max() > 0.05
+
+
+def test_priors_correct_drift_and_are_consistent():
+    free = chain(drift=np.deg2rad(0.05)).estimates()  # odometry curves away (1.5 deg per 9 m)
+    g = chain(drift=np.deg2rad(0.05), prior_every=30)
+    est = g.estimates()
+    assert np.abs(free[:, 1]).max() > 5.0
+    assert np.abs(est[:270, 1]).max() < 0.15
+    handles = g.priors()
+    assert len(handles) == 9
+    assert all(g.prior_residual(h).consistent for h in handles)
+    assert all(g.prior_residual(h).weight > 0.5 for h in handles)
+
+
+def test_remove_prior_restores_the_estimate():
+    g = chain(kernel="none")  # plain Gaussian: an outlier really bends the graph
+    add_good_priors(g)
+    before = g.estimates()
+    bad = g.add_prior(150, [45.0, 3.0, 0.0], PRIOR_COV)
+    assert np.abs(g.estimates() - before)[:, 1].max() > 1.0
+    n_factors = len(g._factors)
+    g.remove_prior(bad)
+    assert not bad.active and bad not in g.priors()
+    assert g._factors[bad.factor_index] is None and len(g._factors) == n_factors
+    assert np.abs(g.estimates() - before)[:, :2].max() < 0.02
+    g.optimize_batch()
+    assert np.abs(g.estimates() - before)[:, :2].max() < 1e-4
+    g.remove_prior(bad)  # idempotent
+
+
+def test_partial_priors():
+    g = chain(n=60, drift=np.deg2rad(0.5), kernel="none")
+    h_t = g.add_prior(59, [17.7, 0.0, 0.0], PRIOR_COV, kind="translation")
+    est = g.estimates()[59]
+    assert np.hypot(est[0] - 17.7, est[1]) < 0.1
+    assert h_t.covariance.shape == (2, 2)
+    g2 = chain(n=60, drift=np.deg2rad(0.5), kernel="none")
+    g2.add_prior(59, [0.0, 0.0, 0.0], PRIOR_COV, kind="rotation")
+    assert abs(g2.estimates()[59, 2]) < 0.05
+
+
+def test_map_to_odom_follows_a_prior_shift():
+    g = chain(n=50)
+    odom = np.array([[0.3 * i, 0.0, 0.0] for i in range(50)])  # odometry poses of the keyframes
+    np.testing.assert_allclose(g.map_to_odom(49, odom[49]), 0.0, atol=1e-6)
+    # the floor plan says the robot is 1 m further in y and turned by 0.1 rad
+    shift = np.array([0.5, 1.0, 0.1])
+    for i in (10, 20, 30, 40):
+        g.add_prior(i, compose(shift, odom[i]), np.diag([0.01**2, 0.01**2, 0.005**2]), kernel="none")
+    g.optimize_batch()
+    t = g.map_to_odom(49, odom[49])
+    np.testing.assert_allclose(t, shift, atol=0.02)
+    # REP-105: map->base == map->odom ⊕ odom->base for every keyframe
+    for i in (0, 25, 49):
+        np.testing.assert_allclose(compose(g.map_to_odom(i, odom[i]), odom[i]), g.estimate(i), atol=1e-9)
+    np.testing.assert_allclose(compose(t, inverse(t)), 0.0, atol=1e-12)
+
+
+def test_transform_map_reanchors_everything():
+    g = chain(n=20)
+    h = g.add_prior(10, [3.0, 0.0, 0.0], PRIOR_COV)
+    T = np.array([5.0, -2.0, np.pi / 2])
+    before = g.estimates()
+    g.transform_map(T)
+    after = g.estimates()
+    for b, a in zip(before, after, strict=True):
+        np.testing.assert_allclose(a[:2], compose(T, b)[:2], atol=0.01)  # the old prior pulls a little
+    assert h.active and g._factors[h.factor_index] is not None
+    g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    assert len(g) == 21
+
+
+def test_marginal_covariance_and_latency_shape():
+    g = chain(n=100)
+    c0, c1 = g.marginal_covariance(0), g.marginal_covariance()
+    assert c0.shape == (3, 3) and c1[1, 1] > c0[1, 1]
+    add_good_priors(g, 100, 20)
+    assert g.marginal_covariance()[1, 1] < c1[1, 1]
+
+
+def test_batch_matches_isam():
+    g = chain(n=200, drift=np.deg2rad(0.05), prior_every=25)
+    isam = g.estimates()
+    batch = g.optimize_batch()
+    assert np.abs(batch - isam)[:, :2].max() < 0.05
+    assert np.isfinite(g.error())
+
+
+def test_factor_helpers_and_bad_input():
+    f = between_factor(key(0), key(1), [1.0, 0.0, 0.0], np.zeros((3, 3)), 0.01, 0.01)
+    assert isinstance(f, gtsam.BetweenFactorPose2)
+    c = regularise_covariance(np.zeros((3, 3)), 0.1, 0.2)
+    np.testing.assert_allclose(np.diag(c), [0.01, 0.01, 0.04])
+    with pytest.raises(FrslamError, match="covariance"):
+        between_factor(key(0), key(1), [1.0, 0.0, 0.0], np.eye(2))
+    with pytest.raises(FrslamError, match="relative"):
+        between_factor(key(0), key(1), [1.0, np.nan, 0.0], np.eye(3))
+    with pytest.raises(FrslamError, match="pose"):
+        floorplan_prior(key(0), [1.0, 2.0], np.eye(3))
+    with pytest.raises(ConfigError, match="kernel"):
+        m_estimator("tukey-ish")
+    with pytest.raises(ConfigError, match="graph.prior_kernel"):
+        FRSlamConfig.from_dict({"graph": {"prior_kernel": "l1"}})
+    g = PoseGraph()
+    with pytest.raises(FrslamError):
+        g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    g.add_first()
+    with pytest.raises(FrslamError, match="keyframe"):
+        g.add_prior(5, [0.0, 0.0, 0.0], PRIOR_COV)
