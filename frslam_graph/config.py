@@ -109,17 +109,50 @@ class GraphConfig(_Section):
 
 
 class UpdatesConfig(_Section):
-    """Floor-plan update strategy (paper Alg. 3); extended by the update-strategy owner."""
+    """Floor-plan update strategy (paper Alg. 3, :mod:`frslam_graph.update_strategy`).
+
+    Registration triggers: the mapped area reached ``first_register_area_m2`` (first attempt) or
+    grew by ``register_min_growth_m2`` and ``register_growth_frac`` since the last attempt, or
+    progress is obstructed. A registration is accepted when ok, ``score >= min_score``,
+    ``ambiguity <= max_ambiguity``, the registered plan's walls explain ``min_map_fit`` of the
+    map's occupied cells and the current scan relocalises consistently. Every
+    ``relocation_distance_D`` metres the current scan is relocalised against the plan; a good,
+    unambiguous match passing the chi² gate (``inconsistent_chi2``) becomes a robust prior.
+    """
 
     enabled: bool = True
     register_min_growth_m2: float = Field(4.0, ge=0.0)
-    relocation_distance_D: float = Field(5.0, gt=0.0)
+    relocation_distance_D: float = Field(1.0, gt=0.0)
     obstruction_speed: float = Field(0.02, ge=0.0)
     obstruction_time_s: float = Field(5.0, gt=0.0)
     max_ambiguity: float = Field(0.9, gt=0.0, le=1.0)
     min_score: float = Field(0.5, ge=0.0, le=1.0)
     inconsistent_chi2: float = Field(11.34, gt=0.0)  # chi2(3 dof, 99 %)
     map_resolution: float = Field(0.05, gt=0.0)
+    # registration triggers and acceptance
+    first_register_area_m2: float = Field(12.0, ge=0.0)
+    register_growth_frac: float = Field(0.2, ge=0.0)
+    min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
+    agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
+    switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
+    max_registrations: int = Field(40, ge=1)
+    # relocalisation against the registered plan
+    reloc_window_xy: float = Field(0.75, gt=0.0)
+    reloc_window_theta_deg: float = Field(15.0, gt=0.0, le=180.0)
+    reloc_min_score: float = Field(0.5, ge=0.0, le=1.0)
+    reloc_max_ambiguity: float = Field(0.8, ge=0.0, le=1.0)
+    reloc_resolution: float = Field(0.025, gt=0.0)
+    reloc_inlier_distance: float = Field(0.1, gt=0.0)
+    wall_half_thickness: float = Field(0.06, ge=0.0)
+    reloc_cov_inflation: float = Field(4.0, ge=1.0)
+    # chi2 gate: the estimate's marginal covariance plus drift since the last accepted prior
+    gate_drift_frac: float = Field(0.05, ge=0.0)
+    gate_drift_deg_per_m: float = Field(1.0, ge=0.0)
+    gate_sigma_xy: float = Field(0.05, gt=0.0)
+    gate_sigma_theta_deg: float = Field(1.0, gt=0.0)
+    # a prior whose residual after optimisation exceeds this chi2 is removed as proven wrong
+    remove_chi2: float = Field(30.0, gt=0.0)
+    prior_kind: Literal["full", "translation"] = "full"
 
 
 class FRSlamConfig(_Section):
