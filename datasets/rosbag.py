@@ -9,7 +9,8 @@ poses are interpolated at the scan stamps (header stamps; the bag time when a he
 
 A PointCloud2 is sliced to the plane ``|z - plane_z| < plane_tol`` (sensor frame) and projected
 to (x, y). LaserScan ranges that are non-finite, below ``range_min`` / <= 0, or >= ``range_max``
-become ``nan``. ROS 1 bags that rosbags' index reader rejects (the shared ``scan_tools_demo.bag``)
+become ``nan`` (REP-117's ``inf`` / ``nan`` encodings are counted, a negative range is also
+flagged in the warning). ROS 1 bags that rosbags' index reader rejects (the shared ``scan_tools_demo.bag``)
 are read sequentially by :mod:`frslam_graph.datasets.ros1_raw`; ``reader`` forces either path.
 
 Units: seconds, metres, radians; frames: the scan in its sensor frame, odometry ``base_link`` in
@@ -137,7 +138,7 @@ class _RawSource:
 def _stamp(msg: Any, bag_ns: int) -> float:
     st = msg.header.stamp
     ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
-    return (ns if ns > 0 else bag_ns) * 1e-9
+    return (ns if ns > 0 else bag_ns) / 1_000_000_000  # int / int: correctly rounded
 
 
 def _yaw(q: Any) -> float:
@@ -381,10 +382,11 @@ class RosBag(Recording):
             return None
         rmax = float(msg.range_max) if math.isfinite(msg.range_max) and msg.range_max > 0 else math.inf
         rmin = float(msg.range_min) if math.isfinite(msg.range_min) else 0.0
-        bad = ~np.isfinite(ranges) | (ranges < 0.0)
-        if bad.any():
-            stats.flag("scans with NaN/inf/negative ranges (set to nan)", where)
-        invalid = bad | ~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax)
+        # REP-117: +inf = no return, -inf = too close, nan = no valid reading; all legal, all
+        # nan here and counted in stats.invalid_beams. A finite negative range is not legal.
+        if np.any(ranges < 0.0):
+            stats.flag("scans with negative ranges (set to nan)", where)
+        invalid = ~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax) | ~np.isfinite(ranges)
         if invalid.any():
             ranges[invalid] = np.nan
         key = (ranges.size, a0, inc)
