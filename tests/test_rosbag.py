@@ -382,7 +382,7 @@ def test_header_stamps_match_a_tum_file_exactly(tmp_path):
     m = Msgs(False)
     ns = [1_700_000_000_123_456_789 + k * 33_333_333 for k in range(20)]
     msgs = []
-    for k, n in enumerate(ns):
+    for n in ns:
         scan = m.scan(0.0, [1.0] * 4)
         scan.header.stamp.sec, scan.header.stamp.nanosec = n // NS, n % NS
         msgs.append(("/scan", LASER, n / NS, scan))
