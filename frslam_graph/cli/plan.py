@@ -1,0 +1,86 @@
+"""``frslam plan show PLAN --out plan.png`` and ``frslam plan convert IN OUT.json``.
+
+PLAN is our JSON, a HouseExpo JSON, an R2V ``.txt`` or a room-segmentation ``.png`` (its map
+YAML given with ``--yaml`` or found beside it: ``X.yaml`` for ``XRoomSeg.png``).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import typer
+
+from frslam_graph.cli.app import console, plan_app
+
+_YAML_HELP = "map_server YAML of a room-segmentation PNG (default: beside it, X.yaml for XRoomSeg.png)."
+
+
+def _load(path: Path, yaml: Path | None):
+    """(plan, note): the plan and a line about how it was built (R2V: labels found, strategy)."""
+    from frslam_graph.floorplan import FloorPlan
+    from frslam_graph.floorplan.r2v import load_r2v_detailed
+    from frslam_graph.floorplan.roomseg import load_room_segmentation
+
+    suffix = path.suffix.lower()
+    if suffix == ".txt" and path.is_file():
+        res = load_r2v_detailed(path)
+        missing = [f"{lab.type} (line {lab.line})" for lab in res.labels if lab.room is None]
+        note = f"R2V: {res.n_found}/{res.n_labels} labelled rooms found, wall repair: {res.strategy}"
+        if missing:
+            note += "; not found: " + ", ".join(missing)
+        return res.plan, note
+    if suffix in (".png", ".pgm") and path.is_file():
+        return load_room_segmentation(path, yaml), None
+    return FloorPlan.load(path), None
+
+
+def _summary(plan, path: Path) -> str:
+    types = Counter(r.type for r in plan.rooms)
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(types.items()))
+    linked = sum(len(d.rooms) == 2 for d in plan.doors)
+    x0, y0, x1, y1 = plan.bounds
+    walls = 0 if plan.walls is None else len(plan.walls)
+    return (
+        f"{path}: {len(plan.rooms)} rooms ({kinds}); {len(plan.doors)} doors ({linked} between two rooms); "
+        f"{walls} walls; units {plan.units}; bounds x {x0:.4g}..{x1:.4g}, y {y0:.4g}..{y1:.4g}"
+    )
+
+
+@plan_app.command("show")
+def show(
+    plan_path: Path = typer.Argument(
+        ..., metavar="PLAN", help="Floor plan: .json, R2V .txt or room-seg .png."
+    ),
+    out: Path = typer.Option(Path("plan.png"), "--out", "-o", help="PNG to write."),
+    yaml: Path | None = typer.Option(None, "--yaml", help=_YAML_HELP),
+    labels: bool = typer.Option(True, "--labels/--no-labels", help="Write room ids and types."),
+) -> None:
+    """Render a floor plan (rooms coloured by type, doors, walls, labels) and print its summary."""
+    from frslam_graph.floorplan.render import render_plan
+
+    plan, note = _load(plan_path, yaml)
+    render_plan(plan, out, title=plan_path.name, labels=labels)
+    console.print(_summary(plan, plan_path), highlight=False, soft_wrap=True)
+    if note:
+        console.print(note, highlight=False, soft_wrap=True)
+    console.print(f"wrote {out}", highlight=False, soft_wrap=True)
+
+
+@plan_app.command("convert")
+def convert(
+    src: Path = typer.Argument(..., metavar="IN", help="Floor plan: .json, R2V .txt or room-seg .png."),
+    dst: Path = typer.Argument(..., metavar="OUT.json", help="Our JSON floor-plan file to write."),
+    yaml: Path | None = typer.Option(None, "--yaml", help=_YAML_HELP),
+) -> None:
+    """Convert a floor plan to our JSON format (frslam-floorplan v1)."""
+    if dst.suffix.lower() != ".json":
+        from frslam_graph.errors import FloorPlanError
+
+        raise FloorPlanError("the output must be a .json file (our floor-plan format)", source=dst)
+    plan, note = _load(src, yaml)
+    plan.save(dst)
+    console.print(_summary(plan, src), highlight=False, soft_wrap=True)
+    if note:
+        console.print(note, highlight=False, soft_wrap=True)
+    console.print(f"wrote {dst}", highlight=False, soft_wrap=True)

@@ -1,0 +1,244 @@
+"""Room-segmentation image + map_server YAML -> :class:`FloorPlan` in metres (map frame).
+
+The image has one grey value per room (``1..max_id``, e.g. the PRBonn ``*RoomSeg.png``: room ids
+1..12, 0 wall, 205 unknown, 255 free space outside rooms). Its YAML (``resolution`` m/px,
+``origin`` [x, y, yaw] of the lower-left corner of the bottom-left pixel, as ROS map_server) puts
+it in the map frame: image row 0 is the *top* row (highest y). One room per label: its largest
+4-connected part, as a polygon with exact pixel edges simplified by ``simplify`` pixels (holes
+kept), so its area matches the label's pixel count × resolution². Where two rooms' regions touch
+(a doorway between them), the shared boundary becomes a :class:`Door` linking them.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import shapely
+import yaml as pyyaml
+from shapely.geometry import LineString, Polygon
+
+from frslam_graph.errors import FloorPlanError
+from frslam_graph.floorplan._raster_polygons import labels_to_polygons, largest_polygon
+from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
+
+
+def read_label_image(png: str | Path) -> np.ndarray:
+    """Read a label image as a 2-D integer array (grey PNG/PGM; RGB only when all channels agree)."""
+    path = Path(png)
+    src = str(path)
+    if not path.exists():
+        raise FloorPlanError("file not found (expected a room-segmentation image)", source=src)
+    if path.is_dir():
+        raise FloorPlanError("expected an image file, got a directory", source=src)
+    if path.stat().st_size == 0:
+        raise FloorPlanError("file is empty (expected a room-segmentation image)", source=src)
+    buf = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FloorPlanError(
+            "not a readable image (expected PNG/PGM with one grey value per room)", source=src
+        )
+    if img.ndim == 3:
+        chans = img.shape[2]
+        if chans == 4:
+            img = img[:, :, :3]
+        if not (np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 1], img[:, :, 2])):
+            raise FloorPlanError(
+                "colour image whose channels differ; expected grey values that are room ids", source=src
+            )
+        img = img[:, :, 0]
+    if img.dtype.kind not in "ui":
+        raise FloorPlanError(f"expected an integer image, got {img.dtype}", source=src)
+    return np.ascontiguousarray(img)
+
+
+def read_map_yaml(yaml_path: str | Path) -> tuple[float, tuple[float, float, float], Path | None]:
+    """(resolution, origin (x, y, yaw), image path or None) from a map_server YAML.
+
+    The map image itself is not needed to place a segmentation, so a missing one is not an
+    error here (the caller checks the shape when it exists)."""
+    path = Path(yaml_path)
+    src = str(path)
+    if not path.exists():
+        raise FloorPlanError("file not found (expected a map_server YAML)", source=src)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FloorPlanError(f"cannot read as text ({exc})", source=src) from None
+    if not text.strip():
+        raise FloorPlanError(
+            "file is empty (expected a map_server YAML with resolution and origin)", source=src
+        )
+    try:
+        meta = pyyaml.safe_load(text)
+    except pyyaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else None
+        raise FloorPlanError(
+            f"malformed YAML ({getattr(exc, 'problem', None) or exc})", source=src, where=where
+        ) from None
+    if not isinstance(meta, dict):
+        raise FloorPlanError("expected a YAML mapping with resolution and origin", source=src)
+    if "resolution" not in meta:
+        raise FloorPlanError("missing required field", source=src, where="resolution")
+    res = meta["resolution"]
+    if isinstance(res, bool) or not isinstance(res, int | float) or not math.isfinite(res) or res <= 0:
+        raise FloorPlanError(
+            f"expected a positive number (metres per pixel), got {res!r}", source=src, where="resolution"
+        )
+    if "origin" not in meta:
+        raise FloorPlanError("missing required field", source=src, where="origin")
+    origin = meta["origin"]
+    if (
+        not isinstance(origin, list | tuple)
+        or len(origin) not in (2, 3)
+        or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in origin
+        )
+    ):
+        raise FloorPlanError(f"expected [x, y, yaw] numbers, got {origin!r}", source=src, where="origin")
+    yaw = float(origin[2]) if len(origin) == 3 else 0.0
+    image = meta.get("image")
+    img_path = None
+    if image is not None:
+        if not isinstance(image, str) or not image:
+            raise FloorPlanError(f"expected an image file name, got {image!r}", source=src, where="image")
+        img_path = Path(image) if Path(image).is_absolute() else path.parent / image
+    return float(res), (float(origin[0]), float(origin[1]), yaw), img_path
+
+
+def from_room_segmentation(
+    png: str | Path,
+    yaml: str | Path,
+    max_id: int = 204,
+    min_pixels: int = 4,
+    simplify: float = 1.0,
+    room_type: str = "unknown",
+    min_door_width: float = 0.3,
+    name: str | None = None,
+) -> FloorPlan:
+    """Rooms (metres, map frame) of a room-segmentation image with its map_server YAML.
+
+    Values ``1..max_id`` are room ids (others: walls, unknown, free outside rooms); labels with
+    fewer than ``min_pixels`` pixels are ignored. Room ids are ``room_<value>``, types
+    ``room_type``. ``simplify``: Douglas-Peucker tolerance in pixels. Doors: shared boundaries
+    of two rooms at least ``min_door_width`` metres long.
+    """
+    src = str(png)
+    res, (ox, oy, yaw), map_image = read_map_yaml(yaml)
+    labels = read_label_image(png)
+    h, w = labels.shape
+    if map_image is not None and map_image.is_file():
+        shape = _image_shape(map_image)
+        if shape is not None and shape != (h, w):
+            raise FloorPlanError(
+                f"segmentation is {w}x{h} px but the map image {map_image.name} of {yaml} is {shape[1]}x{shape[0]} px",
+                source=src,
+            )
+    lab = labels.astype(np.int64)
+    lab[(lab < 1) | (lab > max_id)] = 0
+    counts = np.bincount(lab.ravel())
+    ids = np.flatnonzero(counts >= min_pixels)
+    ids = ids[ids > 0]
+    if len(ids) == 0:
+        raise FloorPlanError(
+            f"no room labels (grey values 1..{max_id} with >= {min_pixels} pixels)", source=src
+        )
+    # keep the largest 4-connected part of each label, so every room is one simple polygon
+    keep = np.zeros_like(lab)
+    for v in ids.tolist():
+        n, comp, stats, _ = cv2.connectedComponentsWithStats((lab == v).astype(np.uint8), connectivity=4)
+        big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        keep[comp == big] = v
+    exact = labels_to_polygons(keep, ids=ids)
+    # image (u right, v down, pixel edges) -> map: rotate by yaw about the origin
+    c, s = math.cos(yaw), math.sin(yaw)
+    # p = (u*res, (h - v)*res); world = R p + o
+    params = [c * res, s * res, s * res, -c * res, ox - s * h * res, oy + c * h * res]
+    rooms: list[Room] = []
+    exact_world: dict[str, Polygon] = {}
+    rtype = normalise_room_type(room_type)
+    for v in ids.tolist():
+        poly = largest_polygon(exact.get(v))
+        if poly is None:
+            continue
+        simple = poly.simplify(simplify, preserve_topology=True) if simplify > 0 else poly
+        simple = largest_polygon(simple if simple.is_valid else shapely.make_valid(simple))
+        if simple is None:
+            continue
+        rid = f"room_{v}"
+        rooms.append(
+            Room(
+                rid, rtype, shapely.geometry.polygon.orient(shapely.affinity.affine_transform(simple, params))
+            )
+        )
+        exact_world[rid] = shapely.affinity.affine_transform(poly, params)
+    if not rooms:
+        raise FloorPlanError("no room polygon could be built", source=src)
+    doors = _doors(exact_world, min_door_width)
+    return FloorPlan(
+        rooms=rooms,
+        doors=doors,
+        walls=None,
+        units="m",
+        metres_per_unit=1.0,
+        name=name if name is not None else Path(png).stem,
+        source=src,
+    )
+
+
+def _image_shape(path: Path) -> tuple[int, int] | None:
+    img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    return None if img is None else img.shape[:2]
+
+
+def _doors(polys: dict[str, Polygon], min_width: float) -> list[Door]:
+    """A door per connected stretch of boundary shared by two rooms (at least ``min_width`` long)."""
+    ids = list(polys)
+    geoms = [polys[i] for i in ids]
+    tree = shapely.STRtree(geoms)
+    left, right = tree.query(geoms, predicate="touches")
+    doors: list[Door] = []
+    for i, j in zip(left.tolist(), right.tolist(), strict=True):
+        if i >= j:
+            continue
+        shared = shapely.line_merge(shapely.intersection(geoms[i].boundary, geoms[j].boundary))
+        parts = getattr(shared, "geoms", [shared])
+        for part in parts:
+            if not isinstance(part, LineString) or part.length < min_width:
+                continue
+            coords = np.asarray(part.coords)
+            a, b = coords[0], coords[-1]
+            if np.allclose(a, b):  # a closed loop: span its two farthest points
+                d = np.linalg.norm(coords[:, None] - coords[None], axis=-1)
+                k, m = np.unravel_index(np.argmax(d), d.shape)
+                a, b = coords[k], coords[m]
+            doors.append(
+                Door(
+                    f"d{len(doors)}", (float(a[0]), float(a[1])), (float(b[0]), float(b[1])), (ids[i], ids[j])
+                )
+            )
+    return doors
+
+
+def load_room_segmentation(png: str | Path, yaml: str | Path | None = None, **options: Any) -> FloorPlan:
+    """Like :func:`from_room_segmentation`; without ``yaml`` the YAML beside the image is used:
+    ``<stem>.yaml`` or, for ``XRoomSeg.png``, ``X.yaml``."""
+    png = Path(png)
+    if yaml is None:
+        stem = png.stem
+        cands = [png.with_suffix(".yaml")]
+        if stem.lower().endswith("roomseg"):
+            cands.append(png.with_name(stem[: -len("roomseg")] + ".yaml"))
+        found = [c for c in cands if c.exists()]
+        if not found:
+            raise FloorPlanError(
+                f"no map YAML beside the image (looked for {', '.join(c.name for c in cands)})",
+                source=str(png),
+            )
+        yaml = found[0]
+    return from_room_segmentation(png, yaml, **options)
