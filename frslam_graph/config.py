@@ -155,12 +155,70 @@ class UpdatesConfig(_Section):
     prior_kind: Literal["full", "translation"] = "full"
 
 
+class LoopClosureConfig(_Section):
+    """Loop closure (:mod:`frslam_graph.loop_closure`): candidates, scan matcher, acceptance."""
+
+    enabled: bool = True
+    # Candidates: earlier keyframes at least this far back (keyframes AND travel or turned angle).
+    min_keyframe_gap: int = Field(20, ge=1)
+    min_travel_gap: float = Field(5.0, ge=0.0)
+    min_rotation_gap_deg: float = Field(300.0, ge=0.0)
+    # Search radius around the current estimate and heading window grow with the motion since
+    # the last accepted closure (or since the candidate, whichever is shorter).
+    radius_base: float = Field(2.0, gt=0.0)
+    radius_per_m: float = Field(0.25, ge=0.0)
+    radius_max: float = Field(60.0, gt=0.0)
+    theta_window_base_deg: float = Field(10.0, gt=0.0, le=180.0)
+    theta_window_per_m_deg: float = Field(0.3, ge=0.0)
+    theta_window_per_turn: float = Field(0.05, ge=0.0)  # degrees of window per degree turned
+    # Translation half-width of the correlative search around the prediction (or the candidate).
+    search_window_xy: float = Field(2.0, gt=0.0)
+    candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
+    attempt_every: int = Field(2, ge=1)  # keyframes between attempts
+    max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
+    retry_keyframes: int = Field(10, ge=0)  # a region is not retried within this many keyframes
+    # Submaps (points in the keyframe's frame).
+    submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
+    query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe
+    submap_keyframes: int = Field(30, ge=1)  # at most this many keyframes per side
+    max_point_range: float = Field(20.0, gt=0.0)
+    # Matcher.
+    resolution: float = Field(0.05, gt=0.0)
+    coarse_step_xy: float = Field(0.3, gt=0.0)
+    coarse_step_theta_deg: float = Field(1.5, gt=0.0)
+    likelihood_sigma: float = Field(0.1, gt=0.0)
+    max_query_points: int = Field(200, ge=20)
+    icp_iterations: int = Field(15, ge=1)
+    icp_max_distance: float = Field(0.5, gt=0.0)
+    inlier_distance: float = Field(0.1, gt=0.0)
+    # Acceptance.
+    min_inlier_fraction: float = Field(0.6, ge=0.0, le=1.0)
+    max_ambiguity: float = Field(0.85, gt=0.0, le=1.0)  # second peak / best
+    peak_separation_xy: float = Field(1.0, gt=0.0)
+    peak_separation_theta_deg: float = Field(10.0, gt=0.0)
+    # Large corrections need a second, consistent closure before entering the graph.
+    confirm_xy: float = Field(0.5, ge=0.0)
+    confirm_theta_deg: float = Field(5.0, ge=0.0)
+    consistency_xy: float = Field(0.3, gt=0.0)
+    consistency_theta_deg: float = Field(3.0, gt=0.0)
+    pending_keyframes: int = Field(30, ge=1)
+    # Factor noise: point-to-line sigma, inflation, floors; robust kernel (whitened units).
+    icp_sigma: float = Field(0.05, gt=0.0)
+    covariance_inflation: float = Field(10.0, ge=1.0)
+    sigma_floor_xy: float = Field(0.02, gt=0.0)
+    sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
+    kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
+    kernel_param: float = Field(1.0, gt=0.0)
+    batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
+
+
 class FRSlamConfig(_Section):
     """Whole-backend configuration; see the section classes for fields and units."""
 
     odometry: OdometryConfig = OdometryConfig()
     graph: GraphConfig = GraphConfig()
     updates: UpdatesConfig = UpdatesConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None, source: str | Path | None = None) -> FRSlamConfig:
@@ -214,7 +272,12 @@ class FRSlamConfig(_Section):
         return type(self).from_dict(data)
 
 
-_SECTION_NAMES = {"OdometryConfig": "odometry", "GraphConfig": "graph", "UpdatesConfig": "updates"}
+_SECTION_NAMES = {
+    "OdometryConfig": "odometry",
+    "GraphConfig": "graph",
+    "UpdatesConfig": "updates",
+    "LoopClosureConfig": "loop_closure",
+}
 
 
 def _config_error(exc: ValidationError, source: str | Path | None, prefix: str | None = None) -> ConfigError:

@@ -218,6 +218,30 @@ class PoseGraph:
         self._latest = prev[-1].copy() if len(prev) else self._latest
         return it + 1 if max_iterations else 0
 
+    def add_factor(self, factor: gtsam.NonlinearFactor, extra_iterations: int = 10) -> int:
+        """Add a factor between existing keyframes (e.g. a loop closure); returns its iSAM2 index.
+
+        It is part of the LM batch. Indices change when the graph is rebuilt (``optimize_batch``,
+        ``transform_map``): find the factor again with :meth:`factor_index`.
+        """
+        (idx,) = self._update([factor])
+        self.settle(extra_iterations)
+        return idx
+
+    def remove_factor(self, index: int, extra_iterations: int = 10) -> None:
+        """Remove a factor added with :meth:`add_factor` by its iSAM2 index."""
+        if not 0 <= index < len(self._factors) or self._factors[index] is None:
+            raise FrslamError(f"no factor at index {index}", where="index")
+        self._update([], remove=[index])
+        self.settle(extra_iterations)
+
+    def factor_index(self, factor: gtsam.NonlinearFactor) -> int:
+        """Current iSAM2 index of a factor object added earlier (-1 when not in the graph)."""
+        for i, f in enumerate(self._factors):
+            if f is factor:
+                return i
+        return -1
+
     def priors(self, active_only: bool = True) -> list[PriorHandle]:
         return [h for h in self._priors.values() if h.active or not active_only]
 
