@@ -1,0 +1,471 @@
+"""The real-time floor-plan update strategy (paper Alg. 3) as a policy plugged into FRSlam.
+
+Frames (REP-105; metres, radians): before any registration ``map`` is the odom frame of the
+first pose (the graph's anchor). The LiDAR occupancy map is built in ``map`` from the keyframes
+at their current estimates, so a registration's matrix (plan -> map metres) puts the plan *in
+the SLAM map frame*; the first accepted registration fixes that plan -> map transform and the
+graph is never re-expressed. Relocalisation priors then pull the trajectory onto the plan's
+geometry, which corrects the drift accumulated along the way.
+
+:class:`FloorPlanUpdater` is called after every keyframe (``on_keyframe(slam, keyframe)``):
+
+- it keeps a coarse coverage of the mapped area (cells seen by the keyframe beams);
+- it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
+  first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
+  ``register_growth_frac`` since the last attempt, and when progress is obstructed (no progress
+  for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
+- a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
+  walls explain ``min_map_fit`` of the map's occupied cells, and the current scan relocalises
+  against it consistently with the current estimate. A later registration that agrees with the
+  accepted one is only noted; one that disagrees replaces it only when it explains the current
+  map clearly better (then the old plan's priors are removed and the keyframes that had them are
+  relocalised against the new plan);
+- after every ``relocation_distance_D`` metres travelled it **relocalises** the current scan
+  (:mod:`frslam_graph.relocalisation`) and, when the match is good, unambiguous and passes a
+  chi² gate against the current estimate (its marginal covariance plus the drift since the
+  last accepted prior), adds it as a robust floor-plan prior;
+- it removes priors later proven wrong (chi² of their residual after optimisation above
+  ``remove_chi2``).
+
+Every decision is an :class:`UpdateEvent` in ``updater.log`` (also mirrored into ``slam.log``);
+nothing is printed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from frslam_graph.config import UpdatesConfig
+from frslam_graph.errors import FrslamError
+from frslam_graph.motion_model import tangent_cov, vector_cov
+from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
+
+_COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
+
+
+@dataclass(frozen=True)
+class UpdateEvent:
+    """One decision of the update strategy.
+
+    ``kind``: "register" (a registration was attempted; ``reason`` says accepted / why not),
+    "registration_replaced", "relocalise", "prior_added", "prior_rejected", "prior_removed",
+    "obstructed".
+    """
+
+    stamp: float
+    kind: str
+    reason: str
+    keyframe: int | None = None
+    numbers: dict[str, float] = field(default_factory=dict)
+    accepted: bool | None = None
+
+
+@dataclass
+class _Accepted:
+    """An accepted registration and what was built from it."""
+
+    id: int
+    registration: Any
+    plan: Any  # FloorPlan in map metres
+    relocaliser: Relocaliser
+    map_fit: float
+
+
+class FloorPlanUpdater:
+    """Paper Alg. 3 as an ``FRSlam.update_strategy`` (see the module docstring)."""
+
+    def __init__(
+        self,
+        plan,
+        config: UpdatesConfig | None = None,
+        register_fn: Callable[[Any, Any], Any] | None = None,
+        mirror_log: bool = True,
+    ) -> None:
+        self.plan = plan
+        self.config = cfg = config or UpdatesConfig()
+        if register_fn is None:
+            from frslam_graph.registration import register as register_fn  # noqa: PLC0415
+        self.register_fn = register_fn
+        self.mirror_log = mirror_log
+        self.log: list[UpdateEvent] = []
+        self.accepted: _Accepted | None = None
+        self.params = RelocaliserParams(
+            resolution=cfg.reloc_resolution,
+            wall_offset=cfg.wall_half_thickness,
+            window_xy=cfg.reloc_window_xy,
+            window_theta=np.deg2rad(cfg.reloc_window_theta_deg),
+            inlier_distance=cfg.reloc_inlier_distance,
+            cov_inflation=cfg.reloc_cov_inflation,
+        )
+        self._cover = np.zeros(0, dtype=np.int64)
+        self._dist = 0.0  # metres travelled (odometry)
+        self._last_odom: np.ndarray | None = None
+        self._area_at_attempt = 0.0
+        self._attempts = 0
+        self._dist_at_reloc = 0.0
+        self._dist_at_prior = 0.0
+        self._obstructed = False
+        self._obstruction_reported = False
+        self._history: list[tuple[float, float]] = []  # (stamp, distance) per keyframe
+        self._inconsistent_run = 0
+        self._next_id = 0
+        self.timings: dict[str, float] = {"register": 0.0, "relocalise": 0.0, "coverage": 0.0}
+
+    # ------------------------------------------------------------------ public
+    @property
+    def registered_plan(self):
+        """The accepted registered plan (FloorPlan in map metres) or None."""
+        return None if self.accepted is None else self.accepted.plan
+
+    @property
+    def registration(self):
+        """The accepted :class:`~frslam_graph.registration.Registration` or None."""
+        return None if self.accepted is None else self.accepted.registration
+
+    @property
+    def mapped_area(self) -> float:
+        """Area (m²) of the coverage cells seen so far."""
+        return float(len(self._cover)) * _COVER_CELL**2
+
+    def notify_obstructed(self) -> None:
+        """The caller's motion is obstructed (paper Alg. 3: d <= 0): register and relocalise at
+        the next keyframe."""
+        self._obstructed = True
+
+    def events(self, kind: str | None = None) -> list[UpdateEvent]:
+        return [e for e in self.log if kind is None or e.kind == kind]
+
+    def on_keyframe(self, slam, keyframe) -> None:
+        """Called by FRSlam after each keyframe is in the graph."""
+        cfg = self.config
+        if not cfg.enabled or self.plan is None:
+            return
+        t0 = time.perf_counter()
+        i = keyframe.index
+        if self._last_odom is not None:
+            self._dist += float(np.hypot(*(keyframe.pose_odom[:2] - self._last_odom[:2])))
+        self._last_odom = np.asarray(keyframe.pose_odom, float).copy()
+        points = slam.keyframe_scans()[0][i]
+        self._update_coverage(keyframe.pose_map, points)
+        self.timings["coverage"] += time.perf_counter() - t0
+        obstructed = self._check_obstruction(slam, keyframe)
+
+        area = self.mapped_area
+        reason = None
+        if self._attempts < cfg.max_registrations:
+            if self._attempts == 0:
+                if area >= cfg.first_register_area_m2:
+                    reason = f"mapped area {area:.1f} m² reached the first-registration threshold"
+            else:
+                grown = area - self._area_at_attempt
+                if grown >= cfg.register_min_growth_m2 and grown >= cfg.register_growth_frac * max(
+                    self._area_at_attempt, 1e-9
+                ):
+                    reason = f"mapped area grew by {grown:.1f} m² to {area:.1f} m²"
+                elif obstructed and grown >= 1.0:
+                    reason = "progress obstructed"
+        if reason is not None:
+            self._register(slam, keyframe, reason)
+        elif self.accepted is not None and (
+            self._dist - self._dist_at_reloc >= cfg.relocation_distance_D or obstructed
+        ):
+            self._relocalise_current(slam, keyframe, "obstructed" if obstructed else "relocation distance")
+
+    # ------------------------------------------------------------------ events
+    def _event(
+        self,
+        slam,
+        stamp: float,
+        kind: str,
+        reason: str,
+        keyframe: int | None = None,
+        accepted: bool | None = None,
+        mirror: bool = True,
+        **numbers: float,
+    ) -> UpdateEvent:
+        nums = {k: _num(v) for k, v in numbers.items()}
+        ev = UpdateEvent(float(stamp), kind, reason, keyframe, nums, accepted)
+        self.log.append(ev)
+        if self.mirror_log and mirror and hasattr(slam, "log_event"):
+            data: dict[str, Any] = dict(nums)
+            if accepted is not None:
+                data["accepted"] = accepted
+            slam.log_event(kind, reason, stamp=stamp, keyframe=keyframe, **data)
+        return ev
+
+    # ------------------------------------------------------------------ coverage / triggers
+    def _update_coverage(self, pose: np.ndarray, points: np.ndarray) -> None:
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if not len(pts):
+            return
+        if len(pts) > 180:
+            pts = pts[np.linspace(0, len(pts) - 1, 180).round().astype(np.intp)]
+        t = np.linspace(0.0, 1.0, 41)
+        samples = (pts[:, None, :] * t[None, :, None]).reshape(-1, 2)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        wx = c * samples[:, 0] - s * samples[:, 1] + pose[0]
+        wy = s * samples[:, 0] + c * samples[:, 1] + pose[1]
+        kx = np.floor(wx / _COVER_CELL).astype(np.int64)
+        ky = np.floor(wy / _COVER_CELL).astype(np.int64)
+        keys = np.unique(kx * 2_000_003 + ky)
+        self._cover = np.union1d(self._cover, keys)
+
+    def _check_obstruction(self, slam, keyframe) -> bool:
+        cfg = self.config
+        stamp = float(keyframe.stamp)
+        self._history.append((stamp, self._dist))
+        obstructed = self._obstructed
+        if len(self._history) >= 2:
+            t_prev, d_prev = self._history[-2]
+            if stamp - t_prev >= cfg.obstruction_time_s:
+                obstructed = True  # stood still long enough to make no keyframe
+        # progress over the last obstruction_time_s
+        old = [(t, d) for t, d in self._history if stamp - t >= cfg.obstruction_time_s]
+        if old:
+            t_o, d_o = old[-1]
+            if (self._dist - d_o) < cfg.obstruction_speed * (stamp - t_o):
+                obstructed = True
+            self._history = self._history[len(old) - 1 :]
+        if obstructed and not self._obstruction_reported:
+            self._event(slam, stamp, "obstructed", "no progress: register and relocalise", keyframe.index)
+        self._obstruction_reported = obstructed
+        self._obstructed = False
+        return obstructed
+
+    # ------------------------------------------------------------------ registration
+    def _register(self, slam, keyframe, reason: str) -> None:
+        cfg = self.config
+        t0 = time.perf_counter()
+        self._attempts += 1
+        area = self.mapped_area
+        self._area_at_attempt = area
+        stamp, i = float(keyframe.stamp), keyframe.index
+        grid = slam.occupancy_grid(cfg.map_resolution)
+        try:
+            reg = self.register_fn(self.plan, grid)
+        except FrslamError as exc:
+            self._event(slam, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
+            self.timings["register"] += time.perf_counter() - t0
+            return
+        nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
+        verdict = self._judge(slam, keyframe, reg, grid, nums)
+        self.timings["register"] += time.perf_counter() - t0
+        if verdict is None:
+            return
+        accepted, relocaliser, reloc = verdict
+        msg, kind = f"{reason}; accepted", "register"
+        if self.accepted is not None:
+            msg, kind = f"{reason}; replaces registration {self.accepted.id}", "registration_replaced"
+        self._event(slam, stamp, kind, msg, i, True, **nums)
+        previous = self.accepted
+        self.accepted = accepted
+        if previous is not None:
+            self._reanchor(slam, previous)
+        self._try_prior(slam, keyframe, reloc, "registration accepted")
+        self._dist_at_reloc = self._dist
+
+    def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float]):
+        """Accept / reject a registration; returns (accepted, relocaliser, relocalisation) or None."""
+        cfg = self.config
+        stamp, i = float(keyframe.stamp), keyframe.index
+
+        def reject(why: str) -> None:
+            self._event(slam, stamp, "register", why, i, False, **nums)
+
+        if not reg.ok:
+            return reject(f"registration failed: {reg.reason or 'no match'}")
+        if reg.score < cfg.min_score:
+            return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
+        if reg.ambiguity > cfg.max_ambiguity:
+            return reject(f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}")
+        try:
+            plan_map = reg.apply(self.plan)
+            relocaliser = Relocaliser(plan_map, self.params)
+        except (FrslamError, ValueError) as exc:
+            return reject(f"registered plan unusable: {exc}")
+        occ = _occupied_points(grid)
+        fit = relocaliser.fit_points(occ)
+        nums["map_fit"] = fit
+        if fit < cfg.min_map_fit:
+            return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
+        if self.accepted is not None:
+            disp = _matrix_disagreement(self.plan, self.accepted.registration.matrix, reg.matrix)
+            old_fit = self.accepted.relocaliser.fit_points(occ)
+            nums.update(disagreement=disp, accepted_map_fit=old_fit)
+            if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
+                return reject(f"agrees with registration {self.accepted.id} (RMS {disp:.2f} m); kept")
+            if fit < old_fit + cfg.switch_margin:
+                return reject(
+                    f"disagrees with registration {self.accepted.id} (RMS {disp:.2f} m) and explains "
+                    f"the map no better ({fit:.0%} vs {old_fit:.0%})"
+                )
+        points = slam.keyframe_scans()[0][i]
+        reloc = relocaliser.relocalise(points, keyframe.pose_map)
+        nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
+        if not reloc.ok or reloc.score < cfg.reloc_min_score:
+            return reject(f"current scan does not fit the registered plan (inliers {reloc.score:.0%})")
+        if self.accepted is None:
+            chi2 = self._gate_chi2(slam, keyframe, reloc)
+            nums["chi2"] = chi2
+            if chi2 > cfg.inconsistent_chi2:
+                return reject(
+                    f"inconsistent with the trajectory: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
+                )
+        acc = _Accepted(self._next_id, reg, plan_map, relocaliser, fit)
+        self._next_id += 1
+        return acc, relocaliser, reloc
+
+    def _reanchor(self, slam, previous: _Accepted) -> None:
+        """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""
+        tag = f"reloc:reg{previous.id}"
+        handles = [h for h in slam.graph.priors() if h.source == tag]
+        for h in handles:
+            slam.remove_prior(h, reason=f"registration {previous.id} replaced")
+            self._event(
+                slam,
+                slam.keyframe(h.keyframe).stamp,
+                "prior_removed",
+                f"registration {previous.id} replaced",
+                h.keyframe,
+                mirror=False,
+                prior=h.id,
+            )
+        scans = slam.keyframe_scans()[0]
+        for h in handles:
+            kf = slam.keyframe(h.keyframe)
+            reloc = self.accepted.relocaliser.relocalise(scans[h.keyframe], kf.pose_map)
+            self._try_prior(slam, kf, reloc, "re-anchored on the new registration", drift=self._dist)
+
+    # ------------------------------------------------------------------ relocalisation
+    def _relocalise_current(self, slam, keyframe, why: str) -> None:
+        t0 = time.perf_counter()
+        points = slam.keyframe_scans()[0][keyframe.index]
+        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map)
+        self.timings["relocalise"] += time.perf_counter() - t0
+        self._dist_at_reloc = self._dist
+        self._try_prior(slam, keyframe, reloc, why)
+        self._check_priors(slam, keyframe.stamp)
+
+    def _gate_chi2(self, slam, keyframe, reloc: Relocalisation, drift: float | None = None) -> float:
+        """chi² of (relocalised - estimated) pose under reloc + marginal + drift covariances."""
+        cfg = self.config
+        est = np.asarray(keyframe.pose_map, float)
+        d = reloc.pose - est
+        d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
+        travelled = self._dist - self._dist_at_prior if drift is None else drift
+        sxy = cfg.gate_sigma_xy + cfg.gate_drift_frac * travelled
+        sth = np.deg2rad(cfg.gate_sigma_theta_deg + cfg.gate_drift_deg_per_m * travelled)
+        s = reloc.covariance + np.diag([sxy**2, sxy**2, sth**2])
+        try:
+            s = s + vector_cov(est, slam.graph.marginal_covariance(keyframe.index))
+        except Exception:  # noqa: BLE001 - a marginal may be unavailable right after a removal
+            pass
+        return float(d @ np.linalg.solve(s, d))
+
+    def _try_prior(self, slam, keyframe, reloc: Relocalisation, why: str, drift: float | None = None) -> None:
+        cfg = self.config
+        stamp, i = float(keyframe.stamp), keyframe.index
+        est = np.asarray(keyframe.pose_map, float)
+        d = reloc.pose - est
+        d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
+        nums = {
+            "score": reloc.score,
+            "ambiguity": reloc.ambiguity,
+            "dx": d[0],
+            "dy": d[1],
+            "dtheta": d[2],
+            "sigma_x": reloc.std[0],
+            "sigma_y": reloc.std[1],
+            "sigma_theta": reloc.std[2],
+            "time_s": reloc.time_s,
+        }
+        self._event(slam, stamp, "relocalise", why, i, reloc.ok, **nums)
+        rej = None
+        if not reloc.ok:
+            rej = f"relocalisation failed: {reloc.reason}"
+        elif reloc.score < cfg.reloc_min_score:
+            rej = f"poor fit: inliers {reloc.score:.0%} < {cfg.reloc_min_score:.0%}"
+        elif reloc.ambiguity > cfg.reloc_max_ambiguity:
+            rej = f"ambiguous: {reloc.ambiguity:.2f} > {cfg.reloc_max_ambiguity:.2f}"
+        else:
+            chi2 = self._gate_chi2(slam, keyframe, reloc, drift)
+            nums["chi2"] = chi2
+            if chi2 > cfg.inconsistent_chi2:
+                rej = f"inconsistent with the estimate: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
+                self._inconsistent_run += 1
+        if rej is not None:
+            self._event(slam, stamp, "prior_rejected", rej, i, False, **nums)
+            return
+        self._inconsistent_run = 0
+        cov = tangent_cov(reloc.pose, reloc.covariance)
+        handle = slam.add_floorplan_prior(
+            int(i),
+            reloc.pose,
+            cov,
+            source=f"reloc:reg{self.accepted.id}",
+            kind=cfg.prior_kind,
+            info={"score": reloc.score, "ambiguity": reloc.ambiguity},
+        )
+        self._dist_at_prior = self._dist
+        self._event(slam, stamp, "prior_added", why, i, True, mirror=False, prior=handle.id, **nums)
+
+    def _check_priors(self, slam, stamp: float) -> None:
+        """Remove priors whose residual after optimisation is far beyond their covariance."""
+        cfg = self.config
+        handles = [h for h in slam.graph.priors() if h.source.startswith("reloc:")]
+        if not handles:
+            return
+        slam.graph.estimates()  # fills the estimate cache for the residuals
+        for h in handles:
+            res = slam.graph.prior_residual(h)
+            if res.chi2 > cfg.remove_chi2:
+                why = f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f} (weight {res.weight:.2f})"
+                slam.remove_prior(h, reason=why)
+                self._event(
+                    slam,
+                    stamp,
+                    "prior_removed",
+                    why,
+                    h.keyframe,
+                    False,
+                    mirror=False,
+                    prior=h.id,
+                    chi2=res.chi2,
+                    weight=res.weight,
+                )
+
+
+# --------------------------------------------------------------------------- helpers
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _occupied_points(grid, max_points: int = 4000) -> np.ndarray:
+    """Centres (N, 2) of occupied cells of an OccupancyGrid, evenly subsampled."""
+    rows, cols = np.nonzero(grid.occupied_mask())
+    if not len(rows):
+        return np.zeros((0, 2))
+    if len(rows) > max_points:
+        k = np.linspace(0, len(rows) - 1, max_points).round().astype(np.intp)
+        rows, cols = rows[k], cols[k]
+    return grid.cell_to_world(np.column_stack((cols, rows)).astype(np.float64) + 0.5)
+
+
+def _matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:
+    """RMS distance (map metres) between the plan's room corners mapped by two matrices."""
+    pts = np.vstack([np.asarray(r.polygon.exterior.coords)[:-1, :2] for r in plan.rooms])
+    h = np.column_stack((pts, np.ones(len(pts))))
+    a = h @ np.asarray(m1, float)[:2].T
+    b = h @ np.asarray(m2, float)[:2].T
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+__all__ = ["FloorPlanUpdater", "UpdateEvent"]
