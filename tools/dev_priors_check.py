@@ -17,9 +17,9 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 
 from frslam_graph.config import FRSlamConfig
-from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 from frslam_graph.floorplan import FloorPlan
 from frslam_graph.metrics import ate
 from frslam_graph.pipeline import FRSlam
