@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import IO, Literal, NamedTuple
 
 import numpy as np
-from frslam_graph.datasets.recording import Recording, RecordingStats, interpolate_poses
+from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
 from frslam_graph.datasets.scan import Scan
 
 from frslam_graph.errors import RecordingError
@@ -213,30 +213,31 @@ class CarmenLog(Recording):
         first_pass = RecordingStats()
         self._first_pass = first_pass
         for _lineno, line in _lines(self.path, first_pass):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
+            head = line.split(None, 2)
+            if not head or head[0].startswith("#"):
                 continue
-            kind = tok[0]
+            kind = head[0]
             self.counts[kind] += 1
-            if kind == "ODOM":
-                if len(tok) >= 8:
-                    try:
-                        odom_rows.append((float(tok[-3]), float(tok[1]), float(tok[2]), float(tok[3])))
-                    except ValueError:
-                        pass
-            elif kind in self.laser_types:
-                if _check_fields(kind, tok) is not None:
-                    continue
+            if kind in self.laser_types:
+                # fast path: a well-formed FLASER/RLASER line has n + 11 single-space separated fields
+                fast = kind in ("FLASER", "RLASER") and len(head) > 1 and head[1].isdigit()
+                if fast and line.count(" ") + 1 == int(head[1]) + 11:
+                    tok = None
+                else:
+                    tok = line.split()
+                    if _check_fields(kind, tok) is not None:
+                        continue
                 self._len += 1
                 try:
-                    stamp = float(tok[-3])
-                except ValueError:
+                    stamp = float(line.rsplit(None, 3)[1])
+                except (ValueError, IndexError):
                     continue
                 if not math.isfinite(stamps_first):
                     stamps_first = stamp
                 stamps_last = stamp
                 if sampled < SATURATION_SAMPLE and kind in ("FLASER", "RLASER"):
                     sampled += 1
+                    tok = tok or line.split()
                     try:
                         r = np.array(tok[2 : 2 + int(tok[1])], dtype=np.float64)
                     except ValueError:
@@ -248,6 +249,14 @@ class CarmenLog(Recording):
                             sample_max, sample_hits = top, 0
                         sample_hits += int(np.count_nonzero(r == sample_max))
                         sample_beams += r.size
+                continue
+            tok = line.split() if kind in ("ODOM", "PARAM") else head
+            if kind == "ODOM":
+                if len(tok) >= 8:
+                    try:
+                        odom_rows.append((float(tok[-3]), float(tok[1]), float(tok[2]), float(tok[3])))
+                    except ValueError:
+                        pass
             elif kind == "PARAM" and len(tok) >= 3 and tok[1] == "robot_front_laser_max":
                 try:
                     param_max = float(tok[2])
@@ -279,7 +288,7 @@ class CarmenLog(Recording):
         last_stamp = -math.inf
         name = self.path.name
         use_odom_table = self.odom_mode == "odom"
-        odom_table = self._odom
+        odom_at = PoseInterpolator(self._odom, self.odom_tolerance)
         for lineno, line in _lines(self.path, stats):
             tok = line.split()
             if not tok or tok[0].startswith("#"):
@@ -347,11 +356,8 @@ class CarmenLog(Recording):
             if self.odom_mode == "laser":
                 odom = (rx, ry, rth)
             elif use_odom_table:
-                pose, ok = interpolate_poses(odom_table, np.array([rec.stamp]), self.odom_tolerance)
-                if ok[0]:
-                    odom = (float(pose[0, 0]), float(pose[0, 1]), float(pose[0, 2]))
-                else:
-                    odom = None
+                odom = odom_at(rec.stamp)
+                if odom is None:
                     stats.flag("scans outside the ODOM records (odom None)", where)
             else:
                 odom = None

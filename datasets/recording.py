@@ -13,6 +13,7 @@ records as an (M, 4) array ``stamp, x, y, theta`` of ``base_link`` in ``odom`` (
 
 from __future__ import annotations
 
+import math
 import warnings
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -110,24 +111,26 @@ class Recording(ABC):
         return f"{type(self).__name__}({str(self.path)!r}, scans={len(self)})"
 
 
-def interpolate_poses(
-    table: np.ndarray, stamps: np.ndarray, tolerance: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Interpolate an (M, 4) ``stamp, x, y, theta`` table (stamps increasing) at ``stamps``.
+class PoseInterpolator:
+    """Pose of an (M, 4) ``stamp, x, y, theta`` table (increasing stamps) at one stamp, O(log M).
 
-    Returns ``(poses (K, 3), ok (K,) bool)``; ``ok`` is False where a stamp lies more than
-    ``tolerance`` seconds outside the table (those poses are nan). Heading is unwrapped first.
+    Returns None for a stamp more than ``tolerance`` seconds outside the table.
     """
-    stamps = np.asarray(stamps, dtype=np.float64)
-    poses = np.full((stamps.size, 3), np.nan)
-    if table.shape[0] == 0:
-        return poses, np.zeros(stamps.size, dtype=bool)
-    t = table[:, 0]
-    ok = (stamps >= t[0] - tolerance) & (stamps <= t[-1] + tolerance)
-    theta = np.unwrap(table[:, 3])
-    poses[:, 0] = np.interp(stamps, t, table[:, 1])
-    poses[:, 1] = np.interp(stamps, t, table[:, 2])
-    heading = np.interp(stamps, t, theta)
-    poses[:, 2] = np.arctan2(np.sin(heading), np.cos(heading))
-    poses[~ok] = np.nan
-    return poses, ok
+
+    def __init__(self, table: np.ndarray, tolerance: float):
+        self.t = np.ascontiguousarray(table[:, 0])
+        self.x = np.ascontiguousarray(table[:, 1])
+        self.y = np.ascontiguousarray(table[:, 2])
+        self.theta = np.unwrap(table[:, 3]) if len(table) else np.zeros(0)
+        self.tolerance = float(tolerance)
+
+    def __call__(self, stamp: float) -> tuple[float, float, float] | None:
+        t = self.t
+        if t.size == 0 or stamp < t[0] - self.tolerance or stamp > t[-1] + self.tolerance:
+            return None
+        heading = float(np.interp(stamp, t, self.theta))
+        return (
+            float(np.interp(stamp, t, self.x)),
+            float(np.interp(stamp, t, self.y)),
+            math.atan2(math.sin(heading), math.cos(heading)),
+        )

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from frslam_graph.datasets.recording import Recording, RecordingStats, interpolate_poses
+from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
 from frslam_graph.datasets.ros1_raw import Ros1RawBag
 from frslam_graph.datasets.scan import Scan
 
@@ -333,6 +333,7 @@ class RosBag(Recording):
 
     def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
         odom = self.odometry()
+        odom_at = PoseInterpolator(odom, self.odom_tolerance)
         for reason, n in self._odom_stats.skipped.items():
             stats.skipped[reason] += n
             stats.first.setdefault(reason, self._odom_stats.first[reason])
@@ -359,10 +360,8 @@ class RosBag(Recording):
             last_stamp = max(last_stamp, stamp)
             pose = None
             if odom.shape[0]:
-                p, ok = interpolate_poses(odom, np.array([stamp]), self.odom_tolerance)
-                if ok[0]:
-                    pose = (float(p[0, 0]), float(p[0, 1]), float(p[0, 2]))
-                else:
+                pose = odom_at(stamp)
+                if pose is None:
                     stats.flag("scans outside the odometry records (odom None)", where)
             if msgtype == LASER_SCAN:
                 scan = self._laser_scan(msg, stamp, pose, angles_cache, stats, where)
