@@ -135,10 +135,18 @@ class House:
         rooms_free = shapely.union_all(list(eroded.values()))
         open_space = shapely.union_all([rooms_free, *openings])
         walls = envelope.difference(open_space)
+        # Drop slivers thinner than half a wall (left where a doorway only grazes a wall).
+        e = wall_thickness / 4.0
+        walls = (
+            walls.buffer(-e, join_style="mitre", mitre_limit=3.0)
+            .buffer(e, join_style="mitre", mitre_limit=3.0)
+            .intersection(envelope)
+        )
+        walls = shapely.union_all([p for p in _polygons(walls) if p.area > 1e-6])
         rng = rng if rng is not None else np.random.default_rng(0)
         obstacles = _place_clutter(hplan, eroded, clutter, rng) if clutter else []
-        free = open_space.difference(shapely.union_all(obstacles)) if obstacles else open_space
-        free = free.intersection(envelope)
+        free = envelope.difference(walls)
+        free = free.difference(shapely.union_all(obstacles)) if obstacles else free
         room_free = {}
         for r in hplan.rooms:
             g = eroded[r.id]

@@ -70,14 +70,24 @@ def grow_rooms(
     areas = house.room_areas
     total = sum(areas.values())
     ids = list(areas)
+    adj = house.adjacency()
     if start_room is None:
-        p = np.array([areas[r] for r in ids]) / total
-        start_room = ids[int(rng.choice(len(ids), p=p))]
+        # Start in a part of the house (rooms connected by open doors) big enough for the target,
+        # or in the biggest part when none is; rooms weighted by area.
+        comp_area: dict[str, float] = {}
+        for rid in ids:
+            if rid not in comp_area:
+                members = house.reachable(rid)
+                share = sum(areas[m] for m in members)
+                comp_area.update(dict.fromkeys(members, share))
+        enough = [r for r in ids if comp_area[r] >= completeness * total * 0.999]
+        pool = enough or [r for r in ids if comp_area[r] == max(comp_area.values())]
+        p = np.array([areas[r] for r in pool])
+        start_room = pool[int(rng.choice(len(pool), p=p / p.sum()))]
     elif start_room not in areas:
         raise ConfigError(
             f"unknown room {start_room!r} (the house has {ids})", where="partial_map.start_room"
         )
-    adj = house.adjacency()
     target = completeness * total
     explored = [start_room]
     area = areas[start_room]

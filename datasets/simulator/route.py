@@ -124,6 +124,12 @@ class _Planner:
         res = params.resolution
         self.frame = RasterFrame.around(house.bounds, res, margin=2 * res)
         free = rasterise_polygons([house.free_space], self.frame)
+        # Every wall / obstacle edge blocks the cells it crosses (4-connected lines), so no wall
+        # thinner than a cell can be crossed by the 8-connected grid graph.
+        if len(house.segments):
+            pix = self.frame.to_pixel(house.segments.reshape(-1, 2)) - 0.5
+            lines = np.round(pix * 256.0).astype(np.int32).reshape(-1, 2, 2)
+            cv2.polylines(free, list(lines), False, 0, thickness=1, lineType=cv2.LINE_4, shift=8)
         # Clearance of each cell centre: distance to the nearest non-free cell (minus half a cell).
         dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res - 0.5 * res
         self.clearance = dist
