@@ -271,6 +271,11 @@ class CarmenLog(Recording):
         return sample_max, sample_hits, sample_beams, param_max
 
     def __len__(self) -> int:
+        """Laser records of the selected kind with the right number of fields (first pass).
+
+        A record that passes that check but holds a non-numeric value is found only while
+        iterating; it is then skipped and reported, and ``stats.scans`` is one less.
+        """
         return self._len
 
     @property
@@ -334,14 +339,13 @@ class CarmenLog(Recording):
                 stats.skip("laser record with a non-finite pose", where)
                 continue
             ranges = rec.ranges
-            max_range = rec.max_range if rec.max_range and rec.max_range > 0 else self.max_range
+            own = rec.max_range is not None and rec.max_range > 0 and self.max_range_source != "given"
+            max_range = rec.max_range if own else self.max_range
             bad = ~np.isfinite(ranges) | (ranges < 0.0)
             if bad.any():
                 stats.flag("scans with NaN/inf/negative ranges (set to nan)", where)
             invalid = bad | ~(ranges > 0.0) | (ranges >= max_range)
-            if invalid.any():
-                ranges = ranges.copy()
-                ranges[invalid] = np.nan
+            ranges[invalid] = np.nan
             key = (ranges.size, rec.start, rec.increment)
             angles = angles_cache.get(key)
             if angles is None:

@@ -114,6 +114,8 @@ def test_robotlaser1_carries_its_own_geometry(tmp_path):
     assert scan.max_range == 30.0
     assert np.isnan(scan.ranges[2]) and scan.ranges[3] == 3.0  # 35 m >= max range 30 m
     assert scan.stamp == 7.0 and scan.odom == pytest.approx((1.0, 2.0, 0.5))
+    (wide,), _ = read_all(open_recording(p, max_range=40.0))  # an explicit max range wins
+    assert wide.ranges[2] == 35.0 and wide.max_range == 40.0
 
 
 def test_rear_lasers_selected_on_request_and_reported_otherwise(tmp_path):
