@@ -100,12 +100,14 @@ class Msgs:
         return self.ts.serialize_ros1(msg, msgtype) if self.ros1 else self.ts.serialize_cdr(msg, msgtype)
 
 
-def write_bag(path, messages, ros1=True, storage=StoragePlugin.SQLITE3, extra_types=None):
+def write_bag(path, messages, ros1=True, storage=StoragePlugin.SQLITE3, extra_types=None, compression=None):
     """``messages``: list of (topic, msgtype, bag_time_s, msg). Returns the bag path."""
     m = Msgs(ros1)
     if extra_types:
         m.ts.register(extra_types)
     writer = Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=storage)
+    if compression:
+        writer.set_compression(getattr(Writer1.CompressionFormat, compression))
     with writer:
         conns = {}
         for topic, msgtype, t, msg in messages:
@@ -150,8 +152,9 @@ def check_standard(scans):
 
 
 @pytest.mark.parametrize("reader", ["auto", "sequential"])
-def test_ros1_laser_scan_and_odometry(tmp_path, reader):
-    bag = write_bag(tmp_path / "a.bag", standard_messages())
+@pytest.mark.parametrize("compression", [None, "BZ2", "LZ4"])
+def test_ros1_laser_scan_and_odometry(tmp_path, reader, compression):
+    bag = write_bag(tmp_path / "a.bag", standard_messages(), compression=compression)
     rec = open_recording(bag, reader=reader)
     assert isinstance(rec, RosBag) and rec.reader_used == ("rosbags" if reader == "auto" else "sequential")
     assert (rec.scan_topic, rec.odom_topic, len(rec)) == ("/scan", "/odom", 5)
