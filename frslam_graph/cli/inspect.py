@@ -95,6 +95,9 @@ def inspect(
         "odometry",
         f"{with_odom:,} scans with a pose; {len(rec.odometry()):,} odometry records (increasing stamps)",
     )
+    gt_path = getattr(rec, "ground_truth_path", None)
+    if gt_path is not None:
+        table.add_row("ground truth", f"{len(rec.ground_truth()):,} poses in {gt_path.name}")
     rate = n / t_read if t_read > 0 else float("inf")
     realtime = f", {s.duration / t_read:.0f}× real time" if t_read > 0 and s.duration > 0 else ""
     table.add_row(
