@@ -394,3 +394,13 @@ def test_header_stamps_match_a_tum_file_exactly(tmp_path):
     save_tum(tmp_path / "gt.tum", np.column_stack([[n / NS for n in ns], np.zeros((20, 3))]))
     np.testing.assert_array_equal(stamps, load_tum(tmp_path / "gt.tum")[:, 0])
     assert stamps[0] == float("1700000000.123456789")
+
+
+def test_inspect_command_on_a_bag(tmp_path, capsys):
+    from frslam_graph.cli import main
+
+    bag = write_bag(tmp_path / "a.bag", standard_messages())
+    assert main(["inspect", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "RosBag" in out and "/scan" in out and "5 read of 5 found" in out and "scans/s" in out
+    assert main(["inspect", str(bag), "--laser", "rear"]) == 2  # a CARMEN option on a bag
