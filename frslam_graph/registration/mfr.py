@@ -36,16 +36,23 @@ import numpy as np
 import shapely
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.refine import DistanceField, RefineResult, refine, sample_boundaries
+from frslam_graph.registration.refine import (
+    DistanceField,
+    RefineResult,
+    refine,
+    ring_edges,
+    sample_boundaries,
+)
 from frslam_graph.registration.result import Registration, _wrap_deg, params_from_matrix
 from frslam_graph.registration.subsets import (
     MAX_ROOMS,
     SubsetGeometry,
     adjacency_masks,
     connected_subsets,
+    link_doors,
     mask_ids,
     mask_matrix,
-    polygon_moments,
+    rings_moments,
 )
 
 METHOD = "mfr"
@@ -99,6 +106,8 @@ class MapObservation:
     bbox_aligned: np.ndarray  # x0, y0, x1, y1 in the frame rotated by -angle
     coarse_frame: RasterFrame
     coarse_footprint: np.ndarray
+    edge_dt: np.ndarray  # metres to the nearest wall-side free cell (full resolution)
+    edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -118,6 +127,7 @@ def observe_map(
     min_area_m2: float = 2.0,
     obstacle_m2: float = 0.5,
     coarse_px: int = 80,
+    max_edge_points: int = 400,
 ) -> MapObservation | str:
     """Prepare ``grid`` (an OccupancyGrid); returns a failure reason string when unusable."""
     known_all = ~grid.unknown_mask()
@@ -148,6 +158,14 @@ def observe_map(
     # keep components that touch the footprint's outside (outer walls) even when small
     free = free | (small[lab2] & _interior(footprint, lab2, m))
     field_ = DistanceField.from_masks(free, res, (0.0, 0.0))
+    # free cells on a wall (not on a frontier to unknown): the map's room structure
+    walls_in = (footprint & ~free).astype(np.uint8)
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
+    edge = free & cv2.dilate(walls_in, cross).astype(bool)
+    edge_dt = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3) * np.float32(res)
+    er, ec = np.nonzero(edge)
+    stride = max(1, len(er) // max_edge_points)
+    edge_points = (np.column_stack([ec[::stride], er[::stride]]).astype(np.float64) + 0.5) * res
 
     # dominant wall direction from the free-space edges
     fimg = cv2.GaussianBlur(free.astype(np.float32), (5, 5), 1.0)
@@ -187,6 +205,8 @@ def observe_map(
         bbox_aligned=bbox,
         coarse_frame=coarse_frame,
         coarse_footprint=block >= 0.5,
+        edge_dt=edge_dt,
+        edge_points=edge_points,
     )
 
 
@@ -225,10 +245,28 @@ class PlanModel:
     room_holes: list[list[np.ndarray]]
     room_areas: np.ndarray
     perimeter: float
+    samples: np.ndarray  # (M, 2) boundary points (door openings left out)
+    sample_normals: np.ndarray  # (M, 2) unit inward normals
+    sample_room: np.ndarray  # (M,) room index of each sample
+    plan_dt: np.ndarray  # plan units to the nearest room boundary, on plan_frame
+    plan_frame: RasterFrame
+    inner: np.ndarray  # (P, 2) grid points inside rooms
+    inner_onehot: np.ndarray  # (P, n) their room
+    inner_cell: float  # plan area per grid point
+    coarse_samples: np.ndarray  # (M', 2) a subsample of ``samples``
+    coarse_onehot: np.ndarray  # (M', n) their room
     extras: dict[str, Any] = field(default_factory=dict)
 
 
-def prepare_plan(plan, *, adjacency: str = "doors") -> PlanModel:
+def prepare_plan(
+    plan,
+    *,
+    adjacency: str = "doors",
+    samples: int = 1500,
+    dt_px: int = 240,
+    inner_points: int = 1200,
+    coarse_samples: int = 500,
+) -> PlanModel:
     """Room polygons, rings, moments and the room graph of a FloorPlan."""
     rooms = list(plan.rooms)
     polys = [r.polygon for r in rooms]
@@ -243,23 +281,53 @@ def prepare_plan(plan, *, adjacency: str = "doors") -> PlanModel:
             rings.append(np.asarray(hole.coords)[:-1])
             ring_room.append(i)
             room_holes[-1].append(rings[-1])
-    edges = np.concatenate([np.roll(r, -1, axis=0) - r for r in rings])
-    angle = _dominant_angle(edges)
+    starts, ends, edge_ring = ring_edges(rings)
+    ring_room_arr = np.array(ring_room)
+    edge_room = ring_room_arr[edge_ring]
+    n = len(rooms)
+    angle = _dominant_angle(ends - starts)
     rot = _rot(-angle)
-    moments = np.array([polygon_moments(p, rot) for p in polys])
-    bounds = []
-    for p in polys:
-        xy = np.asarray(p.exterior.coords) @ rot.T
-        bounds.append([xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max()])
-    bounds = np.array(bounds)
-    minx, miny, maxx, maxy = plan.bounds
+    moments = rings_moments(starts @ rot.T, ends @ rot.T, edge_room, n)
+    xy = starts @ rot.T
+    bounds = np.full((n, 4), np.inf)
+    bounds[:, 2:] = -np.inf
+    np.minimum.at(bounds[:, 0], edge_room, xy[:, 0])
+    np.minimum.at(bounds[:, 1], edge_room, xy[:, 1])
+    np.maximum.at(bounds[:, 2], edge_room, xy[:, 0])
+    np.maximum.at(bounds[:, 3], edge_room, xy[:, 1])
+    minx, miny = starts.min(axis=0)
+    maxx, maxy = starts.max(axis=0)
     diag = float(math.hypot(maxx - minx, maxy - miny))
     doors_list = list(plan.doors)
-    if doors_list and all(len(d.rooms) < 2 for d in doors_list):
-        plan = plan.link_doors(0.02 * diag)
-        doors_list = list(plan.doors)
+    door_rooms = link_doors(rooms, doors_list, 0.025 * diag)
     doors = np.array([[*d.a, *d.b] for d in doors_list], dtype=np.float64).reshape(-1, 4)
-    adj = adjacency_masks(rooms, doors_list, mode=adjacency, touch_tol=0.01 * diag)
+    adj = adjacency_masks(rooms, door_rooms, mode=adjacency, touch_tol=0.01 * diag)
+    perimeter = float(np.hypot(*(ends - starts).T).sum())
+    pts, nrm, owner = sample_boundaries(rings, perimeter / samples, doors, door_tol=0.012 * diag)
+    pres = diag / dt_px
+    pframe = RasterFrame.around((minx, miny, maxx, maxy), pres, margin=0.05 * diag)
+    lines = np.zeros(pframe.shape, np.uint8)
+    cv2.polylines(
+        lines,
+        [
+            np.round(((r - pframe.origin) / pres - 0.5) * _FIX).astype(np.int32).reshape(-1, 1, 2)
+            for r in rings
+        ],
+        True,
+        1,
+        lineType=cv2.LINE_8,
+        shift=_SHIFT,
+    )
+    plan_dt = cv2.distanceTransform(1 - lines, cv2.DIST_L2, 3) * np.float32(pres)
+    area = float(moments[:, 0].sum())
+    cell = math.sqrt(area / inner_points)
+    iframe = RasterFrame.around((minx, miny, maxx, maxy), cell)
+    lab = _fill(room_rings, room_holes, range(n), np.eye(3), iframe, labels=True)
+    ir, ic = np.nonzero(lab)
+    inner = (np.column_stack([ic, ir]) + 0.5) * cell + iframe.origin
+    eye = np.eye(n)
+    owner_room = ring_room_arr[owner]
+    cstride = max(1, len(pts) // coarse_samples)
     return PlanModel(
         ids=[r.id for r in rooms],
         polygons=polys,
@@ -270,12 +338,22 @@ def prepare_plan(plan, *, adjacency: str = "doors") -> PlanModel:
         moments=moments,
         bounds=bounds,
         adjacency=adj,
-        area=float(sum(p.area for p in polys)),
+        area=area,
         diag=diag,
         room_rings=room_rings,
         room_holes=room_holes,
-        room_areas=np.array([p.area for p in polys]),
-        perimeter=float(sum(np.hypot(*(np.roll(r, -1, axis=0) - r).T).sum() for r in rings)),
+        room_areas=moments[:, 0].copy(),
+        perimeter=perimeter,
+        samples=pts,
+        sample_normals=nrm,
+        sample_room=owner_room,
+        plan_dt=plan_dt,
+        plan_frame=pframe,
+        inner=inner,
+        inner_onehot=eye[lab[ir, ic] - 1],
+        inner_cell=cell * cell,
+        coarse_samples=pts[::cstride],
+        coarse_onehot=eye[owner_room[::cstride]],
     )
 
 
@@ -307,72 +385,75 @@ class Hypothesis:
     feature_cost: float
     coarse_iou: float = 0.0
     refined: RefineResult | None = None
+    key: float = 0.0  # coarse IoU x structure precision x recall
+    quick: float = 0.0  # the same after the screening refinement
     score: float = 0.0
     rooms: tuple[int, ...] = ()
-    fit: float = 0.0
 
 
 def _coarse_hypotheses(
     pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int
 ) -> list[Hypothesis]:
+    """The ``top_k`` (subset, dihedral case) pairs by shape-feature distance to the map, each
+    with its moment-matched plan -> grid-frame matrix."""
     n = len(pm.ids)
     member = mask_matrix(masks, n)
     geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
-    # map geometry in its aligned frame
     rm = _rot(-obs.angle)
     mc = rm @ obs.centroid
     mcov = rm @ obs.cov @ rm.T
     bx0, by0, bx1, by1 = obs.bbox_aligned
     fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
-    c = np.stack([geo.cx, geo.cy], axis=-1)
-    corners = np.stack(
-        [
-            np.stack([geo.x0, geo.y0], -1),
-            np.stack([geo.x1, geo.y0], -1),
-            np.stack([geo.x0, geo.y1], -1),
-            np.stack([geo.x1, geo.y1], -1),
-        ],
-        axis=1,
-    )
-    cov = np.stack([np.stack([geo.vxx, geo.vxy], -1), np.stack([geo.vxy, geo.vyy], -1)], axis=-2)
-    costs, items = [], []
+    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
     for k, flipped in DIHEDRAL:
-        g = _dihedral(k, flipped)
-        cg = c @ g.T
-        covg = g @ cov @ g.T
-        cr = corners @ g.T
-        x0, y0 = cr[..., 0].min(axis=1), cr[..., 1].min(axis=1)
-        x1, y1 = cr[..., 0].max(axis=1), cr[..., 1].max(axis=1)
-        f = _features(
-            geo.area, cg[:, 0], cg[:, 1], covg[:, 0, 0], covg[:, 0, 1], covg[:, 1, 1], x0, y0, x1, y1
-        )
-        a = np.sqrt(mcov[0, 0] / covg[:, 0, 0])
-        b = np.sqrt(mcov[1, 1] / covg[:, 1, 1])
+        g = _dihedral(k, flipped)  # signed permutation
+        swap = g[0, 0] == 0
+        ux, uy = (geo.cy, geo.cx) if swap else (geo.cx, geo.cy)
+        vx, vy = (geo.vyy, geo.vxx) if swap else (geo.vxx, geo.vyy)
+        lo_x, hi_x = (geo.y0, geo.y1) if swap else (geo.x0, geo.x1)
+        lo_y, hi_y = (geo.x0, geo.x1) if swap else (geo.y0, geo.y1)
+        sx_ = g[0, 1] if swap else g[0, 0]
+        sy_ = g[1, 0] if swap else g[1, 1]
+        cx, cy = sx_ * ux, sy_ * uy
+        x0, x1 = (lo_x, hi_x) if sx_ > 0 else (-hi_x, -lo_x)
+        y0, y1 = (lo_y, hi_y) if sy_ > 0 else (-hi_y, -lo_y)
+        vxy = sx_ * sy_ * geo.vxy
+        f = _features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1)
+        a = np.sqrt(mcov[0, 0] / vx)
+        b = np.sqrt(mcov[1, 1] / vy)
         cost = np.sum((f - fmap) ** 2, axis=1)
         ratio = b / a
-        cost = np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost)
-        costs.append(cost)
-        items.append((k, flipped, a, b, cg))
+        costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
+        a_all.append(a)
+        b_all.append(b)
+        cx_all.append(cx)
+        cy_all.append(cy)
     costs = np.stack(costs, axis=1)  # (S, 8)
     flat = np.argsort(costs, axis=None, kind="stable")[:top_k]
-    out = []
+    flat = flat[np.isfinite(costs.ravel()[flat])]
+    si, ji = np.divmod(flat, len(DIHEDRAL))
+    a = np.stack(a_all, axis=1)[si, ji]
+    b = np.stack(b_all, axis=1)[si, ji]
+    cx = np.stack(cx_all, axis=1)[si, ji]
+    cy = np.stack(cy_all, axis=1)[si, ji]
+    gs = np.stack([_dihedral(k, f) for k, f in DIHEDRAL])[ji]  # (H, 2, 2)
     rp = _rot(-pm.angle)
     rmap = _rot(obs.angle)
-    for idx in flat:
-        s, j = divmod(int(idx), len(DIHEDRAL))
-        if not np.isfinite(costs[s, j]):
-            break
-        k, flipped, a, b, cg = items[j]
-        lin_aligned = np.diag([a[s], b[s]]) @ _dihedral(k, flipped)
-        t_aligned = mc - np.array([a[s], b[s]]) * cg[s]
-        m = np.eye(3)
-        m[:2, :2] = rmap @ lin_aligned @ rp
-        m[:2, 2] = rmap @ t_aligned
-        out.append(Hypothesis(int(masks[s]), k, flipped, m, float(costs[s, j])))
-    return out
+    lin = rmap[None] @ (np.stack([a, b], axis=1)[:, :, None] * gs) @ rp[None]
+    t_al = np.column_stack([mc[0] - a * cx, mc[1] - b * cy])
+    mats = np.zeros((len(flat), 3, 3))
+    mats[:, :2, :2] = lin
+    mats[:, :2, 2] = t_al @ rmap.T
+    mats[:, 2, 2] = 1.0
+    return [
+        Hypothesis(int(masks[s_]), DIHEDRAL[j_][0], DIHEDRAL[j_][1], mats[i], float(costs[s_, j_]))
+        for i, (s_, j_) in enumerate(zip(si.tolist(), ji.tolist(), strict=True))
+    ]
 
 
-def _fill(pm: PlanModel, rooms, matrix: np.ndarray, frame: RasterFrame, labels: bool = False) -> np.ndarray:
+def _fill(
+    room_rings, room_holes, rooms, matrix: np.ndarray, frame: RasterFrame, labels: bool = False
+) -> np.ndarray:
     """Rasterise plan rooms (indices) under ``matrix`` (plan -> frame metres) with cv2.fillPoly at
     sub-pixel precision; a pixel is inside when its centre is. Mask (uint8) or 1-based labels."""
     m = np.diag([1.0 / frame.resolution, 1.0 / frame.resolution, 1.0]) @ matrix
@@ -381,12 +462,12 @@ def _fill(pm: PlanModel, rooms, matrix: np.ndarray, frame: RasterFrame, labels: 
     img = np.zeros(frame.shape, np.int32 if labels else np.uint8)
     ext, holes = [], []
     for i in rooms:
-        for r in pm.room_rings[i]:
+        for r in room_rings[i]:
             ext.append(np.round((r @ a.T + t) * _FIX).astype(np.int32).reshape(-1, 1, 2))
         if labels:
             cv2.fillPoly(img, ext, int(i) + 1, lineType=cv2.LINE_8, shift=_SHIFT)
             ext = []
-        for r in pm.room_holes[i]:
+        for r in room_holes[i]:
             holes.append(np.round((r @ a.T + t) * _FIX).astype(np.int32).reshape(-1, 1, 2))
     if ext:
         cv2.fillPoly(img, ext, 1, lineType=cv2.LINE_8, shift=_SHIFT)
@@ -395,15 +476,63 @@ def _fill(pm: PlanModel, rooms, matrix: np.ndarray, frame: RasterFrame, labels: 
     return img
 
 
-def _coarse_iou(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]) -> None:
-    fp = obs.coarse_footprint
-    fp_sum = int(fp.sum())
-    for h in hyps:
-        rooms = [i for i in range(len(pm.ids)) if (h.mask >> i) & 1]
-        img = _fill(pm, rooms, h.matrix, obs.coarse_frame).view(bool)
-        inter = int(np.count_nonzero(img & fp))
-        union = fp_sum + int(np.count_nonzero(img)) - inter
-        h.coarse_iou = inter / union if union else 0.0
+def _lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
+    """Nearest-cell values of ``img`` (row 0 = lowest y) at metric points; ``fill`` outside."""
+    h, w = img.shape
+    c = np.floor((x - origin[0]) * (1.0 / resolution)).astype(np.intp)
+    r = np.floor((y - origin[1]) * (1.0 / resolution)).astype(np.intp)
+    ok = (c >= 0) & (r >= 0) & (c < w) & (r < h)
+    idx = np.clip(r, 0, h - 1) * w + np.clip(c, 0, w - 1)
+    return np.where(ok, img.ravel()[idx], fill)
+
+
+def _apply(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, 2, 2), (H, 2) affine maps applied to (P, 2) points: x, y arrays of shape (H, P)."""
+    px, py = pts[None, :, 0], pts[None, :, 1]
+    x = a[:, 0, 0, None] * px + a[:, 0, 1, None] * py + t[:, 0, None]
+    y = a[:, 1, 0, None] * px + a[:, 1, 1, None] * py + t[:, 1, None]
+    return x, y
+
+
+def _coarse_scores(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]) -> None:
+    """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
+
+    IoU from the plan's interior grid points landing on the coarse footprint; precision from the
+    boundary samples landing near a wall-side free cell; recall from the map's wall-side free
+    cells landing near a plan boundary (all at tolerance 1.5 coarse cells).
+    """
+    n = len(pm.ids)
+    mats = np.stack([h.matrix for h in hyps])  # (H, 3, 3)
+    a, t = mats[:, :2, :2], mats[:, :2, 2]
+    det = np.abs(np.linalg.det(a))
+    member = mask_matrix(np.array([h.mask for h in hyps], dtype=np.uint64), n).astype(np.float64)  # (H, n)
+    cf = obs.coarse_frame
+    tol = 1.5 * cf.resolution
+    # IoU
+    x, y = _apply(a, t, pm.inner)
+    on = _lookup(obs.coarse_footprint, x, y, cf.resolution, (0.0, 0.0), False)
+    per_room = on.astype(np.float64) @ pm.inner_onehot  # (H, n)
+    inter = (per_room * member).sum(axis=1) * pm.inner_cell * det
+    area_s = member @ pm.room_areas * det
+    iou = inter / np.maximum(area_s + obs.area - inter, 1e-12)
+    # precision
+    x, y = _apply(a, t, pm.coarse_samples)
+    near = _lookup(obs.edge_dt, x, y, obs.frame.resolution, (0.0, 0.0), np.float32(np.inf)) < tol
+    hits = near.astype(np.float64) @ pm.coarse_onehot  # (H, n)
+    counts = member @ pm.coarse_onehot.sum(axis=0)
+    precision = (hits * member).sum(axis=1) / np.maximum(counts, 1.0)
+    # recall
+    ainv = np.linalg.inv(a)
+    tinv = -np.einsum("hij,hj->hi", ainv, t)
+    x, y = _apply(ainv, tinv, obs.edge_points)
+    pf = pm.plan_frame
+    dp = _lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, np.float32(np.inf))
+    tol_plan = tol / np.sqrt(det) + pf.resolution
+    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(obs.edge_points) else np.zeros(len(hyps))
+    key = iou * precision * recall
+    for h, i_, k_ in zip(hyps, iou, key, strict=True):
+        h.coarse_iou = float(i_)
+        h.key = float(k_)
 
 
 def _score(
@@ -412,7 +541,7 @@ def _score(
     """IoU of the rooms the placement puts on the footprint (>= ``min_cover`` of their area) with
     the footprint, and those rooms (indices)."""
     n = len(pm.ids)
-    labels = _fill(pm, range(n), matrix, frame, labels=True)
+    labels = _fill(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True)
     on = np.bincount(labels[footprint].ravel(), minlength=n + 1)[1:]
     det = abs(np.linalg.det(matrix[:2, :2]))
     px_area = pm.room_areas * det / frame.resolution**2
@@ -428,12 +557,50 @@ def _score(
     return (inter / union if union else 0.0), rooms
 
 
-def _boundary_samples(pm: PlanModel, obs: MapObservation, scale: float, spacing_px: float, max_points: int):
-    """Boundary points and inward normals of all plan rooms, about ``spacing_px`` map cells apart."""
+def _structure(
+    pm: PlanModel,
+    obs: MapObservation,
+    matrix: np.ndarray,
+    rooms: np.ndarray,
+    tol: float,
+    max_points: int = 300,
+) -> tuple[float, float]:
+    """(precision, recall) of the room structure under a placement, within ``tol`` metres.
+
+    precision: share of the boundary samples of ``rooms`` (bool per room) that land near a
+    wall-side free cell of the map; recall: share of the map's wall-side free cells that land
+    near a boundary of any plan room. A room stretched over several observed rooms explains
+    the outline but not the inner walls: its recall is low.
+    """
     res = obs.frame.resolution
-    step = max(spacing_px * res / scale, pm.perimeter / max_points)
-    pts, normals, _ = sample_boundaries(pm.rings, step, pm.doors, door_tol=1.5 * res / scale)
-    return pts, normals
+    sel = rooms[pm.sample_room]
+    pts = pm.samples[sel]
+    if len(pts) == 0 or len(obs.edge_points) == 0:
+        return 0.0, 0.0
+    pts = pts[:: max(1, len(pts) // max_points)]
+    a, t = matrix[:2, :2], matrix[:2, 2]
+    q = pts @ a.T + t
+    h, w = obs.edge_dt.shape
+    c = np.floor(q[:, 0] / res).astype(np.intp)
+    r = np.floor(q[:, 1] / res).astype(np.intp)
+    ok = (c >= 0) & (r >= 0) & (c < w) & (r < h)
+    d = np.full(len(q), np.inf, np.float32)
+    d[ok] = obs.edge_dt[r[ok], c[ok]]
+    precision = float(np.mean(d < tol))
+    det = abs(float(np.linalg.det(a)))
+    if det <= 0:
+        return precision, 0.0
+    ainv = np.linalg.inv(a)
+    e = (obs.edge_points - t) @ ainv.T
+    pf = pm.plan_frame
+    pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)
+    pr = np.floor((e[:, 1] - pf.origin[1]) / pf.resolution).astype(np.intp)
+    hp, wp = pm.plan_dt.shape
+    okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
+    dp = np.full(len(e), np.inf, np.float32)
+    dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
+    recall = float(np.mean(dp < tol + pf.resolution * math.sqrt(det)))
+    return precision, recall
 
 
 def _refine_from(
@@ -446,11 +613,15 @@ def _refine_from(
     spacing_px: float,
     max_points: int,
 ) -> RefineResult:
+    """Refine from ``init`` = (flipped, theta, sx, sy, tx, ty, delta) on a subsample of the plan's
+    boundary samples about ``spacing_px`` map cells apart (at most ``max_points``)."""
     flipped, theta, sx, sy, tx, ty, delta = init
-    pts, normals = _boundary_samples(pm, obs, math.sqrt(sx * sy), spacing_px, max_points)
+    base = pm.perimeter / max(len(pm.samples), 1)  # plan units between samples
+    want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
+    stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
     return refine(
-        pts,
-        normals,
+        pm.samples[::stride],
+        pm.sample_normals[::stride],
         obs.field,
         flipped,
         theta,
@@ -468,19 +639,18 @@ def _refine_from(
 DEFAULTS: dict[str, Any] = {
     "adjacency": "doors",  # room graph for subsets: doors | touch | both
     "max_aspect": 1.6,  # bound on sy/sx (plan aspect errors up to about ±30 %)
-    "top_k": 48,  # hypotheses scored by coarse IoU
-    "refine_k": 3,  # distinct hypotheses refined at full resolution
+    "top_k": 96,  # hypotheses (subset, dihedral case) scored on the coarse grid
+    "refine_k": 3,  # distinct hypotheses refined
     "max_subsets_per_level": 3000,
     "coarse_px": 80,
-    "sample_px": 1.5,  # boundary sample spacing in map pixels (final stage)
+    "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
     "max_points": 3000,
-    "quick_points": 600,  # boundary samples when screening the refined hypotheses
+    "quick_points": 500,  # boundary samples when screening the refined hypotheses
     "iterations": 8,  # Gauss-Newton iterations per robust-scale stage
     "delta": None,  # wall half-thickness prior (m); default one map cell
     "delta_sigma": 0.1,
     "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
-    "min_score": 0.6,  # below: no match (another building)
-    "min_fit": 0.4,  # share of boundary points on the walls needed for a match
+    "min_score": 0.5,  # below this IoU x structure precision x recall: no match (another building)
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
 }
@@ -506,6 +676,12 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
         )
 
 
+def _room_bools(n: int, rooms) -> np.ndarray:
+    b = np.zeros(n, bool)
+    b[list(rooms)] = True
+    return b
+
+
 def _register(plan, grid, opts: dict, t0: float) -> Registration:
     def fail(reason: str, **details: Any) -> Registration:
         return Registration.failure(reason, METHOD, time.perf_counter() - t0, **details)
@@ -529,20 +705,23 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     hyps = _coarse_hypotheses(pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["top_k"])
     if not hyps:
         return fail("no room subset fits the map's shape within the aspect bound")
-    _coarse_iou(pm, obs, hyps)
-    hyps.sort(key=lambda h: -h.coarse_iou)
+    _coarse_scores(pm, obs, hyps)
+    hyps.sort(key=lambda h: -h.key)
     t_coarse = time.perf_counter()
 
     chosen: list[Hypothesis] = []
-    for h in hyps:
+    covered = np.zeros(len(hyps), bool)  # same placement as a chosen one
+    same_as = _placement_test(np.stack([h.matrix for h in hyps]), obs)
+    for i, h in enumerate(hyps):
         if len(chosen) >= opts["refine_k"]:
             break
-        if any(_same_placement(h.matrix, c.matrix, obs) for c in chosen):
+        if covered[i]:
             continue
         chosen.append(h)
+        covered |= same_as(h.matrix)
     delta0 = opts["delta"] if opts["delta"] is not None else obs.frame.resolution
-    quick: list[float] = []
-    for h in chosen:  # screen: coarse robust scales, few points, scored at the coarse resolution
+    tol_f = max(3.0 * obs.frame.resolution, 0.1)
+    for h in chosen:  # screen: coarse robust scales, few points, scored on the coarse grid
         flipped, theta, sx, sy, tx, ty = params_from_matrix(h.matrix)
         h.refined = _refine_from(
             pm,
@@ -553,11 +732,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             spacing_px=4.0,
             max_points=opts["quick_points"],
         )
-        h.fit = h.refined.inliers
-        iou, _ = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
-        quick.append(iou * (0.5 + 0.5 * h.fit))
-    order = np.argsort(quick)[::-1]
-    best = chosen[int(order[0])]
+        iou, rooms = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
+        prec, rec = _structure(pm, obs, h.refined.matrix, _room_bools(n, rooms), tol_f)
+        h.quick = iou * prec * rec
+    chosen.sort(key=lambda h: -h.quick)
+    best = chosen[0]
     r0 = best.refined
     best.refined = _refine_from(
         pm,
@@ -568,24 +747,19 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         spacing_px=opts["sample_px"],
         max_points=opts["max_points"],
     )
-    best.fit = best.refined.inliers
-    best.score, best.rooms = _score(pm, obs.frame, obs.footprint, best.refined.matrix, opts["min_cover"])
-    key = quick[int(order[0])]
+    r = best.refined
+    best.score, best.rooms = _score(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    prec, rec = _structure(pm, obs, r.matrix, _room_bools(n, best.rooms), tol_f, 1000)
+    quality = best.score * prec * rec
     second = max(
-        (
-            quick[int(i)]
-            for i in order[1:]
-            if not _same_placement(chosen[int(i)].refined.matrix, r0.matrix, obs)
-        ),
-        default=0.0,
+        (h.quick for h in chosen[1:] if not _same_placement(h.refined.matrix, r0.matrix, obs)), default=0.0
     )
-    rest = [h.coarse_iou for h in hyps if all(not _same_placement(h.matrix, c.matrix, obs) for c in chosen)]
-    if rest:  # unrefined placements: their coarse IoU relative to the best's coarse IoU
-        second = max(second, key * max(rest) / max(best.coarse_iou, 1e-9))
-    ambiguity = float(min(1.0, second / key)) if key > 0 else 1.0
+    rest = [h.key for h, c in zip(hyps, covered, strict=True) if not c]
+    if rest:  # unrefined placements: their coarse key relative to the best's coarse key
+        second = max(second, best.quick * max(rest) / max(best.key, 1e-9))
+    ambiguity = float(min(1.0, second / best.quick)) if best.quick > 0 else 1.0
     t_fine = time.perf_counter()
 
-    r = best.refined
     matrix = obs.to_map @ r.matrix
     cov = r.covariance
     if cov is not None and grid.origin[2] != 0.0:
@@ -593,6 +767,9 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         rot3[:2, :2] = _rot(grid.origin[2])
         cov = rot3 @ cov @ rot3.T
     details = {
+        "quality": quality,
+        "precision": prec,
+        "recall": rec,
         "delta_m": r.delta,
         "fit": r.inliers,
         "rms_m": r.rms,
@@ -609,12 +786,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         "time_fine_s": t_fine - t_coarse,
     }
     candidates = [
-        (
-            float(quick[int(i)]),
-            bool(chosen[int(i)].refined.flipped),
-            _wrap_deg(math.degrees(chosen[int(i)].refined.theta)),
-        )
-        for i in order
+        (float(h.quick), bool(h.refined.flipped), _wrap_deg(math.degrees(h.refined.theta))) for h in chosen
     ]
     reg = Registration.from_matrix(
         matrix,
@@ -626,29 +798,45 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         candidates=candidates,
         details=details,
     )
-    if best.score < opts["min_score"] or best.fit < opts["min_fit"]:
+    if quality < opts["min_score"]:
         reg.ok = False
         reg.reason = (
-            f"no match: best IoU {best.score:.2f} (min {opts['min_score']}), wall fit {best.fit:.2f} "
-            f"(min {opts['min_fit']}); is this plan of another building?"
+            f"no match: IoU {best.score:.2f} x wall precision {prec:.2f} x recall {rec:.2f} = {quality:.2f} "
+            f"< {opts['min_score']} (a plan of another building?)"
         )
     reg.time_s = time.perf_counter() - t0
     return reg
 
 
-def _same_placement(m1: np.ndarray, m2: np.ndarray, obs: MapObservation) -> bool:
-    """True when two plan -> map matrices place the plan nearly the same on the observed area."""
-    if (np.linalg.det(m1[:2, :2]) > 0) != (np.linalg.det(m2[:2, :2]) > 0):
-        return False
-    size = math.sqrt(obs.area)
-    # compare where the two place the map's footprint corners (through their inverses)
-    x0, y0 = 0.0, 0.0
+def _mask_rooms(mask: int, n: int) -> list[int]:
+    return [i for i in range(n) if (mask >> i) & 1]
+
+
+def _placement_test(mats: np.ndarray, obs: MapObservation):
+    """A function ``same(m) -> (H,) bool``: which of the (H, 3, 3) placements ``mats`` place the
+    plan nearly as ``m`` does (see :func:`_same_placement`)."""
     h, w = obs.frame.shape
     res = obs.frame.resolution
-    corners = np.array([[x0, y0, 1], [w * res, y0, 1], [x0, h * res, 1], [w * res, h * res, 1]]).T
-    a = np.linalg.solve(m1, corners)
-    b = np.linalg.solve(m2, corners)
-    # distance in map metres after mapping b back through m1
-    d = (m1 @ b - corners)[:2]
-    del a
-    return bool(np.max(np.hypot(d[0], d[1])) < 0.15 * size)
+    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
+    plan_pts = np.linalg.solve(mats, np.broadcast_to(corners, (len(mats), 3, 4)))  # (H, 3, 4)
+    signs = np.linalg.det(mats[:, :2, :2]) > 0
+    thr = 0.15 * math.sqrt(obs.area)
+
+    def same(m: np.ndarray) -> np.ndarray:
+        d = np.einsum("ij,hjk->hik", m[:2], plan_pts) - corners[:2]
+        dist = np.hypot(d[:, 0], d[:, 1]).max(axis=1)
+        return (signs == (np.linalg.det(m[:2, :2]) > 0)) & (dist < thr)
+
+    return same
+
+
+def _same_placement(m1: np.ndarray, m2: np.ndarray, obs: MapObservation) -> bool:
+    """True when two plan -> map matrices place the plan nearly the same on the observed area:
+    the same handedness and the observed area's corners moved by less than 15 % of its size."""
+    if (np.linalg.det(m1[:2, :2]) > 0) != (np.linalg.det(m2[:2, :2]) > 0):
+        return False
+    h, w = obs.frame.shape
+    res = obs.frame.resolution
+    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
+    d = (m1 @ np.linalg.solve(m2, corners) - corners)[:2]
+    return bool(np.max(np.hypot(d[0], d[1])) < 0.15 * math.sqrt(obs.area))

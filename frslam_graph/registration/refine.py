@@ -20,6 +20,7 @@ into its room, so the unexplored rooms of the plan (and the far side of walls) d
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -48,46 +49,40 @@ class DistanceField:
         kn = free.astype(np.float32)
         return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])))
 
-    def sample(
-        self, q: np.ndarray, probe: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """At (N, 2) points: sdf value, its gradient (gx, gy) and the free indicator at ``probe``
-        (default ``q``; bilinear; 0 outside the grid)."""
+    def _cells(self, x: np.ndarray, y: np.ndarray):
         h, w = self.sdf.shape
-        u = (q[:, 0] - self.origin[0]) / self.resolution - 0.5
-        v = (q[:, 1] - self.origin[1]) / self.resolution - 0.5
+        u = (x - self.origin[0]) * (1.0 / self.resolution) - 0.5
+        v = (y - self.origin[1]) * (1.0 / self.resolution) - 0.5
         inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
         u = np.clip(u, 0, w - 1.0001)
         v = np.clip(v, 0, h - 1.0001)
         i0 = u.astype(np.intp)
         j0 = v.astype(np.intp)
-        fx = u - i0
-        fy = v - j0
+        return j0 * w + i0, u - i0, v - j0, inside
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
+        w = self.sdf.shape[1]
+        k, fx, fy, inside = self._cells(x, y)
         flat = self.sdf.ravel()
-        k = j0 * w + i0
         v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + w + 1]
-        val = (1 - fx) * (1 - fy) * v00 + fx * (1 - fy) * v10 + (1 - fx) * fy * v01 + fx * fy * v11
-        gx = ((1 - fy) * (v10 - v00) + fy * (v11 - v01)) / self.resolution
-        gy = ((1 - fx) * (v01 - v00) + fx * (v11 - v10)) / self.resolution
-        if probe is not None:
-            u = (probe[:, 0] - self.origin[0]) / self.resolution - 0.5
-            v = (probe[:, 1] - self.origin[1]) / self.resolution - 0.5
-            inside &= (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
-            u = np.clip(u, 0, w - 1.0001)
-            v = np.clip(v, 0, h - 1.0001)
-            i0 = u.astype(np.intp)
-            j0 = v.astype(np.intp)
-            fx = u - i0
-            fy = v - j0
-            k = j0 * w + i0
+        a = v10 - v00
+        b = v11 - v01
+        top = v00 + fx * a
+        bot = v01 + fx * b
+        val = top + fy * (bot - top)
+        gx = (a + fy * (b - a)) * (1.0 / self.resolution)
+        gy = (bot - top) * (1.0 / self.resolution)
+        return val, gx, gy, inside
+
+    def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear free indicator at points (x, y) (0 outside the grid)."""
+        w = self.sdf.shape[1]
+        k, fx, fy, inside = self._cells(x, y)
         kf = self.known.ravel()
-        kn = (
-            (1 - fx) * (1 - fy) * kf[k]
-            + fx * (1 - fy) * kf[k + 1]
-            + (1 - fx) * fy * kf[k + w]
-            + fx * fy * kf[k + w + 1]
-        )
-        return val, gx, gy, kn * inside
+        top = kf[k] + fx * (kf[k + 1] - kf[k])
+        bot = kf[k + w] + fx * (kf[k + w + 1] - kf[k + w])
+        return (top + fy * (bot - top)) * inside
 
 
 @dataclass
@@ -148,29 +143,35 @@ def refine(
     stage_scales = [max(s, 2.0 * res) for s in scales]
     w_all = np.zeros(len(p))
     r = np.zeros(len(p))
+    px, py = p[:, 0], p[:, 1]
+    n0, n1 = nrm[:, 0], f * nrm[:, 1]
+    jac = np.empty((len(p), 6))
     for c in stage_scales:
-        for _ in range(iterations):
-            th, ex, ey = x[0], np.exp(x[3]), np.exp(x[4])
-            cth, sth = np.cos(th), np.sin(th)
+        kn = None
+        for it in range(iterations):
+            cth, sth = math.cos(x[0]), math.sin(x[0])
             # plan point scaled and flipped: (ex * px, f * ey * py), then rotated
-            ax = ex * p[:, 0]
-            ay = f * ey * p[:, 1]
-            # inward normal in the map (rotation and flip only), scaled by delta
-            nx = cth * nrm[:, 0] - sth * f * nrm[:, 1]
-            ny = sth * nrm[:, 0] + cth * f * nrm[:, 1]
-            qx = cth * ax - sth * ay + x[1] + x[5] * nx
-            qy = sth * ax + cth * ay + x[2] + x[5] * ny
-            probe_d = x[5] + probe
-            r, gx, gy, kn = field.sample(
-                np.column_stack([qx, qy]),
-                np.column_stack([qx - x[5] * nx + probe_d * nx, qy - x[5] * ny + probe_d * ny]),
-            )
-            w_all = kn / (1.0 + (r / c) ** 2)
+            ax = math.exp(x[3]) * px
+            ay = (f * math.exp(x[4])) * py
+            # inward normal in the map (rotation and flip only)
+            nx = cth * n0 - sth * n1
+            ny = sth * n0 + cth * n1
+            bx = cth * ax - sth * ay
+            by = sth * ax + cth * ay
+            qx = bx + x[1] + x[5] * nx
+            qy = by + x[2] + x[5] * ny
+            if kn is None or it % 3 == 0:  # which points see free space on their room side
+                d = x[5] + probe
+                kn = field.free_at(bx + x[1] + d * nx, by + x[2] + d * ny)
+            r, gx, gy, inside = field.sample(qx, qy)
+            w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
-            dth = gx * -(qy - x[2]) + gy * (qx - x[1])
-            dsx = gx * (cth * ax) + gy * (sth * ax)
-            dsy = gx * (-sth * ay) + gy * (cth * ay)
-            jac = np.column_stack([dth, gx, gy, dsx, dsy, gx * nx + gy * ny])
+            jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])
+            jac[:, 1] = gx
+            jac[:, 2] = gy
+            jac[:, 3] = (gx * cth + gy * sth) * ax
+            jac[:, 4] = (gy * cth - gx * sth) * ay
+            jac[:, 5] = gx * nx + gy * ny
             jw = jac * w_all[:, None]
             jtj = jac.T @ jw
             jtr = jw.T @ r
@@ -186,7 +187,11 @@ def refine(
                 break
             x = x + step
             x[5] = float(np.clip(x[5], *delta_bounds))
-            if abs(step[0]) < 1e-6 and np.all(np.abs(step[1:3]) < 1e-5) and np.all(np.abs(step[3:5]) < 1e-6):
+            if (
+                abs(step[0]) < 2e-6
+                and abs(step[1]) + abs(step[2]) < 2e-4
+                and abs(step[3]) + abs(step[4]) < 2e-5
+            ):
                 break
     wsum = float(w_all.sum())
     n_known = int((w_all > 0).sum())
@@ -219,6 +224,16 @@ def refine(
     )
 
 
+def ring_edges(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All edges of closed rings (first point not repeated): starts (E, 2), ends (E, 2), ring index (E,)."""
+    a = np.concatenate(rings).astype(np.float64)
+    sizes = np.array([len(r) for r in rings])
+    first = np.cumsum(sizes) - sizes
+    nxt = np.arange(len(a)) + 1
+    nxt[first + sizes - 1] = first  # close each ring
+    return a, a[nxt], np.repeat(np.arange(len(rings)), sizes)
+
+
 def sample_boundaries(
     rings: list[np.ndarray], step: float, doors: np.ndarray | None = None, door_tol: float = 0.0
 ):
@@ -228,38 +243,27 @@ def sample_boundaries(
     ``doors``: (D, 4) segments x1 y1 x2 y2; points within ``door_tol`` of a door are dropped.
     Returns (N, 2) points, (N, 2) unit inward normals and (N,) ring indices.
     """
-    pts, nrms, owner = [], [], []
-    for k, ring in enumerate(rings):
-        a = np.asarray(ring, dtype=np.float64)
-        b = np.roll(a, -1, axis=0)
-        seg = b - a
-        length = np.hypot(seg[:, 0], seg[:, 1])
-        count = np.maximum(1, np.ceil(length / step).astype(int))
-        total = int(count.sum())
-        if total == 0:
-            continue
-        e = np.repeat(np.arange(len(a)), count)
-        start = np.repeat(np.cumsum(count) - count, count)
-        t = (np.arange(total) - start + 0.5) / count[e]
-        pts.append(a[e] + seg[e] * t[:, None])
-        unit = seg / np.maximum(length, 1e-300)[:, None]
-        nrms.append(np.column_stack([-unit[e, 1], unit[e, 0]]))
-        owner.append(np.full(total, k))
-    if not pts:
+    if not rings:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
-    p = np.concatenate(pts)
-    nr = np.concatenate(nrms)
-    o = np.concatenate(owner)
+    a, b, ring = ring_edges(rings)
+    seg = b - a
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    count = np.where(length > 0, np.maximum(1, np.ceil(length / step)), 0).astype(np.intp)
+    total = int(count.sum())
+    e = np.repeat(np.arange(len(a)), count)
+    start = np.repeat(np.cumsum(count) - count, count)
+    t = (np.arange(total) - start + 0.5) / count[e]
+    p = a[e] + seg[e] * t[:, None]
+    unit = seg / np.maximum(length, 1e-300)[:, None]
+    nr = np.column_stack([-unit[e, 1], unit[e, 0]])
+    o = ring[e]
     if doors is not None and len(doors) and door_tol > 0:
-        keep = np.ones(len(p), bool)
-        for x1, y1, x2, y2 in np.asarray(doors, dtype=np.float64):
-            d = np.array([x2 - x1, y2 - y1])
-            L2 = float(d @ d)
-            if L2 <= 0:
-                continue
-            rel = p - (x1, y1)
-            t = np.clip(rel @ d / L2, 0.0, 1.0)
-            dist = np.hypot(rel[:, 0] - t * d[0], rel[:, 1] - t * d[1])
-            keep &= dist > door_tol
+        d = np.asarray(doors, dtype=np.float64).reshape(-1, 4)
+        a0, u = d[None, :, :2], d[None, :, 2:] - d[None, :, :2]
+        l2 = np.maximum((u * u).sum(axis=-1), 1e-300)
+        rel = p[:, None, :] - a0
+        t = np.clip((rel * u).sum(axis=-1) / l2, 0.0, 1.0)
+        dist = np.hypot(rel[..., 0] - t * u[..., 0], rel[..., 1] - t * u[..., 1])
+        keep = np.all(dist > door_tol, axis=1)
         p, nr, o = p[keep], nr[keep], o[keep]
     return p, nr, o

@@ -39,6 +39,29 @@ def ring_moments(xy: np.ndarray) -> np.ndarray:
     return np.array([m00, m10, m01, m20, m11, m02])
 
 
+def rings_moments(starts: np.ndarray, ends: np.ndarray, owner: np.ndarray, n: int) -> np.ndarray:
+    """(n, 6) (m00, m10, m01, m20, m11, m02) of every room from all its ring edges at once.
+
+    Rings must be oriented with the room on the left (exterior counter-clockwise, holes
+    clockwise) so hole moments subtract; ``owner`` is each edge's room index.
+    """
+    x0, y0, x1, y1 = starts[:, 0], starts[:, 1], ends[:, 0], ends[:, 1]
+    c = x0 * y1 - x1 * y0
+    terms = np.column_stack(
+        [
+            c / 2.0,
+            (x0 + x1) * c / 6.0,
+            (y0 + y1) * c / 6.0,
+            (x0 * x0 + x0 * x1 + x1 * x1) * c / 12.0,
+            (x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0) * c / 24.0,
+            (y0 * y0 + y0 * y1 + y1 * y1) * c / 12.0,
+        ]
+    )
+    out = np.zeros((n, 6))
+    np.add.at(out, owner, terms)
+    return out
+
+
 def polygon_moments(poly: Polygon, rotation: np.ndarray | None = None) -> np.ndarray:
     """(m00, m10, m01, m20, m11, m02) of a polygon with holes, optionally after a 2×2 ``rotation``."""
 
@@ -58,18 +81,18 @@ def polygon_moments(poly: Polygon, rotation: np.ndarray | None = None) -> np.nda
 
 def adjacency_masks(
     rooms: list,
-    doors: list,
+    door_rooms: list[tuple[int, ...]],
     mode: str = "doors",
     touch_tol: float = 0.0,
 ) -> np.ndarray:
     """(n,) uint64: bit j of entry i set when rooms i and j are neighbours.
 
-    ``mode``: ``"doors"`` (rooms a door connects; rooms that no door links to anything get their
-    touching neighbours so the graph stays connected), ``"touch"`` (rooms whose polygons are within
+    ``door_rooms``: room indices each door connects (see :func:`link_doors`). ``mode``:
+    ``"doors"`` (rooms a door connects; rooms that no door links to anything get their touching
+    neighbours so the graph stays connected), ``"touch"`` (rooms whose polygons are within
     ``touch_tol`` of each other) or ``"both"``.
     """
     n = len(rooms)
-    index = {r.id: i for i, r in enumerate(rooms)}
     adj = np.zeros(n, np.uint64)
 
     def link(i: int, j: int) -> None:
@@ -78,8 +101,7 @@ def adjacency_masks(
             adj[j] |= np.uint64(1) << np.uint64(i)
 
     if mode in ("doors", "both"):
-        for d in doors:
-            ids = [index[r] for r in d.rooms if r in index]
+        for ids in door_rooms:
             if len(ids) == 2:
                 link(ids[0], ids[1])
     isolated = adj == 0
@@ -92,6 +114,27 @@ def adjacency_masks(
             if i < j and (mode != "doors" or isolated[i] or isolated[j]):
                 link(i, j)
     return adj
+
+
+def link_doors(rooms: list, doors: list, tol: float) -> list[tuple[int, ...]]:
+    """Room indices of each door: its own ``rooms`` when it names two, else the (up to) two rooms
+    nearest its segment within ``tol`` (plan units)."""
+    index = {r.id: i for i, r in enumerate(rooms)}
+    out: list[tuple[int, ...]] = []
+    missing = []
+    for k, d in enumerate(doors):
+        ids = tuple(dict.fromkeys(index[r] for r in d.rooms if r in index))
+        out.append(ids)
+        if len(ids) < 2:
+            missing.append(k)
+    if missing and rooms:
+        segs = shapely.linestrings([[doors[k].a, doors[k].b] for k in missing])
+        geoms = np.array([r.polygon for r in rooms], dtype=object)
+        dist = shapely.distance(segs[:, None], geoms[None, :])  # (D, n)
+        for row, k in enumerate(missing):
+            order = np.argsort(dist[row], kind="stable")[:2]
+            out[k] = tuple(int(i) for i in order if dist[row, i] <= tol)
+    return out
 
 
 def _neighbours(masks: np.ndarray, adj: np.ndarray) -> np.ndarray:
