@@ -465,3 +465,21 @@ def test_r2v_plan_simulates_and_reads_back(shared_data, tmp_path):
         assert ok.sum() > 0.9 * len(exact)
         assert np.abs(scan.ranges[ok] - exact[ok]).max() < 0.06  # 1 cm noise, < 6 sigma
         np.testing.assert_allclose(scan.odom, run.odom_poses[i], atol=1e-6)
+
+
+def test_cli_simulate(plan, tmp_path):
+    from frslam_graph.cli import main
+
+    plan_path = plan.save(tmp_path / "plan.json")
+    out = tmp_path / "out"
+    args = ["simulate", str(plan_path), "--out", str(out), "--seed", "5", "--beams", "91"]
+    args += ["--scan-rate", "5", "--length", "5", "--rooms", "living,kitchen", "--clutter", "2"]
+    assert main(args) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert (
+        meta["seed"] == 5 and meta["lidar"]["beams"] == 91 and meta["route"]["rooms"] == ["living", "kitchen"]
+    )
+    assert (out / "bag" / "metadata.yaml").is_file() and (out / "map.pgm").is_file()
+    assert main(args) == 2  # existing output without --overwrite
+    assert main([*args, "--overwrite", "--fov", "400"]) == 2  # bad option -> one-line error
+    assert main([*args, "--overwrite"]) == 0

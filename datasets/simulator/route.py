@@ -247,36 +247,49 @@ def plan_route(
     seq = [start_room]
     cells_path: list[int] = [current]
     planned = 0.0
+    goal = length * 1.03
     todo = list(rooms[1:]) if rooms is not None else [r for r in reachable if r != start_room]
     recent: list[str] = [start_room]
+    stalled = 0
     while True:
-        dist, pred = planner.shortest(current)
-        if rooms is not None:
-            if not todo:
+        while True:
+            dist, pred = planner.shortest(current)
+            if rooms is not None:
+                if not todo:
+                    break
+                nxt = todo.pop(0)
+            elif todo:
+                # nearest unvisited rooms first, with some randomness
+                d_room = np.array([dist[room_nodes[r]].min() for r in todo])
+                order = np.argsort(d_room)
+                nxt = todo.pop(int(order[min(int(rng.integers(2)), len(order) - 1)]))
+            elif planned < goal and stalled < 20:
+                choices = (
+                    [r for r in reachable if r not in recent[-2:]]
+                    or [r for r in reachable if r != seq[-1]]
+                    or [seq[-1]]  # a single reachable room: wander inside it
+                )
+                nxt = choices[int(rng.integers(len(choices)))]
+            else:
                 break
-            nxt = todo.pop(0)
-        elif todo:
-            # nearest unvisited rooms first, with some randomness
-            d_room = np.array([dist[room_nodes[r]].min() for r in todo])
-            order = np.argsort(d_room)
-            nxt = todo.pop(int(order[min(int(rng.integers(2)), len(order) - 1)]))
-        elif planned < length and len(reachable) > 1:
-            choices = [r for r in reachable if r not in recent[-2:]] or [r for r in reachable if r != seq[-1]]
-            nxt = choices[int(rng.integers(len(choices)))]
-        else:
+            nodes = room_nodes[nxt][planner.comp[room_nodes[nxt]] == comp]
+            target = _pick_target(planner, nodes, rng)
+            leg = _walk(pred, current, target)
+            leg_xy = _smooth(planner.node_xy(np.asarray(leg)), params.smoothing, spacing=0.02)
+            step = float(np.hypot(*np.diff(leg_xy, axis=0).T).sum())
+            stalled = stalled + 1 if step < 0.1 else 0
+            planned += step
+            cells_path += leg[1:]
+            current = target
+            seq.append(nxt)
+            recent.append(nxt)
+        xy = planner.node_xy(np.asarray(cells_path))
+        path = _smooth(xy, params.smoothing, spacing=0.02)
+        poses = _drive(path, params)
+        driven = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
+        if rooms is not None or driven >= length or stalled >= 20:
             break
-        nodes = room_nodes[nxt][planner.comp[room_nodes[nxt]] == comp]
-        target = _pick_target(planner, nodes, rng)
-        leg = _walk(pred, current, target)
-        leg_xy = planner.node_xy(np.asarray(leg))
-        planned += float(np.hypot(*np.diff(leg_xy, axis=0).T).sum())
-        cells_path += leg[1:]
-        current = target
-        seq.append(nxt)
-        recent.append(nxt)
-    xy = planner.node_xy(np.asarray(cells_path))
-    path = _smooth(xy, params.smoothing, spacing=0.02)
-    poses = _drive(path, params)
+        goal = planned + 1.2 * (length - driven) + 1.0  # the driver cut corners: plan a little more
     stamps = np.arange(len(poses)) * params.dt
     return Route(stamps=stamps, poses=poses, rooms=seq, path=path, params=params)
 

@@ -411,6 +411,18 @@ def write_tum(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Path:
     return path
 
 
+def check_output_dir(out: Path, overwrite: bool) -> list[str]:
+    """The simulator files already in ``out`` (to be replaced); ConfigError when ``out`` is a file,
+    or holds a previous simulation and ``overwrite`` is false."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError("output path exists and is not a folder", source=out)
+    present = [name for name in OUTPUT_FILES if (out / name).exists()]
+    if present and not overwrite:
+        raise ConfigError(f"output folder already holds {present}; use overwrite", source=out)
+    return present
+
+
 def simulate(
     plan: FloorPlan | str | Path,
     out_dir: str | Path,
@@ -428,11 +440,7 @@ def simulate(
     if not isinstance(plan, FloorPlan):
         plan = FloorPlan.load(plan)
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ConfigError("output path exists and is not a folder", source=out)
-    present = [name for name in OUTPUT_FILES if (out / name).exists()]
-    if present and not overwrite:
-        raise ConfigError(f"output folder already holds {present}; use overwrite", source=out)
+    present = check_output_dir(out, overwrite)
     options = options or SimulationOptions()
     run = simulate_run(plan, seed, options, progress)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "run",
     "inspect",
     "evaluate",
+    "simulate",
 )
 
 for _name in COMMAND_MODULES:
