@@ -85,7 +85,7 @@ class PointCloudFolder(Recording):
             stats.records[path.suffix.lower()] += 1
             try:
                 with o3d.utility.VerbosityContextManager(quiet):
-                    cloud = o3d.io.read_point_cloud(str(path))
+                    cloud = o3d.io.read_point_cloud(str(path), format=path.suffix.lower()[1:])
                 xyz = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
             except Exception as exc:  # open3d raises RuntimeError on some broken files
                 stats.skip(f"unreadable cloud files ({type(exc).__name__})", path.name)

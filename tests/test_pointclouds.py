@@ -51,11 +51,13 @@ def test_clouds_sliced_to_plane_numeric_names_are_stamps(tmp_path, suffix):
 def test_non_numeric_names_sorted_by_name_stamped_by_rate(tmp_path):
     for name in ("scan_b.pcd", "scan_a.pcd", "scan_c.ply"):
         write_cloud(tmp_path / name, CLOUD)
+    (tmp_path / "scan_c.ply").rename(tmp_path / "scan_c.PLY")  # suffix case does not matter
     (tmp_path / "notes.txt").write_text("not a cloud")
     rec = open_recording(tmp_path, rate=4.0)
-    assert [p.name for p in rec.files] == ["scan_a.pcd", "scan_b.pcd", "scan_c.ply"]
-    scans, _ = read_all(rec)
-    assert [s.stamp for s in scans] == [0.0, 0.25, 0.5]
+    assert [p.name for p in rec.files] == ["scan_a.pcd", "scan_b.pcd", "scan_c.PLY"]
+    scans, warns = read_all(rec)
+    assert [s.stamp for s in scans] == [0.0, 0.25, 0.5] and warns == []
+    assert all(len(s.points) == 3 for s in scans)
 
 
 def test_nanosecond_names(tmp_path):
