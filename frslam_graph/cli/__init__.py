@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "inspect",
     "evaluate",
     "simulate",
+    "register",
 )
 
 for _name in COMMAND_MODULES:

@@ -1,0 +1,329 @@
+"""Our MFR registration (``register(plan, grid)``, method "mfr"), its result type and CLI.
+
+Maps are made here from a known distortion D of a synthetic asymmetric plan: the rooms of a
+connected subset are rasterised (free inside, a one-cell occupied ring on their boundary, door
+openings free, unknown elsewhere), or simulated with the LiDAR simulator's ``partial_map`` (walls
+0.12 m thick, noise). The truth is D; IoU_a is the paper's eq. 9 over all rooms.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from shapely.geometry import box
+
+from frslam_graph.errors import ConfigError
+from frslam_graph.floorplan import Door, FloorPlan, Room
+from frslam_graph.occupancy import OccupancyGrid
+from frslam_graph.raster import RasterFrame, rasterise_plan
+from frslam_graph.registration import Registration, matrix_from_params, params_from_matrix, register
+from frslam_graph.registration.evaluation import iou_a
+from frslam_graph.registration.subsets import adjacency_masks, connected_subsets, mask_ids
+
+U = 40.0  # plan units per metre of the synthetic plan
+EXPLORED = ["living", "kitchen", "bath", "corridor", "bed2"]
+
+
+def synthetic_plan() -> FloorPlan:
+    """Seven rooms, no symmetry, doors between them (plan units, y up)."""
+    spec = {
+        "living": ("living_room", (0, 0, 6, 4)),
+        "kitchen": ("kitchen", (6, 0, 9, 2.5)),
+        "bath": ("bathroom", (6, 2.5, 9, 4)),
+        "corridor": ("corridor", (0, 4, 3, 5.5)),
+        "bed1": ("bedroom", (0, 5.5, 3, 9)),
+        "bed2": ("bedroom", (3, 4, 7, 8)),
+        "closet": ("closet", (7, 4, 9, 5.5)),
+    }
+    rooms = [Room(k, t, box(*(np.array(b) * U))) for k, (t, b) in spec.items()]
+    links = [
+        ("living", "kitchen", (6, 0.8), (6, 1.6)),
+        ("kitchen", "bath", (7, 2.5), (7.8, 2.5)),
+        ("living", "corridor", (1, 4), (2, 4)),
+        ("corridor", "bed1", (1, 5.5), (2, 5.5)),
+        ("corridor", "bed2", (3, 4.3), (3, 5.2)),
+        ("bed2", "closet", (7, 4.5), (7, 5.2)),
+    ]
+    doors = [
+        Door(f"d{i}", tuple(np.array(a) * U), tuple(np.array(b) * U), (r1, r2))
+        for i, (r1, r2, a, b) in enumerate(links)
+    ]
+    return FloorPlan(rooms, doors, units="px", name="synthetic")
+
+
+def ring_map(plan: FloorPlan, truth: np.ndarray, rooms: list[str], res: float = 0.05):
+    """Occupancy grid of ``rooms`` of the house ``truth · plan``: free inside, a one-cell occupied
+    ring on each room's boundary (open at doors), unknown elsewhere."""
+    house = plan.transformed(truth, units="m")
+    frame = RasterFrame.around(house.subset(rooms).bounds, res, margin=0.6)
+    lab = rasterise_plan(house, frame, rooms=rooms, labels=True)
+    pad = np.pad(lab, 1)
+    ring = np.zeros(lab.shape, bool)
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        ring |= pad[1 + dr : 1 + dr + lab.shape[0], 1 + dc : 1 + dc + lab.shape[1]] != lab
+    occ = (lab > 0) & ring
+    doors = np.zeros(lab.shape, np.uint8)
+    for d in house.doors:
+        if any(r in rooms for r in d.rooms):
+            a, b = frame.to_pixel(np.array([d.a, d.b])) - 0.5
+            cv2.line(doors, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 1, 3)
+    occ &= ~doors.astype(bool)
+    free = (lab > 0) & ~occ
+    return OccupancyGrid.from_masks(free, occ, res, (frame.origin[0], frame.origin[1], 0.0))
+
+
+def truth_matrix(flipped: bool, rotation_deg: float, t=(3.0, -2.0)) -> np.ndarray:
+    return matrix_from_params(flipped, math.radians(rotation_deg), 0.025 * 1.1, 0.025 * 0.92, *t)
+
+
+def rot_error_deg(reg: Registration, truth: np.ndarray) -> float:
+    t_rot = math.degrees(params_from_matrix(truth)[1])
+    return abs((reg.rotation_deg - t_rot + 180.0) % 360.0 - 180.0)
+
+
+@pytest.fixture(scope="module")
+def plan() -> FloorPlan:
+    return synthetic_plan()
+
+
+# ----------------------------------------------------------------------------------- result type
+@pytest.mark.parametrize("flipped", [False, True])
+@pytest.mark.parametrize("rotation", [0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi, 0.7, -2.9])
+def test_matrix_params_round_trip(flipped, rotation):
+    m = matrix_from_params(flipped, rotation, 0.03, 0.045, 1.5, -2.0)
+    f, r, sx, sy, tx, ty = params_from_matrix(m)
+    assert f == flipped
+    assert abs((r - rotation + math.pi) % (2 * math.pi) - math.pi) < 1e-12
+    assert (sx, sy, tx, ty) == pytest.approx((0.03, 0.045, 1.5, -2.0), abs=1e-12)
+    # the documented factorisation T · R · diag(1, ±1) · diag(sx, sy)
+    c, s = math.cos(rotation), math.sin(rotation)
+    lin = np.array([[c, -s], [s, c]]) @ np.diag([1.0, -1.0 if flipped else 1.0]) @ np.diag([0.03, 0.045])
+    assert np.allclose(m[:2, :2], lin)
+
+
+def test_registration_result_helpers(plan):
+    m = matrix_from_params(True, 0.3, 0.02, 0.03, 1.0, 2.0)
+    reg = Registration.from_matrix(m, score=0.9, ambiguity=0.2, rooms=("living",), method="mfr")
+    assert reg.ok and reg.flipped and reg.rotation_deg == pytest.approx(math.degrees(0.3))
+    assert reg.scale == pytest.approx((0.02, 0.03)) and reg.translation == pytest.approx((1.0, 2.0))
+    d = json.loads(json.dumps(reg.to_dict()))
+    assert np.allclose(d["matrix"], m) and d["rooms"] == ["living"]
+    placed = reg.apply(plan)
+    assert placed.units == "m"
+    corner = np.asarray(plan.room("living").polygon.exterior.coords)[:1]
+    assert np.allclose(
+        np.asarray(placed.room("living").polygon.exterior.coords)[:1], reg.transform_points(corner)
+    )
+    bad = Registration.failure("empty map", "mfr", 0.01)
+    assert not bad.ok and bad.reason == "empty map" and np.array_equal(bad.matrix, np.eye(3))
+    assert json.loads(json.dumps(bad.to_dict()))["ok"] is False
+
+
+# ---------------------------------------------------------------------------------------- subsets
+def test_connected_subsets_of_a_path():
+    # rooms 0 - 1 - 2 - 3 in a row: 10 connected subsets (4 + 3 + 2 + 1)
+    adj = np.array([0b0010, 0b0101, 0b1010, 0b0100], dtype=np.uint64)
+    masks = connected_subsets(adj)
+    assert sorted(int(m) for m in masks) == sorted([1, 2, 4, 8, 3, 6, 12, 7, 14, 15])
+    with_seed = connected_subsets(adj, seeds=np.array([0]))
+    assert all(int(m) & 1 for m in with_seed) and len(with_seed) == 4
+    assert mask_ids(np.uint64(0b0101), ["a", "b", "c", "d"]) == ("a", "c")
+
+
+def test_door_adjacency(plan):
+    links = [tuple(plan.room_ids.index(r) for r in d.rooms) for d in plan.doors]
+    adj = adjacency_masks(plan.rooms, links)
+    i = plan.room_ids.index
+    assert int(adj[i("corridor")]) == (1 << i("living")) | (1 << i("bed1")) | (1 << i("bed2"))
+    assert not int(adj[i("living")]) & (1 << i("bath"))  # touching, but no door
+
+
+# ------------------------------------------------------------------------------ known distortions
+@pytest.mark.parametrize("flipped", [False, True])
+@pytest.mark.parametrize("k", [0, 1, 2, 3])
+def test_recovers_dihedral_cases_exactly(plan, flipped, k):
+    truth = truth_matrix(flipped, 90.0 * k)
+    reg = register(plan, ring_map(plan, truth, EXPLORED))
+    assert reg.ok, reg.reason
+    assert reg.method == "mfr"
+    assert reg.flipped == flipped
+    assert rot_error_deg(reg, truth) < 0.1
+    _, _, sx, sy, _, _ = params_from_matrix(truth)
+    assert reg.scale[0] == pytest.approx(sx, rel=0.004) and reg.scale[1] == pytest.approx(sy, rel=0.004)
+    assert iou_a(plan, reg.matrix, truth) > 0.985
+    assert set(reg.rooms) == set(EXPLORED)
+    assert reg.score > 0.95 and 0.0 <= reg.ambiguity < 0.9
+    assert reg.covariance is not None and reg.covariance.shape == (3, 3)
+    assert np.all(np.linalg.eigvalsh(reg.covariance) > 0)
+
+
+@pytest.mark.parametrize("rotation_deg", [17.0, -128.4])
+def test_recovers_any_angle(plan, rotation_deg):
+    truth = truth_matrix(True, rotation_deg)
+    reg = register(plan, ring_map(plan, truth, EXPLORED))
+    assert reg.ok, reg.reason
+    assert reg.flipped and rot_error_deg(reg, truth) < 0.1
+    assert iou_a(plan, reg.matrix, truth) > 0.985
+
+
+def test_recovers_simulated_lidar_map(plan):
+    """The simulator's partial map: 0.12 m walls, open doorways, noise."""
+    from frslam_graph.datasets.simulator import Distortion, House, partial_map
+
+    dist = Distortion(0.025, (0.95, 1.08), True, math.radians(33.0), (2.0, -1.0))
+    house = House.from_plan(plan, dist)
+    grid, explored = partial_map(house, 0.6, np.random.default_rng(3), start_room="living")
+    reg = register(plan, grid)
+    assert reg.ok, reg.reason
+    assert reg.flipped and rot_error_deg(reg, dist.matrix) < 0.3
+    assert iou_a(plan, reg.matrix, dist.matrix) > 0.97
+    assert set(reg.rooms) == set(explored)
+    # the wall offset: half the simulated wall thickness
+    assert reg.details["delta_m"] == pytest.approx(0.06, abs=0.02)
+
+
+# ------------------------------------------------------------------------- resolution and origin
+def test_invariant_to_map_resolution(plan):
+    truth = truth_matrix(False, 90.0)
+    fine = register(plan, ring_map(plan, truth, EXPLORED, res=0.05))
+    coarse = register(plan, ring_map(plan, truth, EXPLORED, res=0.1))
+    assert fine.ok and coarse.ok
+    assert coarse.flipped == fine.flipped == False  # noqa: E712
+    assert rot_error_deg(coarse, truth) < 0.2
+    assert iou_a(plan, coarse.matrix, truth) > 0.97
+    assert iou_a(plan, coarse.matrix, fine.matrix) > 0.97
+
+
+def test_invariant_to_map_origin(plan):
+    """The same cells with the origin moved by ``shift``: the result moves by ``shift``."""
+    truth = truth_matrix(True, 200.0)
+    shift = np.array([123.4, -56.7])
+    grid = ring_map(plan, truth, EXPLORED)
+    moved_grid = OccupancyGrid(
+        grid.data, grid.resolution, (grid.origin[0] + shift[0], grid.origin[1] + shift[1], 0.0)
+    )
+    base, moved = register(plan, grid), register(plan, moved_grid)
+    assert base.ok and moved.ok
+    assert np.allclose(moved.matrix[:2, :2], base.matrix[:2, :2], atol=1e-9)
+    assert np.allclose(moved.matrix[:2, 2], base.matrix[:2, 2] + shift, atol=1e-6)
+    moved_truth = truth.copy()
+    moved_truth[:2, 2] += shift
+    assert iou_a(plan, moved.matrix, moved_truth) > 0.985
+
+
+def test_rotated_grid_origin(plan):
+    """A grid whose origin has a yaw: the same cells, rotated in the map frame."""
+    truth = truth_matrix(False, 0.0)
+    grid = ring_map(plan, truth, EXPLORED)
+    yaw = 0.4
+    rotated = OccupancyGrid(grid.data, grid.resolution, (1.0, 2.0, yaw))
+    a, b = register(plan, grid), register(plan, rotated)
+    assert a.ok and b.ok
+    expected = rotated.map_from_grid() @ np.linalg.inv(grid.map_from_grid()) @ a.matrix
+    assert np.allclose(b.matrix, expected, atol=1e-6)
+    assert b.rotation_deg == pytest.approx(a.rotation_deg + math.degrees(yaw), abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------- failures
+def test_fails_on_all_unknown_map(plan):
+    grid = OccupancyGrid(np.full((50, 60), -1, np.int8), 0.05)
+    reg = register(plan, grid)
+    assert not reg.ok and "unknown" in reg.reason
+
+
+def test_fails_on_tiny_map(plan):
+    data = np.full((50, 60), -1, np.int8)
+    data[10:14, 10:14] = 0
+    reg = register(plan, OccupancyGrid(data, 0.05))
+    assert not reg.ok and "too small" in reg.reason
+
+
+def test_fails_on_one_room_plan(plan):
+    one = plan.subset(["living"])
+    grid = ring_map(plan, truth_matrix(False, 0.0), ["living"])
+    reg = register(one, grid)
+    assert not reg.ok and "1 room" in reg.reason
+
+
+def test_fails_on_another_building(plan):
+    """A 3 × 3 grid of equal square rooms cannot be explained by the synthetic plan."""
+    rooms = [
+        Room(f"g{i}{j}", "bedroom", box(i * 3.0, j * 3.0, i * 3.0 + 3.0, j * 3.0 + 3.0))
+        for i in range(3)
+        for j in range(3)
+    ]
+    doors = [
+        Door(
+            f"h{i}{j}",
+            (i * 3.0 + 3.0, j * 3.0 + 1.0),
+            (i * 3.0 + 3.0, j * 3.0 + 2.0),
+            (f"g{i}{j}", f"g{i + 1}{j}"),
+        )
+        for i in range(2)
+        for j in range(3)
+    ]
+    other = FloorPlan(rooms, doors, units="m")
+    grid = ring_map(other, np.eye(3), [r.id for r in rooms])
+    reg = register(plan, grid)
+    assert not reg.ok and "no match" in reg.reason
+    assert 0.0 <= reg.score < 1.0
+
+
+def test_bad_method_and_option(plan):
+    grid = ring_map(plan, truth_matrix(False, 0.0), EXPLORED)
+    with pytest.raises(ConfigError):
+        register(plan, grid, method="nope")
+    with pytest.raises(ConfigError):
+        register(plan, grid, bogus=1)
+
+
+def test_seed_rooms(plan):
+    truth = truth_matrix(False, 90.0)
+    reg = register(plan, ring_map(plan, truth, EXPLORED), seed_rooms=["kitchen"])
+    assert reg.ok and "kitchen" in reg.rooms and iou_a(plan, reg.matrix, truth) > 0.985
+    bad = register(plan, ring_map(plan, truth, EXPLORED), seed_rooms=["attic"])
+    assert not bad.ok and "seed" in bad.reason
+
+
+# ---------------------------------------------------------------------------------------- CLI
+def test_cli_register_writes_outputs(plan, tmp_path):
+    from frslam_graph.cli import main
+
+    truth = truth_matrix(True, 90.0)
+    ring_map(plan, truth, EXPLORED).save(tmp_path / "map.yaml")
+    plan.save(tmp_path / "plan.json")
+    out = tmp_path / "out"
+    assert main(["register", str(tmp_path / "plan.json"), str(tmp_path / "map.yaml"), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["registration"]["ok"] is True
+    placed = FloorPlan.load(out / "registered_plan.json")
+    assert placed.units == "m"
+    # the registered plan is the plan placed by the truth (rooms overlap almost exactly)
+    truth_plan = plan.transformed(truth, units="m")
+    for r in truth_plan.rooms:
+        p = placed.room(r.id).polygon
+        assert p.intersection(r.polygon).area / p.union(r.polygon).area > 0.97
+    img = cv2.imread(str(out / "overlay.png"))
+    assert img is not None and img.shape[0] > 100
+
+
+def test_cli_register_bad_map_path(plan, tmp_path, capsys):
+    from frslam_graph.cli import main
+
+    plan.save(tmp_path / "plan.json")
+    code = main(
+        [
+            "register",
+            str(tmp_path / "plan.json"),
+            str(tmp_path / "missing.yaml"),
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
+    assert code == 2
+    assert "missing.yaml" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "report.json").exists()
