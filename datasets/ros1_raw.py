@@ -181,6 +181,9 @@ class Ros1RawBag:
                         yield from self._chunk_records(body, offset, decode_messages)
                 elif op == OP_CONNECTION:
                     self._connection(h, f.read(dlen), offset)
+                elif op == OP_MSG and "conn" in h:  # a message outside any chunk
+                    data = f.read(dlen) if decode_messages else b""
+                    yield OP_MSG, _u32(h, "conn"), _time_ns(h["time"]) if "time" in h else 0, data
                 else:
                     f.seek(dlen, 1)
                 offset = data_at + dlen

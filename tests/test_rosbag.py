@@ -404,3 +404,39 @@ def test_inspect_command_on_a_bag(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "RosBag" in out and "/scan" in out and "5 read of 5 found" in out and "scans/s" in out
     assert main(["inspect", str(bag), "--laser", "rear"]) == 2  # a CARMEN option on a bag
+
+
+def _fields(fields: dict[str, bytes]) -> bytes:
+    return b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+
+
+def _record(fields: dict[str, bytes], data: bytes) -> bytes:
+    header = _fields(fields)
+    return struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data
+
+
+def test_unindexed_bag_with_messages_outside_chunks(tmp_path):
+    """A bag whose recorder died: no index (index_pos = 0), records written without chunks."""
+    m = Msgs(True)
+    conn = _record(
+        {"op": b"\x07", "conn": struct.pack("<I", 0), "topic": b"/scan"},
+        _fields({"topic": b"/scan", "type": b"sensor_msgs/LaserScan", "md5sum": b"*"}),
+    )
+    msgs = b"".join(
+        _record(
+            {"op": b"\x02", "conn": struct.pack("<I", 0), "time": struct.pack("<II", 10 + i, 0)},
+            m.ts.serialize_ros1(m.scan(10.0 + i, [1.0, 2.0, 3.0]), LASER),
+        )
+        for i in range(3)
+    )
+    header = _record(
+        {"op": b"\x03", "index_pos": struct.pack("<Q", 0), "conn_count": b"\0" * 4, "chunk_count": b"\0" * 4},
+        b" " * 16,
+    )
+    path = tmp_path / "unindexed.bag"
+    path.write_bytes(b"#ROSBAG V2.0\n" + header + conn + msgs)
+    rec = open_recording(path)
+    assert rec.reader_used == "sequential" and len(rec) == 3
+    scans, _ = read_all(rec)
+    assert [s.stamp for s in scans] == [10.0, 11.0, 12.0]
+    assert scans[2].ranges.tolist() == [1.0, 2.0, 3.0]
