@@ -319,6 +319,7 @@ def rpe(
     Returns (translation m, rotation deg). RPE needs no alignment (it compares relative motions).
     """
     from evo.core import metrics
+    from evo.core.filters import FilterException
     from evo.core.units import Unit
 
     est, ref = associate(traj_est, traj_ref, max_dt)
@@ -330,7 +331,7 @@ def rpe(
         m = metrics.RPE(rel, delta=delta, delta_unit=units[unit], all_pairs=False)
         try:
             m.process_data((_evo_traj(ref), _evo_traj(est)))
-        except metrics.MetricsException as exc:
+        except (metrics.MetricsException, FilterException) as exc:  # e.g. no pose pairs delta apart
             raise TrajectoryError(f"RPE failed ({exc})", where="estimate") from None
         out.append(_stats(m.error))
     return out[0], out[1]

@@ -198,6 +198,8 @@ def test_rpe_known_answer():
     turn[:, 3] = np.radians(np.arange(n) * 2.0)  # 2 deg per frame more than the reference
     _, rot = rpe(turn, gt)
     assert rot.mean == pytest.approx(2.0)
+    with pytest.raises(TrajectoryError, match="RPE failed"):
+        rpe(gt, gt, delta=100.0, unit="meters")  # the path is only 39 m long
 
 
 def test_relations_command(tmp_path, capsys):
