@@ -119,7 +119,7 @@ def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) ->
     p, n = mid[ok], n[ok]
     # one point per voxel
     cells = np.floor(p / voxel_size).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
     p, n = p[first], n[first]
     J = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]))
     H = J.T @ J
