@@ -148,10 +148,48 @@ def nearest_pose(stamps: np.ndarray, query: np.ndarray, tolerance: float) -> tup
     return idx, ok
 
 
+def interpolate_trajectory(
+    traj: np.ndarray, stamps: np.ndarray, max_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of a sorted (N, 4) trajectory at ``stamps`` by linear interpolation (heading unwrapped).
+
+    Returns ((K, 4) poses, (K,) ok); ok is False outside the trajectory or where the two poses
+    around a stamp are more than ``max_gap`` seconds apart.
+    """
+    t = traj[:, 0]
+    stamps = np.asarray(stamps, dtype=np.float64)
+    hi = np.clip(np.searchsorted(t, stamps, side="left"), 1, max(len(t) - 1, 1))
+    lo = hi - 1
+    inside = (stamps >= t[0]) & (stamps <= t[-1])
+    if len(t) > 1:
+        ok = inside & ((t[hi] - t[lo] <= max_gap) | (stamps == t[lo]) | (stamps == t[hi]))
+    else:
+        ok = inside
+    theta = np.unwrap(traj[:, 3])
+    out = np.column_stack(
+        [
+            stamps,
+            np.interp(stamps, t, traj[:, 1]),
+            np.interp(stamps, t, traj[:, 2]),
+            np.interp(stamps, t, theta),
+        ]
+    )
+    out[:, 3] = np.arctan2(np.sin(out[:, 3]), np.cos(out[:, 3]))
+    return out, ok
+
+
 def relation_error(
-    trajectory: np.ndarray, relations: np.ndarray | str | Path, tolerance: float = 0.01
+    trajectory: np.ndarray,
+    relations: np.ndarray | str | Path,
+    tolerance: float = 0.01,
+    interpolate: float | None = None,
 ) -> RelationResult:
-    """Relation-based error of ``trajectory`` (N, 4) against ``relations`` ((K, 5) or a relations file)."""
+    """Relation-based error of ``trajectory`` (N, 4) against ``relations`` ((K, 5) or a relations file).
+
+    Each relation stamp takes the nearest pose within ``tolerance`` seconds; with ``interpolate``
+    (seconds) a keyframe trajectory is instead interpolated at the stamps, between poses at most
+    that far apart. Relations left without a pose are counted in ``unmatched``.
+    """
     traj = as_trajectory(trajectory)
     rel = (
         load_relations(relations)
@@ -166,11 +204,17 @@ def relation_error(
         raise TrajectoryError("empty trajectory", where="trajectory")
     order = np.argsort(traj[:, 0], kind="stable")
     traj = traj[order]
-    i, ok_i = nearest_pose(traj[:, 0], rel[:, 0], tolerance)
-    j, ok_j = nearest_pose(traj[:, 0], rel[:, 1], tolerance)
-    ok = ok_i & ok_j
-    i, j, r = i[ok], j[ok], rel[ok]
-    xi, xj = traj[i], traj[j]
+    if interpolate is not None:
+        xi, ok_i = interpolate_trajectory(traj, rel[:, 0], interpolate)
+        xj, ok_j = interpolate_trajectory(traj, rel[:, 1], interpolate)
+        ok = ok_i & ok_j
+        xi, xj, r = xi[ok], xj[ok], rel[ok]
+    else:
+        i, ok_i = nearest_pose(traj[:, 0], rel[:, 0], tolerance)
+        j, ok_j = nearest_pose(traj[:, 0], rel[:, 1], tolerance)
+        ok = ok_i & ok_j
+        i, j, r = i[ok], j[ok], rel[ok]
+        xi, xj = traj[i], traj[j]
     c, s = np.cos(xi[:, 3]), np.sin(xi[:, 3])
     dx, dy = xj[:, 1] - xi[:, 1], xj[:, 2] - xi[:, 2]
     est_x, est_y = c * dx + s * dy, -s * dx + c * dy  # δ* = x_i⁻¹ ⊕ x_j

@@ -112,6 +112,21 @@ def test_unmatched_relations_and_tolerance():
     assert none.matched == 0 and math.isnan(none.trans_mean)
 
 
+def test_keyframe_trajectory_interpolated_at_relation_stamps():
+    # moving straight along x at 1 m/s while turning at 0.5 rad/s: linear in x, y and heading
+    t = np.arange(101) * 0.1
+    gt = np.column_stack([t, t, np.zeros_like(t), np.arctan2(np.sin(0.5 * t), np.cos(0.5 * t))])
+    rel = relations_for(gt, np.array([[1, 7], [13, 55], [3, 99], [60, 61]]), np.zeros((4, 3)))
+    keyframes = gt[::4]  # poses only at every 4th scan
+    assert relation_error(keyframes, rel).matched == 0  # no pose within 10 ms of the odd stamps
+    res = relation_error(keyframes, rel, interpolate=0.5)
+    assert (res.matched, res.unmatched) == (4, 0)
+    assert res.trans_mean == pytest.approx(0.0, abs=1e-9) and res.rot_mean == pytest.approx(0.0, abs=1e-6)
+    sparse = np.delete(keyframes, [15], axis=0)  # a 0.8 s gap around t = 6.0 s
+    res = relation_error(sparse, rel, interpolate=0.5)
+    assert (res.matched, res.unmatched) == (3, 1)
+
+
 def test_relations_file_and_aces_format(tmp_path):
     gt = ground_truth(60)
     pr = np.array([[0, 10], [5, 50]])

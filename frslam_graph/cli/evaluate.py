@@ -26,6 +26,12 @@ def relations(
     tolerance: Annotated[
         float, typer.Option(help="Seconds between a relation stamp and the nearest pose.")
     ] = 0.01,
+    interpolate: Annotated[
+        float | None,
+        typer.Option(
+            help="Interpolate a keyframe trajectory at the relation stamps (max gap between poses, s)."
+        ),
+    ] = None,
 ) -> None:
     """Print the mean ± std translational (m) and rotational (deg) relation error of a trajectory."""
     from frslam_graph.datasets import RecordingWarning, open_recording
@@ -45,7 +51,7 @@ def relations(
     else:
         traj = load_tum(trajectory)
         what = "trajectory"
-    res = relation_error(traj, relations_file, tolerance)
+    res = relation_error(traj, relations_file, tolerance, interpolate)
     console.print(f"{trajectory} ({what}, {len(traj):,} poses) against {relations_file}:")
     console.print(
         f"  translational error {res.trans_mean:.4f} ± {res.trans_std:.4f} m (mean of squares {res.trans_sq_mean:.4f} m²)"
@@ -53,6 +59,9 @@ def relations(
     console.print(
         f"  rotational error    {res.rot_mean:.3f} ± {res.rot_std:.3f} deg (mean of squares {res.rot_sq_mean:.3f} deg²)"
     )
-    console.print(
-        f"  relations: {res.matched:,} matched, {res.unmatched:,} unmatched (tolerance {tolerance:g} s)"
+    how = (
+        f"interpolated, gaps <= {interpolate:g} s"
+        if interpolate is not None
+        else f"tolerance {tolerance:g} s"
     )
+    console.print(f"  relations: {res.matched:,} matched, {res.unmatched:,} unmatched ({how})")
