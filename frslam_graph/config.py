@@ -191,6 +191,8 @@ class LoopClosureConfig(_Section):
     icp_iterations: int = Field(15, ge=1)
     icp_max_distance: float = Field(0.5, gt=0.0)
     inlier_distance: float = Field(0.1, gt=0.0)
+    min_coarse_score: float = Field(0.62, ge=0.0, le=1.0)  # below it: rejected without ICP
+    refine_ratio: float = Field(0.7, gt=0.0, le=1.0)  # other peaks refined above ratio × best
     # Acceptance.
     min_inlier_fraction: float = Field(0.6, ge=0.0, le=1.0)
     max_ambiguity: float = Field(0.85, gt=0.0, le=1.0)  # second peak / best

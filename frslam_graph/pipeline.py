@@ -100,6 +100,11 @@ class FRSlam:
     ):
         self.config = _as_config(config)
         self.floor_plan = floor_plan
+        if update_strategy is None and floor_plan is not None:
+            # the paper's Alg. 3: register the plan as the map grows, relocalise, add robust priors
+            from frslam_graph.update_strategy import FloorPlanUpdater
+
+            update_strategy = FloorPlanUpdater(floor_plan, self.config.updates)
         self.update_strategy = update_strategy
         self.odometry = ScanOdometry(self.config.odometry)
         self.graph = PoseGraph(self.config.graph)
@@ -111,6 +116,11 @@ class FRSlam:
         self._scan_odom: list[np.ndarray] = []
         self._was_degenerate = False
         self._angles_cache: tuple[float, float, int, np.ndarray] | None = None
+        # loop closure (frslam_graph.loop_closure), run on each keyframe before the update strategy
+        from frslam_graph.loop_closure import LoopCloser
+
+        lc = self.config.loop_closure
+        self.loop_closer: LoopCloser | None = LoopCloser(lc) if lc.enabled else None
 
     # ----------------------------------------------------------------- input
     def add_scan(
@@ -220,6 +230,8 @@ class FRSlam:
         self._kfs.append(
             _Keyframe(stamp, scan_index, res.pose.copy(), pts.astype(np.float32), off[:2].copy())
         )
+        if self.loop_closer is not None:
+            self.loop_closer.on_keyframe(self, self.keyframe(res.keyframe))
         if self.update_strategy is not None:
             info = self.keyframe(res.keyframe)
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
@@ -280,6 +292,11 @@ class FRSlam:
         i = len(self._kfs) - 1
         t = self.graph.map_to_odom(i, self._kfs[i].pose_odom)
         return (float(t[0]), float(t[1]), float(t[2]))
+
+    def registered_plan(self):
+        """The floor plan registered into ``map`` (FloorPlan in metres), or None before any
+        accepted registration / without a floor plan."""
+        return getattr(self.update_strategy, "registered_plan", None)
 
     def keyframe_scans(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""

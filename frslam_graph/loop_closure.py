@@ -1,0 +1,673 @@
+"""Loop closure for the keyframe pose graph (``map`` frame; metres, radians).
+
+On each new keyframe q, :class:`LoopCloser` looks for earlier keyframes c (not recent ones: at
+least ``min_keyframe_gap`` keyframes and ``min_travel_gap`` metres of travel or
+``min_rotation_gap_deg`` of turning back) near the current estimate. The search radius and the
+heading window grow with the motion since the last accepted closure (or since the candidate,
+whichever is shorter), so a long excursion is searched widely and a freshly corrected one narrowly.
+
+Each candidate is verified by :func:`match_scan`: the *query* submap (the points of the last
+``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
+points of c's neighbouring keyframes, in c's frame). A correlative grid search over (x, y, theta)
+scores every pose at once (vectorised over poses × points) on a likelihood field of the reference
+(``cv2.distanceTransform``), max-filtered so the coarse grid cannot step over the peak; the best
+distinct peaks are refined by point-to-line ICP on the reference points. A match is accepted when
+its inlier fraction is high and it is unambiguous (the best *distinct* second peak scores clearly
+lower); it becomes ``gtsam.BetweenFactorPose2(x_c, x_q, z)`` with the ICP covariance under a
+Cauchy kernel, so a wrong closure that slips through cannot bend the map.
+
+A robust kernel also refuses a *true* closure that disagrees with the current estimate by many
+sigmas (after a long excursion). So a closure that would move the graph by more than
+``confirm_xy`` / ``confirm_theta_deg`` waits until a second closure from another keyframe agrees
+with it geometrically; then both enter the graph without the kernel, the graph converges to them
+(iSAM2, an LM batch when the correction is large), and they are swapped for their robust versions.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import gtsam
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from frslam_graph.config import LoopClosureConfig
+from frslam_graph.factors.between import pose2, regularise_covariance
+from frslam_graph.factors.floorplan_prior import m_estimator
+from frslam_graph.graph import key
+from frslam_graph.motion_model import between, compose
+
+if TYPE_CHECKING:  # pragma: no cover
+    from frslam_graph.pipeline import FRSlam, KeyframeInfo
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (M, 2) given in the frame ``pose`` (x, y, theta) -> the frame ``pose`` lives in."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    p = np.asarray(points, dtype=np.float64)
+    return np.column_stack((pose[0] + c * p[:, 0] - s * p[:, 1], pose[1] + s * p[:, 0] + c * p[:, 1]))
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The first point of each occupied voxel (order kept)."""
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    cells = np.floor(points / voxel).astype(np.int64)
+    h = cells[:, 0] * 73856093 ^ cells[:, 1] * 19349663
+    _, idx = np.unique(h, return_index=True)
+    return points[np.sort(idx)]
+
+
+def _normals(points: np.ndarray, tree: cKDTree, k: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (N, 2) from PCA of the k nearest neighbours, and a line-quality weight (N,)."""
+    k = min(k, len(points))
+    _, nn = tree.query(points, k=k)
+    nb = points[nn.reshape(len(points), k)]  # (N, k, 2)
+    d = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 0])
+    syy = np.einsum("ij,ij->i", d[:, :, 1], d[:, :, 1])
+    sxy = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 1])
+    # smallest eigenvalue / eigenvector of [[sxx, sxy], [sxy, syy]] in closed form
+    tr, det = sxx + syy, sxx * syy - sxy**2
+    disc = np.sqrt(np.maximum(tr**2 / 4.0 - det, 0.0))
+    lmin, lmax = tr / 2.0 - disc, tr / 2.0 + disc
+    n = np.column_stack((sxy, lmin - sxx))
+    alt = np.column_stack((lmin - syy, sxy))
+    use_alt = np.hypot(*n.T) < np.hypot(*alt.T)
+    n[use_alt] = alt[use_alt]
+    norm = np.hypot(*n.T)
+    degenerate = norm < 1e-12
+    n[degenerate] = (1.0, 0.0)
+    n /= np.maximum(np.hypot(*n.T), 1e-12)[:, None]
+    quality = np.where(lmax > 1e-12, 1.0 - np.clip(lmin / np.maximum(lmax, 1e-12), 0.0, 1.0), 0.0)
+    quality[degenerate] = 0.0
+    return n, quality
+
+
+# ----------------------------------------------------------------------------- reference submap
+class ReferenceSubmap:
+    """Points of a reference submap with a likelihood field (correlative search) and a k-d tree
+    with normals (ICP). ``points`` (M, 2) in the reference keyframe's frame."""
+
+    def __init__(self, points: np.ndarray, resolution: float, sigma: float, margin: float):
+        pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution / 2.0)
+        self.points = pts
+        self.resolution = res = float(resolution)
+        self.tree = cKDTree(pts) if len(pts) else None
+        if len(pts) >= 3:
+            self.normals, self.quality = _normals(pts, self.tree)
+        else:
+            self.normals, self.quality = np.zeros((len(pts), 2)), np.zeros(len(pts))
+        lo = (pts.min(axis=0) if len(pts) else np.zeros(2)) - margin
+        hi = (pts.max(axis=0) if len(pts) else np.zeros(2)) + margin
+        self.origin = lo
+        self.margin_cells = int(np.ceil(margin / res))
+        w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
+        self.shape = (h, w)
+        free = np.full((h, w), 255, np.uint8)
+        if len(pts):
+            ij = np.floor((pts - lo) / res).astype(int)
+            free[ij[:, 1], ij[:, 0]] = 0
+        dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
+        self.field = np.exp(-0.5 * (dist / sigma) ** 2).astype(np.float32)
+        self._dilated: dict[int, np.ndarray] = {}
+
+    def dilated(self, cells: int) -> np.ndarray:
+        """The likelihood field max-filtered over a (2·cells + 1)² window (flattened)."""
+        f = self._dilated.get(cells)
+        if f is None:
+            if cells > 0:
+                kernel = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
+                f = cv2.dilate(self.field, kernel).ravel()
+            else:
+                f = self.field.ravel()
+            self._dilated[cells] = f
+        return f
+
+    def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
+        if self.tree is None or len(query) == 0:
+            return 0.0
+        d, _ = self.tree.query(transform_points(pose, query), distance_upper_bound=distance)
+        return float(np.mean(np.isfinite(d)))
+
+
+# ----------------------------------------------------------------------------- matcher
+@dataclass(frozen=True, slots=True)
+class ScanMatch:
+    """Result of :func:`match_scan`: the query frame's pose in the reference frame.
+
+    ``inlier_fraction``: share of query points within ``inlier_distance`` of the reference after
+    ICP; ``ambiguity``: the best distinct second peak's inlier fraction / the best (0 = none);
+    ``covariance``: 3×3 in GTSAM's Pose2 tangent (body frame of ``pose``).
+    """
+
+    pose: np.ndarray
+    inlier_fraction: float
+    ambiguity: float
+    covariance: np.ndarray
+    coarse_score: float
+    n_points: int
+    second: np.ndarray | None = None
+
+
+def _coarse_search(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    step_xy: float,
+    step_theta: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Score every pose of the grid (thetas × offsets): returns (P, 3) poses and (P,) scores."""
+    res = ref.resolution
+    h, w = ref.shape
+    n_th = int(np.ceil(window_theta / step_theta))
+    thetas = centre[2] + step_theta * np.arange(-n_th, n_th + 1)
+    s = max(1, int(round(step_xy / res)))
+    n_xy = int(np.ceil(window_xy / (s * res)))
+    o = s * np.arange(-n_xy, n_xy + 1)
+    ox, oy = (a.ravel() for a in np.meshgrid(o, o))
+    # the max filter covers half a translation step and half a rotation step at the query's reach
+    reach = float(np.percentile(np.hypot(*query.T), 90)) if len(query) else 0.0
+    cells = int(np.ceil((0.5 * s * res + 0.5 * step_theta * reach) / res))
+    field = ref.dilated(cells)
+    c, sn = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    px = c * query[None, :, 0] - sn * query[None, :, 1] + centre[0]
+    py = sn * query[None, :, 0] + c * query[None, :, 1] + centre[1]
+    bx = np.floor((px - ref.origin[0]) / res).astype(np.int64)
+    by = np.floor((py - ref.origin[1]) / res).astype(np.int64)
+    # points whose whole offset range would leave the grid see only the zero margin
+    lim = n_xy * s
+    out = (bx < lim) | (bx >= w - lim) | (by < lim) | (by >= h - lim)
+    bx[out] = lim
+    by[out] = lim
+    base = (by * w + bx).astype(np.int32)  # (T, M)
+    off = (oy * w + ox).astype(np.int32)  # (O,)
+    scores = np.empty((len(thetas), len(off)), np.float32)
+    chunk = max(1, int(4_000_000 // max(1, len(off) * query.shape[0])))
+    for a in range(0, len(thetas), chunk):
+        idx = base[a : a + chunk, None, :] + off[None, :, None]  # (t, O, M) flat cells
+        scores[a : a + chunk] = field[idx].mean(axis=2)
+    tt = np.repeat(thetas, len(off))
+    poses = np.column_stack(
+        (np.tile(centre[0] + ox * res, len(thetas)), np.tile(centre[1] + oy * res, len(thetas)), tt)
+    )
+    return poses, scores.ravel()
+
+
+def _distinct_peaks(
+    poses: np.ndarray, scores: np.ndarray, k: int, sep_xy: float, sep_theta: float
+) -> list[int]:
+    """Indices of up to k best poses, pairwise at least (sep_xy or sep_theta) apart."""
+    top = min(len(scores), 400)
+    order = np.argpartition(-scores, top - 1)[:top]
+    order = order[np.argsort(-scores[order])]
+    picked: list[int] = []
+    for j in order:
+        p = poses[j]
+        if all(
+            np.hypot(*(p[:2] - poses[q][:2])) >= sep_xy or abs(_wrap(p[2] - poses[q][2])) >= sep_theta
+            for q in picked
+        ):
+            picked.append(int(j))
+            if len(picked) == k:
+                break
+    return picked
+
+
+def icp_point_to_line(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    pose: np.ndarray,
+    iterations: int = 15,
+    max_distance: float = 0.5,
+    kernel: float = 0.05,
+    sigma: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Point-to-line ICP of ``query`` onto the reference; returns (pose, 3×3 body covariance)."""
+    if ref.tree is None or len(query) < 10:
+        return None
+    x = np.asarray(pose, dtype=np.float64).copy()
+    h = None
+    for it in range(iterations):
+        dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
+        p = transform_points(x, query)
+        d, j = ref.tree.query(p, distance_upper_bound=dmax)
+        ok = np.isfinite(d)
+        if ok.sum() < 10:
+            return None
+        p, j = p[ok], j[ok]
+        n, q = ref.normals[j], ref.quality[j]
+        r = np.einsum("ij,ij->i", p - ref.points[j], n)
+        rel = p - x[:2]
+        jac = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]))
+        wgt = q / (1.0 + (r / kernel) ** 2)
+        h = jac.T @ (wgt[:, None] * jac)
+        g = jac.T @ (wgt * r)
+        try:
+            delta = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+        except np.linalg.LinAlgError:
+            return None
+        x += delta
+        x[2] = float(_wrap(x[2]))
+        if np.hypot(delta[0], delta[1]) < 1e-4 and abs(delta[2]) < 1e-5:
+            break
+    if h is None:
+        return None
+    # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
+    c, s = np.cos(x[2]), np.sin(x[2])
+    a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    hb = a.T @ h @ a / sigma**2
+    try:
+        cov = np.linalg.inv(hb + 1e-9 * np.eye(3))
+    except np.linalg.LinAlgError:
+        return None
+    return x, cov
+
+
+def match_scan(
+    reference: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    config: LoopClosureConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> ScanMatch | None:
+    """Match ``query`` points (M, 2, query frame) against ``reference`` around ``centre``
+    (x, y, theta of the query frame in the reference frame) within ± window_xy (m) and
+    ± window_theta (rad). None when nothing can be matched (too few points / no overlap)."""
+    cfg = config or LoopClosureConfig()
+    q = np.asarray(query, dtype=np.float64).reshape(-1, 2)
+    q = q[np.hypot(*q.T) <= cfg.max_point_range] if len(q) else q
+    fine = voxel_downsample(q, 2.0 * cfg.resolution)
+    if len(fine) < 20 or reference.tree is None or len(reference.points) < 20:
+        return None
+    coarse = fine
+    if len(coarse) > cfg.max_query_points:
+        rng = rng or np.random.default_rng(0)
+        coarse = coarse[rng.choice(len(coarse), cfg.max_query_points, replace=False)]
+    step_th = np.deg2rad(cfg.coarse_step_theta_deg)
+    c0 = np.asarray(centre, dtype=np.float64)
+    poses, scores = _coarse_search(
+        reference, coarse, c0, window_xy, min(window_theta, np.pi), cfg.coarse_step_xy, step_th
+    )
+    sep_xy, sep_th = cfg.peak_separation_xy, np.deg2rad(cfg.peak_separation_theta_deg)
+    peaks = _distinct_peaks(poses, scores, 3, sep_xy, sep_th)
+    top = float(scores[peaks[0]])
+    if top < cfg.min_coarse_score:  # not even the optimistic coarse score: no ICP
+        second = float(scores[peaks[1]]) / top if len(peaks) > 1 and top > 0 else 0.0
+        return ScanMatch(poses[peaks[0]], 0.0, second, np.eye(3), top, len(fine), None)
+    refined, unrefined = [], 0.0
+    for j in peaks:
+        if j != peaks[0] and scores[j] < cfg.refine_ratio * top:
+            unrefined = max(unrefined, float(scores[j]) / top)  # clearly lower already
+            continue
+        r = icp_point_to_line(
+            reference,
+            fine,
+            poses[j],
+            cfg.icp_iterations,
+            cfg.icp_max_distance,
+            kernel=cfg.inlier_distance / 2.0,
+            sigma=cfg.icp_sigma,
+        )
+        if r is None:
+            continue
+        inl = reference.inlier_fraction(fine, r[0], cfg.inlier_distance)
+        refined.append((inl, r[0], r[1], float(scores[j])))
+    if not refined:
+        return None
+    refined.sort(key=lambda t: -t[0])
+    best = refined[0]
+    second, second_pose = 0.0, None
+    for inl, p, _, _ in refined[1:]:
+        if np.hypot(*(p[:2] - best[1][:2])) >= sep_xy or abs(_wrap(p[2] - best[1][2])) >= sep_th:
+            second, second_pose = inl, p
+            break
+    amb = max(second / best[0], unrefined) if best[0] > 0 else 1.0
+    return ScanMatch(best[1], best[0], float(amb), best[2], top, len(fine), second_pose)
+
+
+# ----------------------------------------------------------------------------- loop closer
+@dataclass(frozen=True, slots=True)
+class LoopClosure:
+    """An accepted (or pending) closure: x_reference⁻¹ ⊕ x_query = relative."""
+
+    reference: int
+    query: int
+    relative: np.ndarray
+    covariance: np.ndarray
+    match: ScanMatch
+    correction: np.ndarray  # prediction⁻¹ ⊕ relative at the time of the match (x, y, theta)
+
+
+@dataclass(slots=True)
+class LoopClosureStats:
+    attempts: int = 0  # candidates matched
+    accepted: int = 0  # closures in the graph
+    rejected: int = 0
+    pending: int = 0  # waited for confirmation at least once
+    batches: int = 0
+    seconds: float = 0.0
+    keyframes: int = 0
+    reasons: dict[str, int] = field(default_factory=dict)
+
+
+class LoopCloser:
+    """Keyframe hook adding verified loop-closure factors to ``slam.graph`` (see module docs)."""
+
+    def __init__(self, config: LoopClosureConfig | None = None):
+        self.config = config or LoopClosureConfig()
+        self.closures: list[LoopClosure] = []
+        self.stats = LoopClosureStats()
+        self._travel: list[float] = []
+        self._turn: list[float] = []
+        self._odom: list[np.ndarray] = []
+        self._last_closure = -1
+        self._tried: dict[tuple[int, int], int] = {}
+        self._pending: list[LoopClosure] = []
+        self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
+        self._rng = np.random.default_rng(0)
+
+    # ------------------------------------------------------------------ motion bookkeeping
+    def _append_motion(self, pose_odom: np.ndarray) -> None:
+        p = np.asarray(pose_odom, dtype=np.float64)
+        if self._odom:
+            prev = self._odom[-1]
+            self._travel.append(self._travel[-1] + float(np.hypot(*(p[:2] - prev[:2]))))
+            self._turn.append(self._turn[-1] + float(abs(_wrap(p[2] - prev[2]))))
+        else:
+            self._travel.append(0.0)
+            self._turn.append(0.0)
+        self._odom.append(p)
+
+    def _sync(self, slam: FRSlam, index: int) -> None:
+        if len(self._odom) == index:
+            return
+        self._travel, self._turn, self._odom = [], [], []
+        for kf in slam.keyframes()[:index]:
+            self._append_motion(kf.pose_odom)
+
+    # ------------------------------------------------------------------ hook
+    def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo) -> list[LoopClosure]:
+        """Look for closures of ``keyframe``; returns the closures added to the graph."""
+        i = keyframe.index
+        self._sync(slam, i)
+        self._append_motion(keyframe.pose_odom)
+        self.stats.keyframes += 1
+        cfg = self.config
+        if not cfg.enabled or i % cfg.attempt_every or i < cfg.min_keyframe_gap:
+            return []
+        t0 = time.perf_counter()
+        try:
+            return self._attempt(slam, i)
+        finally:
+            self.stats.seconds += time.perf_counter() - t0
+
+    def _graph_distances(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Travel (m) and turn (rad) from keyframe i to every keyframe along the shortest path of
+        the graph, accepted closures counting as zero length: how far the relative drift can grow."""
+        trav, turn = np.asarray(self._travel[: i + 1]), np.asarray(self._turn[: i + 1])
+        n = i + 1
+        a = np.arange(n - 1)
+        rows = [a, a + 1]
+        cols = [a + 1, a]
+        dt = np.diff(trav) + 1e-9
+        dr = np.diff(turn) + 1e-9
+        wt, wr = [dt, dt], [dr, dr]
+        lc = [(c.reference, c.query) for c in self.closures if c.query <= i]
+        if lc:
+            r, q = np.asarray(lc).T
+            rows += [r, q]
+            cols += [q, r]
+            wt += [np.full(len(r), 1e-9)] * 2
+            wr += [np.full(len(r), 1e-9)] * 2
+        rr, cc = np.concatenate(rows), np.concatenate(cols)
+        out = []
+        for w in (wt, wr):
+            g = csr_matrix((np.concatenate(w), (rr, cc)), shape=(n, n))
+            out.append(dijkstra(g, indices=i, directed=True))
+        return out[0], out[1]
+
+    def _candidates(self, est: np.ndarray, i: int) -> list[tuple[int, float, float]]:
+        """(keyframe, search radius, heading window) of the candidates to try now."""
+        cfg = self.config
+        trav, turn = np.asarray(self._travel), np.asarray(self._turn)
+        n = i - cfg.min_keyframe_gap + 1
+        if n <= 0:
+            return []
+        idx = np.arange(n)
+        gap_t, gap_r = trav[i] - trav[:n], turn[i] - turn[:n]
+        ok = (gap_t >= cfg.min_travel_gap) | (gap_r >= np.deg2rad(cfg.min_rotation_gap_deg))
+        d_rel, r_rel = self._graph_distances(i)
+        d_rel, r_rel = d_rel[:n], r_rel[:n]
+        radius = np.minimum(cfg.radius_max, cfg.radius_base + cfg.radius_per_m * d_rel)
+        dist = np.hypot(*(est[:n, :2] - est[i, :2]).T)
+        ok &= dist <= radius
+        if not ok.any():
+            return []
+        idx = idx[ok]
+        order = idx[np.argsort(dist[ok], kind="stable")]
+        cells = np.floor(est[order, :2] / cfg.candidate_spacing).astype(int)
+        out, seen = [], set()
+        for c, cell in zip(order.tolist(), map(tuple, cells.tolist()), strict=True):
+            if cell in seen:
+                continue
+            seen.add(cell)
+            last = self._tried.get(cell)
+            if last is not None and i - last < cfg.retry_keyframes:
+                continue
+            window = np.deg2rad(
+                cfg.theta_window_base_deg
+                + cfg.theta_window_per_m_deg * d_rel[c]
+                + cfg.theta_window_per_turn * np.rad2deg(r_rel[c])
+            )
+            out.append((c, float(radius[c]), float(min(window, np.pi))))
+            self._tried[cell] = i
+            if len(out) == cfg.max_candidates:
+                break
+        return out
+
+    def _submap(
+        self, slam: FRSlam, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
+    ) -> np.ndarray:
+        """Points of keyframes lo..hi (within ± travel of ``centre``) in ``centre``'s frame."""
+        cfg = self.config
+        pts_all, origins = slam.keyframe_scans()
+        trav = np.asarray(self._travel)
+        chunks = []
+        inv_c = est[centre]
+        for k in range(max(lo, 0), min(hi, len(pts_all) - 1) + 1):
+            if abs(trav[k] - trav[centre]) > travel:
+                continue
+            p = pts_all[k]
+            if len(p) == 0:
+                continue
+            p = p[np.hypot(*(p - origins[k]).T) <= cfg.max_point_range]
+            chunks.append(transform_points(between(inv_c, est[k]), p))
+        return np.vstack(chunks) if chunks else np.zeros((0, 2))
+
+    def _reference(self, slam: FRSlam, est: np.ndarray, c: int, i: int) -> ReferenceSubmap:
+        sub = self._submaps.get(c)
+        if sub is not None:
+            self._submaps.move_to_end(c)
+            return sub
+        cfg = self.config
+        hi = min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
+        pts = self._submap(slam, est, c, c - cfg.submap_keyframes, hi, cfg.submap_travel)
+        margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
+        sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin)
+        self._submaps[c] = sub
+        while len(self._submaps) > 24:
+            self._submaps.popitem(last=False)
+        return sub
+
+    def _reject(self, slam: FRSlam, i: int, c: int, reason: str, **data: Any) -> None:
+        self.stats.rejected += 1
+        self.stats.reasons[reason] = self.stats.reasons.get(reason, 0) + 1
+        slam.log_event("loop_rejected", f"keyframe {i} vs {c}: {reason}", keyframe=i, reference=c, **data)
+
+    def _attempt(self, slam: FRSlam, i: int) -> list[LoopClosure]:
+        cfg = self.config
+        est = slam.graph.estimates()
+        cands = self._candidates(est, i)
+        if not cands:
+            return []
+        query = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
+        added: list[LoopClosure] = []
+        for c, radius, window_th in cands:
+            self.stats.attempts += 1
+            guess = between(est[c], est[i])
+            if radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
+                centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))
+            else:  # the prediction is too uncertain: is the robot back at the candidate itself?
+                centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
+            ref = self._reference(slam, est, c, i)
+            m = match_scan(ref, query, centre, win, window_th, cfg, self._rng)
+            if m is None:
+                self._reject(slam, i, c, "no_overlap")
+                continue
+            data = {
+                "inliers": round(m.inlier_fraction, 3),
+                "ambiguity": round(m.ambiguity, 3),
+                "relative": m.pose.tolist(),
+                "coarse": round(m.coarse_score, 3),
+            }
+            if m.coarse_score < cfg.min_coarse_score:
+                self._reject(slam, i, c, "low_score", **data)
+                continue
+            if m.inlier_fraction < cfg.min_inlier_fraction:
+                self._reject(slam, i, c, "low_inliers", **data)
+                continue
+            if m.ambiguity > cfg.max_ambiguity:
+                self._reject(slam, i, c, "ambiguous", **data)
+                continue
+            cov = regularise_covariance(
+                m.covariance * cfg.covariance_inflation,
+                cfg.sigma_floor_xy,
+                np.deg2rad(cfg.sigma_floor_theta_deg),
+            )
+            corr = between(guess, m.pose)
+            lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr)
+            small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
+                cfg.confirm_theta_deg
+            )
+            if small:
+                self._add(slam, [lc], settle=False)
+                added.append(lc)
+                est = slam.graph.estimates()
+                continue
+            partner = self._consistent_pending(lc, est)
+            if partner is None:
+                self._pending.append(lc)
+                self.stats.pending += 1
+                slam.log_event(
+                    "loop_pending",
+                    f"keyframe {i} vs {c}: large correction, waiting for a consistent second closure",
+                    keyframe=i,
+                    reference=c,
+                    correction=corr.tolist(),
+                    **data,
+                )
+                continue
+            self._pending.remove(partner)
+            self._add(slam, [partner, lc], settle=True)
+            added.extend([partner, lc])
+            est = slam.graph.estimates()
+        self._pending = [p for p in self._pending if i - p.query <= cfg.pending_keyframes]
+        return added
+
+    def _consistent_pending(self, lc: LoopClosure, est: np.ndarray) -> LoopClosure | None:
+        cfg = self.config
+        for p in reversed(self._pending):
+            if p.query == lc.query:
+                continue
+            implied = between(compose(est[p.reference], p.relative), compose(est[lc.reference], lc.relative))
+            odo = between(est[p.query], est[lc.query])
+            d = between(implied, odo)
+            tol_xy = cfg.consistency_xy + 0.02 * float(np.hypot(odo[0], odo[1]))
+            if np.hypot(d[0], d[1]) <= tol_xy and abs(d[2]) <= np.deg2rad(cfg.consistency_theta_deg):
+                return p
+        return None
+
+    def _factor(self, lc: LoopClosure, robust: bool) -> gtsam.BetweenFactorPose2:
+        gauss = gtsam.noiseModel.Gaussian.Covariance(lc.covariance)
+        est = m_estimator(self.config.kernel, self.config.kernel_param) if robust else None
+        noise = gauss if est is None else gtsam.noiseModel.Robust.Create(est, gauss)
+        return gtsam.BetweenFactorPose2(key(lc.reference), key(lc.query), pose2(lc.relative), noise)
+
+    def _add(self, slam: FRSlam, closures: list[LoopClosure], settle: bool) -> None:
+        """Add closures to the graph. Small corrections enter under the robust kernel; a confirmed
+        large correction (``settle``) enters as plain Gaussians (a bounded-influence kernel could
+        not pull the stiff odometry chain that far) and an LM batch runs when it moves far."""
+        graph = slam.graph
+        before = graph.estimates()
+        if settle:
+            plain = [self._factor(lc, robust=False) for lc in closures]
+            for f in plain:
+                graph.add_factor(f, extra_iterations=0)
+            graph.settle(10)
+            moved = float(np.max(np.hypot(*(graph.estimates()[:, :2] - before[:, :2]).T)))
+            if moved >= self.config.batch_on_correction or self._residual_large(graph, closures):
+                graph.optimize_batch()
+                self.stats.batches += 1
+        else:
+            for lc in closures:
+                graph.add_factor(self._factor(lc, robust=True), extra_iterations=0)
+        graph.settle(10 if settle else 3)
+        after = graph.estimates()
+        moved = float(np.max(np.hypot(*(after[:, :2] - before[:, :2]).T)))
+        for lc in closures:
+            self.closures.append(lc)
+            self.stats.accepted += 1
+            self._last_closure = max(self._last_closure, lc.query)
+            slam.log_event(
+                "loop_closure",
+                f"keyframe {lc.query} closes on {lc.reference}",
+                keyframe=lc.query,
+                reference=lc.reference,
+                relative=lc.relative.tolist(),
+                correction=lc.correction.tolist(),
+                inliers=round(lc.match.inlier_fraction, 3),
+                ambiguity=round(lc.match.ambiguity, 3),
+                sigma_xy=float(np.sqrt(max(lc.covariance[0, 0], lc.covariance[1, 1]))),
+                moved=moved,
+                robust=not settle,
+            )
+        if settle:  # neighbouring keyframes may have moved relative to each other
+            self._submaps.clear()
+
+    @staticmethod
+    def _residual_large(graph, closures: list[LoopClosure]) -> bool:
+        est = graph.estimates()
+        for lc in closures:
+            r = between(between(est[lc.reference], est[lc.query]), lc.relative)
+            if np.hypot(r[0], r[1]) > 0.1 or abs(r[2]) > np.deg2rad(1.0):
+                return True
+        return False
+
+
+__all__ = [
+    "LoopCloser",
+    "LoopClosure",
+    "LoopClosureStats",
+    "ReferenceSubmap",
+    "ScanMatch",
+    "icp_point_to_line",
+    "match_scan",
+    "transform_points",
+    "voxel_downsample",
+]
