@@ -34,12 +34,17 @@ def feed(slam, room, n=None, odom=True):
 
 def test_streaming_trajectory_is_accurate_and_complete(room):
     truth = room[0]
-    slam = FRSlam(CFG)
+    core = dict(CFG)
+    if "loop_closure" in FRSlamConfig.model_fields:  # odometry + graph only: no loop closures
+        core["loop_closure"] = {"enabled": False}
+    slam = FRSlam(core)
     poses = feed(slam, room)
     traj = slam.trajectory()
     assert traj.shape == (len(truth), 4)
     np.testing.assert_allclose(traj[:, 0], truth[:, 0])
-    np.testing.assert_allclose(traj[:, 1:], poses, atol=1e-6)  # nothing changed without priors
+    # without priors or loop closures the graph only re-linearises: returned poses do not move
+    np.testing.assert_allclose(traj[:, 1:3], poses[:, :2], atol=1e-4)
+    assert np.abs(wrap(traj[:, 3] - poses[:, 2])).max() < 1e-5
     # started at the wheel pose (== truth[0]): errors are absolute
     err = np.hypot(*(traj[:, 1:3] - truth[:, 1:3]).T)
     assert err.max() < 0.1
