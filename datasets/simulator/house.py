@@ -80,6 +80,8 @@ class House:
     free_space: Polygon | MultiPolygon
     room_free: dict[str, Any]  # room id -> its free space (eroded room, with obstacles removed)
     segments: np.ndarray  # (K, 4) wall and obstacle edges, metres
+    # room pairs whose shared boundary has no wall in the plan (open plan): no wall built there
+    open_boundaries: tuple[tuple[str, str], ...] = ()
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ construction
@@ -92,6 +94,7 @@ class House:
         closed_doors: Iterable[str] = (),
         clutter: int = 0,
         rng: np.random.Generator | None = None,
+        min_opening: float = 0.5,
     ) -> House:
         """The true house for ``plan`` under ``distortion`` (see the module docstring)."""
         if not (isinstance(wall_thickness, int | float) and 0.0 < wall_thickness <= 1.0):
@@ -132,6 +135,8 @@ class House:
                 continue
             openings.append(opening)
             open_ids.append(d.id)
+        bare_openings, open_bounds = _bare_boundaries(hplan, wall_thickness, min_opening)
+        openings += [o.intersection(envelope) for o in bare_openings]
         rooms_free = shapely.union_all(list(eroded.values()))
         open_space = shapely.union_all([rooms_free, *openings])
         walls = envelope.difference(open_space)
@@ -161,6 +166,7 @@ class House:
             wall_thickness=float(wall_thickness),
             open_doors=tuple(open_ids),
             closed_doors=tuple(d.id for d in hplan.doors if d.id not in open_ids),
+            open_boundaries=tuple(open_bounds),
             walls=walls_s,
             obstacles=obstacles,
             free_space=free,
@@ -188,6 +194,9 @@ class House:
                 a, b = d.rooms
                 adj[a].add(b)
                 adj[b].add(a)
+        for a, b in self.open_boundaries:
+            adj[a].add(b)
+            adj[b].add(a)
         return adj
 
     def reachable(self, start: str) -> list[str]:
@@ -225,6 +234,7 @@ class House:
             "wall_thickness": self.wall_thickness,
             "open_doors": list(self.open_doors),
             "closed_doors": list(self.closed_doors),
+            "open_boundaries": [list(p) for p in self.open_boundaries],
             "plan": self.plan.to_dict(),
             "walls": mapping(self.walls),
             "obstacles": [mapping(o) for o in self.obstacles],
@@ -249,6 +259,7 @@ class House:
                 free_space=shape(data["free_space"]),
                 room_free={k: shape(v) for k, v in data["room_free"].items()},
                 segments=np.asarray(data["segments"], dtype=np.float64).reshape(-1, 4),
+                open_boundaries=tuple((str(a), str(b)) for a, b in data.get("open_boundaries", [])),
             )
         except KeyError as exc:
             raise FloorPlanError("missing field", source, str(exc.args[0])) from None
@@ -268,6 +279,47 @@ class House:
         except (OSError, json.JSONDecodeError) as exc:
             raise FloorPlanError(f"cannot read house JSON ({exc})", path) from None
         return cls.from_dict(data, source=path)
+
+
+def _bare_boundaries(
+    plan: FloorPlan, wall_thickness: float, min_opening: float
+) -> tuple[list[Polygon], list[tuple[str, str]]]:
+    """Openings where two rooms share a boundary that no plan wall (or door) runs along.
+
+    Plans with wall segments (R2V) sometimes split one open space into rooms without a wall
+    between them (a living-dining-kitchen); building a wall there would invent one. Stretches
+    of shared boundary at least ``min_opening`` metres long and farther than a tolerance (1 %
+    of the house diagonal, at least 0.1 m) from every wall and door segment are left open.
+    Plans without walls keep every boundary as a wall. Returns (opening polygons, room pairs).
+    """
+    if plan.walls is None or len(plan.walls) == 0 or len(plan.rooms) < 2:
+        return [], []
+    lines = [shapely.LineString([w[:2], w[2:]]) for w in plan.walls if np.hypot(*(w[2:] - w[:2])) > 0]
+    lines += [shapely.LineString([d.a, d.b]) for d in plan.doors if d.width > 0]
+    minx, miny, maxx, maxy = plan.bounds
+    tol = max(0.1, 0.01 * math.hypot(maxx - minx, maxy - miny))
+    supported = shapely.union_all(lines).buffer(tol)
+    polys = [r.polygon for r in plan.rooms]
+    tree = shapely.STRtree(polys)
+    openings, pairs = [], []
+    for i, a in enumerate(plan.rooms):
+        for j in tree.query(a.polygon, predicate="dwithin", distance=tol):
+            if j <= i:
+                continue
+            b = plan.rooms[int(j)]
+            shared = a.polygon.boundary.intersection(b.polygon.buffer(tol / 2.0))
+            if shared.is_empty or shared.length < min_opening:
+                continue
+            bare = shared.difference(supported)
+            if bare.is_empty:
+                continue
+            merged = shapely.line_merge(bare) if bare.geom_type == "MultiLineString" else bare
+            pieces = [g for g in shapely.get_parts(merged) if g.length >= min_opening]
+            if not pieces:
+                continue
+            openings += [g.buffer(wall_thickness / 2.0 + 0.05, cap_style="flat") for g in pieces]
+            pairs.append((a.id, b.id))
+    return openings, pairs
 
 
 def _place_clutter(
