@@ -207,3 +207,27 @@ def test_orb_and_ecc_return_registrations_on_clean_map():
     ecc = register_ecc(plan, grid)
     assert ecc.ok and not ecc.flipped and abs(ecc.rotation_deg) < 2.0
     assert iou_a(plan, ecc.matrix, truth) > 0.9
+
+
+def test_paper_invariant_to_map_resolution_and_origin():
+    plan = asym_plan()
+    truth = matrix_from_params(True, math.pi, 0.02, 0.024, 1.0, 2.0)
+    fine = grid_from_plan(plan, truth, res=0.05)
+    coarse = grid_from_plan(plan, truth, res=0.1)
+    a, b = register_paper(plan, fine), register_paper(plan, coarse)
+    assert a.ok and b.ok
+    assert (a.flipped, round(a.rotation_deg)) == (b.flipped, round(b.rotation_deg)) == (True, 180)
+    assert iou_a(plan, b.matrix, truth) > 0.9
+    moved = OccupancyGrid(fine.data, fine.resolution, (fine.origin[0] + 5.0, fine.origin[1] - 3.0, 0.0))
+    c = register_paper(plan, moved)
+    assert np.allclose(c.matrix[:2, :2], a.matrix[:2, :2])
+    assert np.allclose(c.matrix[:2, 2], a.matrix[:2, 2] + (5.0, -3.0))
+    # a grid yawed by 90° (same cells): the registration turns with it
+    yawed = OccupancyGrid(fine.data, fine.resolution, (0.0, 0.0, math.pi / 2))
+    d = register_paper(plan, yawed)
+    rot = matrix_from_params(False, math.pi / 2, 1.0, 1.0)
+    assert np.allclose(d.matrix, rot @ _grid_corner_frame(fine) @ a.matrix, atol=1e-9)
+
+
+def _grid_corner_frame(grid):  # map frame of ``grid`` -> frame with its origin at cell (0, 0)
+    return np.array([[1, 0, -grid.origin[0]], [0, 1, -grid.origin[1]], [0, 0, 1.0]])

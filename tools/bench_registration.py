@@ -57,7 +57,20 @@ LABELS = {
 ROTSETS = ("step90", "any")
 ROT_TOL_DEG = 5.0
 WRONG_IOU = 0.5
-AMBIGUOUS_AT = 0.9  # fallback threshold on reg.ambiguity when the method gives no flag
+
+
+def _ambiguity_threshold() -> float:
+    """The backend's rejection threshold (UpdatesConfig.max_ambiguity): above it, a registration
+    is not used, i.e. it is flagged ambiguous."""
+    try:
+        from frslam_graph.config import UpdatesConfig
+
+        return float(UpdatesConfig().max_ambiguity)
+    except Exception:  # config not importable: the documented default
+        return 0.9
+
+
+AMBIGUOUS_AT = _ambiguity_threshold()
 
 
 # ------------------------------------------------------------------------------------ workers
@@ -92,7 +105,7 @@ def _is_ambiguous(reg: Any) -> bool:
     flag = reg.details.get("ambiguous") if isinstance(reg.details, dict) else None
     if flag is not None:
         return bool(flag)
-    return bool(reg.ambiguity >= AMBIGUOUS_AT)
+    return bool(reg.ambiguity > AMBIGUOUS_AT)
 
 
 def _evaluate(plan: Any, reg: Any, truth: np.ndarray) -> dict[str, Any]:
@@ -531,7 +544,8 @@ def main(argv: list[str] | None = None) -> int:
         f"rotation sets {rotsets}, seed {args.seed}; {len(r2v)} registrations. PRBonn: {n_prb} distortions "
         f"× {len(rotsets)} rotation sets × {len(comps)} crops. Workers {args.workers}, wall time {wall:.0f} s. "
         f"Rotation correct within {ROT_TOL_DEG:.0f}°; a failed registration counts as wrong flip/rotation "
-        f"and IoU_a 0. Wrong match = ok but wrong flip or rotation or IoU_a < {WRONG_IOU}.",
+        f"and IoU_a 0. Wrong match = ok but wrong flip or rotation or IoU_a < {WRONG_IOU}; flagged ambiguous = "
+        f"ambiguity > {AMBIGUOUS_AT:.2f} (the backend's UpdatesConfig.max_ambiguity).",
         "",
     ]
     if setup_errors:

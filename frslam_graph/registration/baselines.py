@@ -54,6 +54,19 @@ class MapImage:
     px_to_map: np.ndarray
     free_bbox: tuple[int, int, int, int]  # (c0, r0, c1, r1) of free pixels, inclusive-exclusive
 
+    def scaled(self, f: float) -> MapImage:
+        """The same map resampled by factor ``f`` (< 1 shrinks); transforms kept consistent."""
+        h, w = self.image.shape
+        size = (max(1, round(w * f)), max(1, round(h * f)))
+        fx, fy = size[0] / w, size[1] / h
+        img = cv2.resize(self.image, size, interpolation=cv2.INTER_AREA)
+        known = cv2.resize(self.known, size, interpolation=cv2.INTER_NEAREST)
+        # cv2 coords: x_s = (x + 0.5) * f - 0.5
+        back = np.array([[1 / fx, 0, 0.5 / fx - 0.5], [0, 1 / fy, 0.5 / fy - 0.5], [0, 0, 1.0]])
+        c0, r0, c1, r1 = self.free_bbox
+        bbox = (int(c0 * fx), int(r0 * fy), max(int(round(c1 * fx)), 1), max(int(round(r1 * fy)), 1))
+        return MapImage(img, known, self.px_to_map @ back, bbox)
+
 
 @dataclass(frozen=True)
 class PlanImage:
@@ -103,11 +116,23 @@ def plan_image(plan: Any, target_diag_px: float, wall_px: int = 2, max_side: int
             rings.append(np.round(xy * 16).astype(np.int32).reshape(-1, 1, 2))
     if wall_px > 0:
         cv2.polylines(img, rings, True, 0, thickness=wall_px, lineType=cv2.LINE_8, shift=4)
+        # doors between two rooms are open in a LiDAR map: open them in the plan image too
+        segs = [
+            np.array([d.a, d.b], float) @ to_px[:2, :2].T + to_px[:2, 2] - 0.5
+            for d in getattr(plan, "doors", ())
+            if len(set(d.rooms)) == 2
+        ]
+        if segs:
+            lines = [np.round(sg * 16).astype(np.int32).reshape(-1, 1, 2) for sg in segs]
+            cv2.polylines(img, lines, False, 255, thickness=wall_px + 2, lineType=cv2.LINE_8, shift=4)
+            img[rasterise_polygons(polys, frame) == 0] = 0  # never open a door to the outside
     shift = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]])
     return PlanImage(np.ascontiguousarray(img), shift @ to_px)
 
 
-def _prepare(plan: Any, grid: Any, method: str, t0: float) -> tuple[MapImage, PlanImage] | Registration:
+def _prepare(
+    plan: Any, grid: Any, method: str, t0: float, max_side: int = 0
+) -> tuple[MapImage, PlanImage] | Registration:
     if len(plan.rooms) == 0:
         return Registration.failure("plan has no rooms", method=method, time_s=time.perf_counter() - t0)
     mi = map_image(grid)
@@ -115,6 +140,8 @@ def _prepare(plan: Any, grid: Any, method: str, t0: float) -> tuple[MapImage, Pl
         return Registration.failure(
             "map has no free cells (empty or all unknown)", method=method, time_s=time.perf_counter() - t0
         )
+    if max_side and max(mi.image.shape) > max_side:
+        mi = mi.scaled(max_side / max(mi.image.shape))
     h, w = mi.image.shape
     return mi, plan_image(plan, math.hypot(h, w))
 
@@ -145,10 +172,11 @@ def register_features(
     plan: Any,
     grid: Any,
     kind: str = "orb",
-    ratio: float = 0.8,
+    ratio: float = 0.9,
     ransac_px: float = 4.0,
     min_inliers: int = 6,
     try_mirror: bool = True,
+    blur: float = 1.5,
     **_: Any,
 ) -> Registration:
     """Feature matching + RANSAC affine (``kind`` in orb / sift / akaze). See module docstring."""
@@ -165,13 +193,17 @@ def register_features(
         det, norm = _make_detector(kind)
     except ValueError as exc:
         return fail(str(exc))
-    kp_m, des_m = det.detectAndCompute(mi.image, None)
+    map_img, plan_img = mi.image, pi.image
+    if blur > 0:
+        map_img = cv2.GaussianBlur(map_img, (0, 0), blur)
+        plan_img = cv2.GaussianBlur(plan_img, (0, 0), blur)
+    kp_m, des_m = det.detectAndCompute(map_img, None)
     if des_m is None or len(kp_m) < 3:
         return fail(f"only {0 if des_m is None else len(kp_m)} keypoints in the map image")
     pts_m = np.float32([k.pt for k in kp_m])
     matcher = cv2.BFMatcher(norm)
-    hp = pi.image.shape[0]
-    variants = [(False, pi.image)] + ([(True, np.ascontiguousarray(pi.image[::-1]))] if try_mirror else [])
+    hp = plan_img.shape[0]
+    variants = [(False, plan_img)] + ([(True, np.ascontiguousarray(plan_img[::-1]))] if try_mirror else [])
     hyps: list[tuple[int, np.ndarray, int]] = []  # (inliers, plan px -> map px 3x3, n matches)
     for mirrored, img in variants:
         kp_p, des_p = det.detectAndCompute(img, None)
@@ -244,14 +276,16 @@ def register_ecc(
     plan: Any,
     grid: Any,
     levels: int = 3,
-    iterations: int = 60,
+    iterations: int = 40,
     refine_top: int = 2,
     blur: int = 5,
+    max_side: int = 256,
     **_: Any,
 ) -> Registration:
-    """ECC (affine) with 8 dihedral starts on a pyramid. See module docstring."""
+    """ECC (affine) with 8 dihedral starts on a pyramid; the map image is first shrunk to at most
+    ``max_side`` pixels (0: full resolution). See module docstring."""
     t0 = time.perf_counter()
-    prep = _prepare(plan, grid, "ecc", t0)
+    prep = _prepare(plan, grid, "ecc", t0, max_side=max_side)
     if isinstance(prep, Registration):
         return prep
     mi, pi = prep
