@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import multiprocessing
 import os
@@ -336,6 +337,10 @@ def _table(rows: list[dict[str, Any]], methods: list[str], title: str, ref: str 
         a = _agg(by.get(m, []))
         if a["n"] == 0:
             continue
+        reasons = {r["reason"] for r in by[m]}
+        if len(reasons) == 1 and "not available" in next(iter(reasons)):
+            out.append(f"| {LABELS[m]} | {a['n']} | n/a: {next(iter(reasons))} |" + " |" * 7)
+            continue
         ratio = f"{a['time_med'] / ref_t:.1f}×" if ref_t else "–"
         flagged = (f"{_pct(a['wrong_flagged'])} % of {a['wrong']}" if a["wrong"] else "no wrong matches") + (
             f" (right ones flagged: {_pct(a['right_flagged'])} %)"
@@ -471,7 +476,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--prbonn", type=int, default=10, help="PRBonn distortions per rotation set (0 = skip)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="write table.md, fig5.png, results.csv here")
+    ap.add_argument(
+        "--report", type=Path, default=None, help="re-render DIR/results.csv + DIR/meta.json, no run"
+    )
     args = ap.parse_args(argv)
+    if args.report:
+        meta = json.loads((args.report / "meta.json").read_text())
+        return report(_read_csv(args.report / "results.csv"), meta, args.out)
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = sorted(set(methods) - set(ALL_METHODS))
@@ -532,31 +543,78 @@ def main(argv: list[str] | None = None) -> int:
             if done % 10 == 0 or done == len(tasks):
                 print(f"  {done}/{len(tasks)} tasks, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
     wall = time.perf_counter() - t_start
+    meta = {
+        "cmd": "python tools/bench_registration.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "n_plans": len(plans),
+        "skipped": skipped,
+        "completeness": comps,
+        "rotsets": rotsets,
+        "seed": args.seed,
+        "n_prbonn": n_prb,
+        "workers": args.workers,
+        "wall_s": wall,
+        "setup_errors": [r["setup_error"] for r in setup_errors],
+        "methods": methods,
+    }
+    return report(rows, meta, args.out)
 
+
+def _read_csv(path: Path) -> list[dict[str, Any]]:
+    """Rows of a results.csv with their types restored."""
+    bools = ("ok", "flip_true", "flip_ok", "rot_ok", "wrong", "ambiguous")
+    floats = ("time_s", "sim_s", "iou_a", "score", "ambiguity", "rot_true_deg", "covered")
+    ints = ("completeness", "n_rooms", "plan_index", "n_explored")
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            row: dict[str, Any] = dict(r)
+            for k in bools:
+                row[k] = r.get(k) == "True"
+            for k in floats:
+                row[k] = float(r[k]) if r.get(k) not in (None, "") else 0.0
+            for k in ints:
+                row[k] = int(r[k]) if r.get(k) not in (None, "") else 0
+            row["rot_err_deg"] = float(r["rot_err_deg"]) if r.get("rot_err_deg") else ""
+            rows.append(row)
+    return rows
+
+
+def report(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path | None) -> int:
+    """Markdown tables (stdout and ``out/table.md``), ``out/fig5.png``, ``out/results.csv``."""
+    methods = [m for m in meta["methods"] if any(r["method"] == m for r in rows)]
+    comps, rotsets = meta["completeness"], meta["rotsets"]
     r2v = [r for r in rows if r["set"] == "r2v"]
     prb = [r for r in rows if r["set"] == "prbonn"]
-    cmd = "python tools/bench_registration.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         "### Registration benchmark (paper Table I / Fig. 5)",
         "",
-        f"Command: `{cmd}`  ",
-        f"R2V: {len(plans)} plans (skipped while selecting: {skipped or 'none'}), completeness {comps} %, "
-        f"rotation sets {rotsets}, seed {args.seed}; {len(r2v)} registrations. PRBonn: {n_prb} distortions "
-        f"× {len(rotsets)} rotation sets × {len(comps)} crops. Workers {args.workers}, wall time {wall:.0f} s. "
+        f"Command: `{meta['cmd']}`  ",
+        f"R2V: {meta['n_plans']} plans (skipped while selecting: {meta['skipped'] or 'none'}), completeness "
+        f"{comps} %, rotation sets {rotsets}, seed {meta['seed']}; {len(r2v)} registrations. PRBonn: "
+        f"{meta['n_prbonn']} distortions × {len(rotsets)} rotation sets × {len(comps)} crops. Workers "
+        f"{meta['workers']}, wall time {meta['wall_s']:.0f} s. "
         f"Rotation correct within {ROT_TOL_DEG:.0f}°; a failed registration counts as wrong flip/rotation "
         f"and IoU_a 0. Wrong match = ok but wrong flip or rotation or IoU_a < {WRONG_IOU}; flagged ambiguous = "
         f"ambiguity > {AMBIGUOUS_AT:.2f} (the backend's UpdatesConfig.max_ambiguity).",
         "",
     ]
-    if setup_errors:
+    if meta["setup_errors"]:
         lines += [
-            f"Cases that could not be built: {len(setup_errors)} (first: {setup_errors[0]['setup_error']})",
+            f"Cases that could not be built: {len(meta['setup_errors'])} (first: {meta['setup_errors'][0]})",
             "",
         ]
+    unavailable = {
+        m: rs[0]["reason"]
+        for m in methods
+        if (rs := [r for r in rows if r["method"] == m]) and all("not available" in r["reason"] for r in rs)
+    }
+    shown = [m for m in methods if m not in unavailable]
+    for m, why in unavailable.items():
+        lines += [f"{LABELS[m]}: not run — {why}.", ""]
     lines += _table(r2v, methods, "Table I — R2V, all cases")
     for rs in rotsets:
         lines += _table([r for r in r2v if r["rotset"] == rs], methods, f"R2V — rotation set {rs}")
-        lines += _completeness_table(r2v, methods, rs)
+        lines += _completeness_table(r2v, shown, rs)
     if prb:
         lines += _table(prb, methods, "PRBonn real gmapping map (all crops)")
         lines += _table([r for r in prb if r["completeness"] >= 100], methods, "PRBonn real map, full map")
@@ -580,18 +638,19 @@ def main(argv: list[str] | None = None) -> int:
         ]
     text = "\n".join(lines)
     print(text)
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "table.md").write_text(text + "\n")
+    if out:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "table.md").write_text(text + "\n")
+        (out / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
         keys = list(dict.fromkeys(k for r in rows for k in r))
-        with open(args.out / "results.csv", "w", newline="") as fh:
+        with open(out / "results.csv", "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=keys)
             w.writeheader()
             w.writerows(rows)
         if r2v:
-            _fig5(r2v, methods, args.out / "fig5.png")
+            _fig5(r2v, shown, out / "fig5.png")
         print(
-            f"\nwrote {args.out / 'table.md'}, {args.out / 'fig5.png'}, {args.out / 'results.csv'}",
+            f"\nwrote {out / 'table.md'}, {out / 'fig5.png'}, {out / 'results.csv'}",
             file=sys.stderr,
         )
     return 0
