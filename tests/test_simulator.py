@@ -140,6 +140,32 @@ def test_house_closed_door_blocks(plan):
         House.from_plan(plan, d, wall_thickness=-1.0)
 
 
+def test_house_opens_boundaries_without_plan_walls(plan):
+    """Plans with walls: a shared boundary no wall runs along is left open (open-plan rooms)."""
+    from dataclasses import replace
+
+    rings = [np.asarray(r.polygon.exterior.coords) for r in plan.rooms]
+    walls = np.vstack([np.hstack((c[:-1], c[1:])) for c in rings])
+    # drop the living/kitchen wall (x = 120, y in 0..80) and its door
+    keep = ~(
+        (np.abs(walls[:, 0] - 120) < 1e-9)
+        & (np.abs(walls[:, 2] - 120) < 1e-9)
+        & (walls[:, 1] < 81)
+        & (walls[:, 3] < 81)
+    )
+    open_plan = replace(plan, walls=walls[keep], doors=[d for d in plan.doors if d.id != "d0"])
+    d = Distortion(0.05)
+    h = House.from_plan(open_plan, d)
+    assert ("living", "kitchen") in h.open_boundaries
+    assert "kitchen" in h.adjacency()["living"]
+    line = shapely.LineString([(6.0, 0.3), (6.0, 3.7)])  # the missing wall, metres
+    assert not line.intersects(h.walls)
+    # without the plan's walls every boundary is a wall
+    h2 = House.from_plan(replace(open_plan, walls=None), d)
+    assert h2.open_boundaries == () and line.intersects(h2.walls)
+    assert "kitchen" not in h2.adjacency()["living"]
+
+
 def test_house_from_bad_dict():
     with pytest.raises(FloorPlanError, match="format"):
         House.from_dict({"format": "other"})
