@@ -56,22 +56,21 @@ ROOM_CATEGORIES = frozenset(
     }
 )
 MAX_ABS_COORD = 1e7
-_SHIFT = 4  # cv2 sub-pixel bits for drawing
-_ONE = 1 << _SHIFT
 
 
 @dataclass(frozen=True)
 class R2VOptions:
     """Tuning of the wall -> room reconstruction (lengths in plan pixels unless noted)."""
 
-    wall_px: int = 3  # thickness of drawn walls/doors, raster pixels
+    wall_px: int = 2  # thickness of drawn walls/doors, raster pixels
     max_raster: int = 4000  # longest image side; larger plans are rasterised coarser
     min_room_area: float = 60.0  # unlabelled regions smaller than this (plan px²) are dropped
     simplify: float = 1.0  # Douglas-Peucker tolerance of the room outlines
-    touch_px: float = 2.0  # a wall end closer than this to another segment is connected
+    touch_px: float = 6.0  # a wall end closer than this to another segment is joined to it
     snap_px: float = 12.0  # 'snap': extend dangling wall ends up to this far
     extend_frac: float = 0.25  # 'extend': up to this fraction of the plan's larger side
-    close_kernels: tuple[int, ...] = (5, 9, 15, 25)  # 'close<k>': closing kernel sizes, raster px
+    bridge_px: tuple[float, ...] = (25.0, 50.0, 100.0)  # 'bridge<k>': join loose ends to the nearest wall
+    close_kernels: tuple[int, ...] = ()  # 'close<k>': morphological closing kernels, raster px (off)
     split_multi_label: bool = True  # split a region holding several room labels between them
     repair: bool = True  # try the repair steps when a label is not enclosed (False: walls as drawn)
 
@@ -254,10 +253,6 @@ class _Frame:
         """Plan pixels -> continuous image coordinates (pixel (c, r) centre at (c + 0.5, r + 0.5))."""
         return (np.asarray(xy, dtype=np.float64) - (self.x0, self.y0)) * self.s
 
-    def fixed(self, xy: np.ndarray) -> np.ndarray:
-        """cv2 drawing coordinates (integer = pixel centre) in fixed point with _SHIFT bits."""
-        return np.round((self.to_img(xy) - 0.5) * _ONE).astype(np.int64)
-
 
 def _make_frame(data: R2VData, opts: R2VOptions) -> _Frame:
     pts = [data.walls.reshape(-1, 2), data.doors.reshape(-1, 2)]
@@ -273,13 +268,64 @@ def _make_frame(data: R2VData, opts: R2VOptions) -> _Frame:
     return _Frame(float(x0), float(y0), s, (h, w))
 
 
-def _draw_segments(img: np.ndarray, frame: _Frame, segs: np.ndarray, thickness: int) -> None:
+def _draw_segments(img: np.ndarray, frame: _Frame, segs: np.ndarray, thickness: float) -> None:
+    """Mark the pixels whose centres lie within ``thickness / 2`` of a segment.
+
+    Exact and symmetric: a wall on a pixel edge with thickness 2 covers one pixel on each side,
+    so the rooms on both sides meet on its centre line (cv2.line's thick lines are biased).
+    Axis-aligned segments get square caps (slices), slanted ones round caps (capsules)."""
     if len(segs) == 0:
         return
-    p = frame.fixed(segs[:, :2])
-    q = frame.fixed(segs[:, 2:])
-    for (a, b), (c, d) in zip(p.tolist(), q.tolist(), strict=True):
-        cv2.line(img, (a, b), (c, d), 255, thickness, cv2.LINE_8, _SHIFT)
+    hw = thickness / 2.0
+    h, w = img.shape
+    p = frame.to_img(segs[:, :2])
+    q = frame.to_img(segs[:, 2:])
+    lo = np.minimum(p, q) - hw
+    hi = np.maximum(p, q) + hw
+    # pixel c is inside [lo, hi] when its centre c + 0.5 is
+    c0 = np.clip(np.ceil(lo - 0.5), 0, (w, h)).astype(np.int64)
+    c1 = np.clip(np.floor(hi - 0.5) + 1, 0, (w, h)).astype(np.int64)
+    d = q - p
+    axis = (np.abs(d[:, 0]) < 1e-9) | (np.abs(d[:, 1]) < 1e-9)
+    for i in np.flatnonzero(axis).tolist():
+        img[c0[i, 1] : c1[i, 1], c0[i, 0] : c1[i, 0]] = 255
+    for i in np.flatnonzero(~axis).tolist():
+        (a, b), (dx, dy) = p[i], d[i]
+        if c1[i, 0] <= c0[i, 0] or c1[i, 1] <= c0[i, 1]:
+            continue
+        cx = np.arange(c0[i, 0], c1[i, 0]) + 0.5 - a
+        cy = np.arange(c0[i, 1], c1[i, 1]) + 0.5 - b
+        t = np.clip((cx[None, :] * dx + cy[:, None] * dy) / (dx * dx + dy * dy), 0.0, 1.0)
+        dist2 = (cx[None, :] - t * dx) ** 2 + (cy[:, None] - t * dy) ** 2
+        img[c0[i, 1] : c1[i, 1], c0[i, 0] : c1[i, 0]][dist2 <= hw * hw + 1e-9] = 255
+
+
+def _connectors(segs: np.ndarray, tol: float, dangling_above: float | None = None) -> np.ndarray:
+    """Short segments joining segment ends to other segments passing within ``tol``.
+
+    By default every end is joined to every segment within ``tol`` (annotation joints that miss
+    by a few pixels). With ``dangling_above``, only ends farther than that from every other
+    segment (loose ends) are joined, each to its nearest segment ('bridge' repair)."""
+    if len(segs) < 2:
+        return np.zeros((0, 4))
+    ends = np.concatenate([segs[:, :2], segs[:, 2:]])
+    own = np.tile(np.arange(len(segs)), 2)
+    a = segs[None, :, :2]
+    d = segs[None, :, 2:] - a
+    ap = ends[:, None, :] - a
+    dd = np.maximum((d * d).sum(-1), 1e-12)
+    t = np.clip((ap * d).sum(-1) / dd, 0.0, 1.0)
+    foot = a + t[..., None] * d  # (2N, N, 2) closest points
+    dist = np.linalg.norm(ends[:, None, :] - foot, axis=-1)
+    dist[np.arange(len(ends)), own] = np.inf
+    if dangling_above is None:
+        i, j = np.nonzero((dist > 1e-9) & (dist <= tol))
+    else:
+        j_all = np.argmin(dist, axis=1)
+        dmin = dist[np.arange(len(ends)), j_all]
+        i = np.flatnonzero((dmin > dangling_above) & (dmin <= tol))
+        j = j_all[i]
+    return np.concatenate([ends[i], foot[i, j]], axis=1)
 
 
 # --------------------------------------------------------------------------------- wall repair
@@ -335,17 +381,22 @@ def _extensions(
     return np.concatenate([ends, tips], axis=1)[found]
 
 
-def _wall_image(data: R2VData, frame: _Frame, opts: R2VOptions, stage: str, kernel: int = 0) -> np.ndarray:
+def _wall_image(data: R2VData, frame: _Frame, opts: R2VOptions, stage: str, size: float = 0.0) -> np.ndarray:
+    """Walls and doors drawn ``wall_px`` thick, joints closed within ``touch_px``; repair stages
+    add wall-end extensions ('snap', 'extend') and bridges from loose ends ('bridge')."""
     img = np.zeros(frame.shape, dtype=np.uint8)
-    _draw_segments(img, frame, data.walls, opts.wall_px)
-    _draw_segments(img, frame, data.doors, opts.wall_px)
+    segs = np.concatenate([data.walls, data.doors])
+    _draw_segments(img, frame, segs, opts.wall_px)
+    _draw_segments(img, frame, _connectors(segs, opts.touch_px), opts.wall_px)
     if stage == "plain":
         return img
     extent = max(frame.shape) / frame.s
     max_len = opts.snap_px if stage == "snap" else opts.extend_frac * extent
     _draw_segments(img, frame, _extensions(data, frame, img, max_len, opts), opts.wall_px)
-    if kernel:
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kernel, kernel))
+    if stage == "bridge":
+        _draw_segments(img, frame, _connectors(segs, size, dangling_above=opts.touch_px), opts.wall_px)
+    elif stage == "close":
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (int(size), int(size)))
         img = cv2.morphologyEx(img, cv2.MORPH_CLOSE, k)
     return img
 
@@ -387,25 +438,33 @@ class _Regions:
     comp: np.ndarray  # int32 connected components of the free space (0 = wall)
     outside: int
     assign: np.ndarray  # region of each label, -1 outside
+    stats: np.ndarray  # cv2 component stats (left, top, width, height, area)
 
 
 def _regions(walls_img: np.ndarray, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions) -> _Regions:
     free = (walls_img == 0).astype(np.uint8)
-    _, comp = cv2.connectedComponents(free, connectivity=4, ltype=cv2.CV_32S)
+    _, comp, stats, _ = cv2.connectedComponentsWithStats(free, connectivity=4, ltype=cv2.CV_32S)
     outside = int(comp[0, 0])  # the margin guarantees the corner is free and outside
-    return _Regions(comp, outside, _assign_labels(comp, outside, frame, labels, opts))
+    return _Regions(comp, outside, _assign_labels(comp, outside, frame, labels, opts), stats)
 
 
 def _geodesic_split(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Share ``mask`` between the seed labels (uint16, 0 = none) by geodesic (chessboard) growth."""
-    lab = np.where(mask, seeds, 0).astype(np.uint16)
+    """Share ``mask`` between the seed labels (uint16, 0 = none) by geodesic (4-connected)
+    distance: a marker flood (cv2.watershed) on an image that is flat inside the mask and a
+    wall outside it, so the flood fills the mask from the seeds before it crosses a wall."""
+    k = int(seeds.max())
+    img = np.zeros((*mask.shape, 3), dtype=np.uint8)
+    img[~mask] = 255
+    markers = np.where(mask, seeds, k + 1).astype(np.int32)
+    cv2.watershed(img, markers)
+    lab = np.where(mask & (markers > 0) & (markers <= k), markers, 0).astype(np.uint16)
     kernel = np.ones((3, 3), np.uint8)
-    todo = mask & (lab == 0)
-    while todo.any():
+    todo = mask & (lab == 0)  # the flood's dividing lines (-1) and anything unreached
+    for _ in range(4):
+        if not todo.any():
+            break
         dil = cv2.dilate(lab, kernel)
         grow = todo & (dil > 0)
-        if not grow.any():
-            break
         lab[grow] = dil[grow]
         todo &= ~grow
     return lab
@@ -417,9 +476,9 @@ def _room_image(
     """Final room label image (uint16; 0 = wall/dropped, `outside` id = outside), room types and
     the room label of each R2V label (0 = not found)."""
     comp, outside = reg.comp, reg.outside
-    n_comp = int(comp.max()) + 1
-    areas = np.bincount(comp.ravel(), minlength=n_comp).astype(np.float64) / frame.s**2
-    lut = np.zeros(n_comp, dtype=np.int64)  # component -> room label
+    n_comp = len(reg.stats)
+    areas = reg.stats[:, cv2.CC_STAT_AREA].astype(np.float64) / frame.s**2
+    lut = np.zeros(n_comp, dtype=np.int32)  # component -> room label
     types: dict[int, str] = {}
     label_room = np.zeros(len(labels), dtype=np.int64)
     next_id = 1
@@ -444,12 +503,12 @@ def _room_image(
             lut[region] = next_id
             types[next_id] = "unknown"
             next_id += 1
-    room = lut[comp].astype(np.int64)
     outside_id = next_id + len(labels) + 1
-    room[comp == outside] = outside_id
+    lut[outside] = outside_id
+    room = lut[comp]
     for region, idx in splits:
-        ys, xs = np.nonzero(comp == region)
-        r0, r1, c0, c1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        c0, r0, bw, bh = reg.stats[region, :4].tolist()
+        r1, c1 = r0 + bh, c0 + bw
         mask = comp[r0:r1, c0:c1] == region
         seeds = _centre_seeds(mask, _label_pixels(frame, [labels[i] for i in idx]) - (c0, r0))
         ids = []
@@ -459,7 +518,7 @@ def _room_image(
             label_room[i] = next_id
             next_id += 1
         part = _geodesic_split(mask, seeds)
-        ids_arr = np.array([0, *ids], dtype=np.int64)
+        ids_arr = np.array([0, *ids], dtype=np.int32)
         sub = room[r0:r1, c0:c1]
         sub[mask] = ids_arr[part[mask]]
     return room, types, label_room, outside_id
@@ -469,8 +528,14 @@ def _centre_seeds(mask: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """Seed image (uint16, k + 1 at seed k) with one pixel per (col, row) centre: the nearest
     pixel of ``mask`` not taken by an earlier seed."""
     seeds = np.zeros(mask.shape, dtype=np.uint16)
-    yy, xx = np.nonzero(mask)
+    h, w = mask.shape
+    yy = xx = None
     for k, (c, r) in enumerate(centres.tolist(), start=1):
+        if 0 <= r < h and 0 <= c < w and mask[r, c] and not seeds[r, c]:
+            seeds[r, c] = k
+            continue
+        if yy is None:
+            yy, xx = np.nonzero(mask)
         d2 = (yy - r) ** 2 + (xx - c) ** 2
         d2[seeds[yy, xx] > 0] = np.iinfo(d2.dtype).max
         j = int(np.argmin(d2))
@@ -483,16 +548,16 @@ def _merge_types(types: list[str]) -> str:
 
 
 def _absorb_walls(room: np.ndarray) -> np.ndarray:
-    """Give every 0 pixel (walls, dropped slivers) the label of the nearest labelled pixel."""
+    """Give every 0 pixel (walls, dropped slivers) the label of the nearest labelled pixel
+    (in place)."""
     zero = room == 0
     if not zero.any():
         return room
     src = zero.astype(np.uint8)
     _, idx = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
     values = room[~zero]  # raster order = the order OpenCV numbers the zero pixels of `src`
-    out = room.copy()
-    out[zero] = values[idx[zero] - 1]
-    return out
+    room[zero] = values[idx[zero] - 1]
+    return room
 
 
 # --------------------------------------------------------------------------------- building
@@ -504,8 +569,13 @@ def build_r2v(data: R2VData, options: R2VOptions | None = None, name: str = "") 
         raise FloorPlanError("no wall rows: rooms are built from walls, and this file has none", source=src)
     frame = _make_frame(data, opts)
     labels = data.labels
-    stages: list[tuple[str, str, int]] = [("plain", "plain", 0), ("snap", "snap", 0), ("extend", "extend", 0)]
-    stages += [(f"close{k}", "extend", k) for k in opts.close_kernels]
+    stages: list[tuple[str, str, float]] = [
+        ("plain", "plain", 0),
+        ("snap", "snap", 0),
+        ("extend", "extend", 0),
+    ]
+    stages += [(f"bridge{k:g}", "bridge", k) for k in opts.bridge_px]
+    stages += [(f"close{k}", "close", k) for k in opts.close_kernels]
     if not opts.repair:
         stages = stages[:1]
     best: tuple[int, str, np.ndarray, _Regions] | None = None
