@@ -116,6 +116,7 @@ class FRSlam:
         self._scan_odom: list[np.ndarray] = []
         self._was_degenerate = False
         self._angles_cache: tuple[float, float, int, np.ndarray] | None = None
+        self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
         # loop closure (frslam_graph.loop_closure), run on each keyframe before the update strategy
         from frslam_graph.loop_closure import LoopCloser
 
@@ -303,16 +304,24 @@ class FRSlam:
         return [k.points for k in self._kfs], [k.sensor_origin for k in self._kfs]
 
     def occupancy_grid(self, resolution: float = 0.05):
-        """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates."""
-        from frslam_graph.mapping import occupancy_grid
+        """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates.
 
-        if resolution <= 0 or not np.isfinite(resolution):
+        Incremental: one :class:`~frslam_graph.mapping.OccupancyMapper` per resolution is kept;
+        each call inserts the new keyframes and re-inserts those whose estimate moved.
+        """
+        from frslam_graph.mapping import OccupancyMapper
+
+        if not isinstance(resolution, int | float) or not np.isfinite(resolution) or resolution <= 0:
             raise ConfigError(
                 f"resolution must be a positive number of metres, got {resolution!r}", where="resolution"
             )
+        mapper = self._mappers.get(float(resolution))
+        if mapper is None:
+            mapper = self._mappers[float(resolution)] = OccupancyMapper(float(resolution))
         pts, origins = self.keyframe_scans()
         poses = self.graph.estimates() if self._kfs else np.zeros((0, 3))
-        return occupancy_grid(poses, pts, origins, resolution)
+        mapper.update(poses, pts, origins)
+        return mapper.grid()
 
     @property
     def stats(self) -> OdometryStats:

@@ -240,3 +240,29 @@ def test_bad_scan_input():
         slam.add_scan(0.0, np.ones(360), -np.pi, 0.0)
     with pytest.raises(RecordingError, match="stamp"):
         slam.add_scan(float("inf"), np.ones(360), -np.pi, 0.01)
+
+
+def test_incremental_occupancy_equals_one_shot(room):
+    """Adding keyframes, then moving some (as a prior would), gives exactly the one-shot map."""
+    from synthetic_world import to_points
+
+    from frslam_graph.mapping import OccupancyMapper, occupancy_arrays
+
+    truth, ranges, amin, inc, _ = room
+    idx = np.arange(0, len(truth), 8)
+    poses = truth[idx, 1:].copy()
+    scans = [to_points(ranges[i], amin, inc) for i in idx]
+    m = OccupancyMapper(0.05)
+    assert m.update(poses[:30], scans[:30]) == 30
+    assert m.update(poses[:30], scans[:30]) == 0  # nothing moved: nothing re-inserted
+    moved = poses.copy()
+    moved[10:20] = [compose(np.array([0.3, -0.2, 0.05]), p) for p in poses[10:20]]
+    assert m.update(moved, scans) == 10 + len(poses) - 30
+    data, res, origin = m.arrays()
+    ref, ref_res, ref_origin = occupancy_arrays(moved, scans, resolution=0.05)
+    assert res == ref_res and np.allclose(origin, ref_origin)
+    np.testing.assert_array_equal(data, ref)
+    # far away keyframe: the grid grows
+    far = np.vstack((moved, [[40.0, -30.0, 0.0]]))
+    m.update(far, [*scans, scans[0]])
+    assert m.grid().data.shape[1] > data.shape[1] + 500
