@@ -182,13 +182,15 @@ def _print_metrics(runs: dict[str, dict]) -> None:
             table.add_row(label, *vals)
 
     row("scans / keyframes", lambda m: f"{m['scans']} / {m['keyframes']}")
-    row("ATE RMSE [m] (SE(2)-aligned)", lambda m: f"{m['ate'].rmse:.3f}")
-    row("ATE RMSE [m] (no alignment)", lambda m: f"{m['ate_unaligned'].rmse:.3f}")
-    row("ATE max [m]", lambda m: f"{m['ate'].max:.3f}")
-    row("RPE 1 m trans [m]", lambda m: f"{m['rpe_1m']['trans_m'].rmse:.3f}")
-    row("RPE 1 m rot [deg]", lambda m: f"{m['rpe_1m']['rot_deg'].rmse:.2f}")
-    row("relations trans [m]", lambda m: f"{m['relations'].trans_mean:.4f} ± {m['relations'].trans_std:.4f}")
-    row("relations rot [deg]", lambda m: f"{m['relations'].rot_mean:.3f} ± {m['relations'].rot_std:.3f}")
+    row("ATE RMSE \\[m] (SE(2)-aligned)", lambda m: f"{m['ate'].rmse:.3f}")
+    row("ATE RMSE \\[m] (no alignment)", lambda m: f"{m['ate_unaligned'].rmse:.3f}")
+    row("ATE max \\[m]", lambda m: f"{m['ate'].max:.3f}")
+    row("RPE 1 m trans \\[m]", lambda m: f"{m['rpe_1m']['trans_m'].rmse:.3f}")
+    row("RPE 1 m rot \\[deg]", lambda m: f"{m['rpe_1m']['rot_deg'].rmse:.2f}")
+    row(
+        "relations trans \\[m]", lambda m: f"{m['relations'].trans_mean:.4f} ± {m['relations'].trans_std:.4f}"
+    )
+    row("relations rot \\[deg]", lambda m: f"{m['relations'].rot_mean:.3f} ± {m['relations'].rot_std:.3f}")
     row("relations matched / unmatched", lambda m: f"{m['relations'].matched} / {m['relations'].unmatched}")
     row(
         "priors added / rejected / removed",
@@ -199,7 +201,7 @@ def _print_metrics(runs: dict[str, dict]) -> None:
         ),
     )
     row(
-        "latency median / p99 [ms]",
+        "latency median / p99 \\[ms]",
         lambda m: f"{m['latency_ms']['median']:.2f} / {m['latency_ms']['p99']:.2f}",
     )
     row("× real time", lambda m: f"{m['realtime_factor']:.1f}")
