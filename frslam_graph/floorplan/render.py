@@ -84,14 +84,20 @@ def draw_plan(
     doors: bool = True,
     legend: bool = True,
     fontsize: float = 7.0,
+    colour_by: str = "auto",
 ) -> None:
-    """Draw ``plan`` into matplotlib axes ``ax`` (see module docstring)."""
+    """Draw ``plan`` into matplotlib axes ``ax`` (see module docstring).
+
+    ``colour_by``: "type" (legend of room types), "room" (one colour per room) or "auto" (by
+    room when every room has the same type, e.g. a room segmentation, else by type)."""
     from matplotlib.patches import Patch, PathPatch
     from matplotlib.path import Path as MplPath
 
     params = _affine(transform)
     used: dict[str, str] = {}
-    for room in plan.rooms:
+    if colour_by == "auto":
+        colour_by = "room" if len({r.type for r in plan.rooms}) <= 1 and len(plan.rooms) > 1 else "type"
+    for index, room in enumerate(plan.rooms):
         poly: Polygon = room.polygon
         if params is not None:
             poly = shapely.affinity.affine_transform(poly, params)
@@ -100,8 +106,11 @@ def draw_plan(
         codes = np.concatenate(
             [[MplPath.MOVETO] + [MplPath.LINETO] * (len(r) - 2) + [MplPath.CLOSEPOLY] for r in rings]
         )
-        colour = type_colour(room.type)
-        used[room.type] = colour
+        if colour_by == "room":
+            colour = _PALETTE[index % len(_PALETTE)]
+        else:
+            colour = type_colour(room.type)
+            used[room.type] = colour
         ax.add_patch(
             PathPatch(
                 MplPath(verts, codes), facecolor=colour, edgecolor="#555555", lw=0.6, alpha=alpha, zorder=1
@@ -122,7 +131,7 @@ def draw_plan(
         xs = np.column_stack([seg[:, 0], seg[:, 2], np.full(len(seg), np.nan)]).ravel()
         ys = np.column_stack([seg[:, 1], seg[:, 3], np.full(len(seg), np.nan)]).ravel()
         ax.plot(xs, ys, color="#d62728", lw=2.5, zorder=3, solid_capstyle="butt")
-    if legend and used:
+    if legend and (used or (doors and plan.doors)):
         handles = [
             Patch(facecolor=c, edgecolor="#555555", alpha=alpha, label=t) for t, c in sorted(used.items())
         ]
