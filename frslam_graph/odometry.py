@@ -182,6 +182,7 @@ class ScanOdometry:
         # state
         self._stamp: float | None = None
         self._dt_hist: list[float] = []
+        self._period = 0.0  # median of _dt_hist, refreshed every few scans
         self._last_dt = 0.0
         self._last_increment = np.zeros(3)
         self._prev_wheel: np.ndarray | None = None
@@ -202,7 +203,7 @@ class ScanOdometry:
 
     def nominal_period(self) -> float:
         """Median of recent scan periods (s); 0 before two scans."""
-        return float(np.median(self._dt_hist)) if self._dt_hist else 0.0
+        return self._period
 
     def process(
         self, stamp: float, points: np.ndarray, odom: tuple[float, float, float] | None = None
@@ -354,6 +355,8 @@ class ScanOdometry:
             self._dt_hist.append(dt)
             if len(self._dt_hist) > 50:
                 self._dt_hist.pop(0)
+            if len(self._dt_hist) < 10 or len(self._dt_hist) % 10 == 0 or self.stats.scans % 10 == 0:
+                self._period = float(np.median(self._dt_hist))
         return dropped
 
     def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:

@@ -366,10 +366,16 @@ class FRSlam:
         else:
             stamp = float(stamp_or_keyframe)
             kf, rel = self.keyframe_at(stamp)
-        p = np.asarray(pose, dtype=np.float64)
+        p = np.asarray(pose, dtype=np.float64).reshape(-1)
         cov = np.asarray(covariance, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise RecordingError(f"prior pose must be finite (x, y, theta), got {pose!r}", where="pose")
+        if not 0 <= kf < len(self._kfs):
+            raise RecordingError(f"no keyframe {kf} (have {len(self._kfs)})", where="keyframe")
         if np.any(rel != 0.0):
             # prior on the scan -> prior on its keyframe: kf = pose ⊕ rel⁻¹
+            if kind == "translation":  # the prior has no heading: use the estimated one
+                p = np.array([p[0], p[1], self.graph.estimate(kf)[2] + rel[2]])
             kf_pose = compose(p, inverse(rel))
             if kind == "full":  # tangent at the keyframe: ξ_kf = Ad(rel) ξ_scan
                 ad = np.asarray(gtsam.Pose2(*rel).AdjointMap())

@@ -143,8 +143,23 @@ def test_callable_strategy_and_wrong_prior_removal(room):
     good = compose(np.array([0.0, 0.05, 0.0]), slam.trajectory()[j, 1:])
     slam.add_floorplan_prior(float(truth[j, 0]), good, np.diag([1e-3**2, 1e-3**2, 1e-4**2]), kernel="none")
     np.testing.assert_allclose(slam.trajectory()[j, 1:3], good[:2], atol=0.005)
+    # a translation-only prior at another non-keyframe scan: its heading value is ignored
+    k = j + 60 if slam._scan_kf[j + 60] != slam._scan_kf[j + 59] else j + 61
+    k = k + 1 if np.all(slam._scan_rel[k] == 0.0) else k
+    before_k = slam.trajectory()[k, 1:]
+    target = np.array([before_k[0] + 0.04, before_k[1] - 0.03, 2.5])
+    slam.add_floorplan_prior(
+        float(truth[k, 0]), target, np.diag([1e-3**2, 1e-3**2, 1.0]), kind="translation", kernel="none"
+    )
+    after_k = slam.trajectory()[k, 1:]
+    np.testing.assert_allclose(after_k[:2], target[:2], atol=0.005)
+    assert abs(wrap(after_k[2] - before_k[2])) < 0.02
     with pytest.raises(RecordingError, match="stamp"):
         slam.add_floorplan_prior(12345.678, good, np.eye(3))
+    with pytest.raises(RecordingError, match="keyframe"):
+        slam.add_floorplan_prior(10**6, good, np.eye(3))
+    with pytest.raises(RecordingError, match="pose"):
+        slam.add_floorplan_prior(3, [1.0, np.nan, 0.0], np.eye(3))
 
 
 def test_faults_are_handled_and_logged(room):
