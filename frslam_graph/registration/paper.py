@@ -19,7 +19,9 @@ Reading of the paper used here (stated because the text is loose):
 * **Alg. 2.** Both images (cropped to their bounding boxes) are resized to ``size``×``size``
   (200), the plan image goes through the 8 morphological transformations (4 rotations by 90°,
   with and without a flip), IoU = S_inter / S_union (eq. 6) against the map image; the best IoU
-  over all subsets and transformations wins. The paper computes the areas with Harris corners +
+  over all subsets and transformations wins. Only these 8 transformations exist in the paper's
+  model: a map rotated by any other angle cannot be matched (the benchmark's "any angle" set
+  shows what that costs). The paper computes the areas with Harris corners +
   the shoelace formula (eq. 5); ``area="pixels"`` (default) counts pixels, which is what the
   polygon areas approximate; ``area="shoelace"`` applies eq. (5) to the vertices of the
   region's contours (``cv2.findContours`` vertices stand in for Harris corners).
