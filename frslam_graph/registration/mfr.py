@@ -73,6 +73,16 @@ def _dihedral(k: int, flipped: bool) -> np.ndarray:
     return r @ np.diag([1.0, -1.0 if flipped else 1.0])
 
 
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(M, K) distances from points (M, 2) to segments a–b (K, 2 each)."""
+    u = b - a
+    l2 = np.maximum((u * u).sum(axis=1), 1e-300)
+    rx = p[:, None, 0] - a[None, :, 0]
+    ry = p[:, None, 1] - a[None, :, 1]
+    t = np.clip((rx * u[None, :, 0] + ry * u[None, :, 1]) / l2[None, :], 0.0, 1.0)
+    return np.hypot(rx - t * u[None, :, 0], ry - t * u[None, :, 1])
+
+
 def _dominant_angle(vectors: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Direction modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors, weighted by length."""
     z = vectors[:, 0] + 1j * vectors[:, 1]
@@ -106,8 +116,10 @@ class MapObservation:
     bbox_aligned: np.ndarray  # x0, y0, x1, y1 in the frame rotated by -angle
     coarse_frame: RasterFrame
     coarse_footprint: np.ndarray
+    coarse_footprint_u8: np.ndarray
     edge_dt: np.ndarray  # metres to the nearest wall-side free cell (full resolution)
     edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
+    exit_points: np.ndarray  # (J, 2) free cells next to unobserved space outside the footprint
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -166,6 +178,12 @@ def observe_map(
     er, ec = np.nonzero(edge)
     stride = max(1, len(er) // max_edge_points)
     edge_points = (np.column_stack([ec[::stride], er[::stride]]).astype(np.float64) + 0.5) * res
+    # exits: where free space runs out of the observed area (open doorways, open-plan boundaries)
+    outside = (~footprint).astype(np.uint8)
+    exits = free & cv2.dilate(outside, cross).astype(bool)
+    xr, xc = np.nonzero(exits)
+    xs = max(1, len(xr) // 150)
+    exit_points = (np.column_stack([xc[::xs], xr[::xs]]).astype(np.float64) + 0.5) * res
 
     # dominant wall direction from the free-space edges
     fimg = cv2.GaussianBlur(free.astype(np.float32), (5, 5), 1.0)
@@ -205,8 +223,10 @@ def observe_map(
         bbox_aligned=bbox,
         coarse_frame=coarse_frame,
         coarse_footprint=block >= 0.5,
+        coarse_footprint_u8=(block >= 0.5).astype(np.uint8),
         edge_dt=edge_dt,
         edge_points=edge_points,
+        exit_points=exit_points,
     )
 
 
@@ -245,14 +265,17 @@ class PlanModel:
     room_holes: list[list[np.ndarray]]
     room_areas: np.ndarray
     perimeter: float
-    samples: np.ndarray  # (M, 2) boundary points (door openings left out)
+    samples: np.ndarray  # (M, 2) boundary points on walls (door openings, open-plan boundaries left out)
+    sample_step: float  # their spacing (plan units)
     sample_normals: np.ndarray  # (M, 2) unit inward normals
     sample_room: np.ndarray  # (M,) room index of each sample
     plan_dt: np.ndarray  # plan units to the nearest room boundary, on plan_frame
+    open_dt: np.ndarray | None  # plan units to the nearest opening (door, open-plan boundary)
     plan_frame: RasterFrame
     inner: np.ndarray  # (P, 2) grid points inside rooms
     inner_onehot: np.ndarray  # (P, n) their room
     inner_cell: float  # plan area per grid point
+    door_width: float  # median door width (plan units), 0 without doors
     coarse_samples: np.ndarray  # (M', 2) a subsample of ``samples``
     coarse_onehot: np.ndarray  # (M', n) their room
     extras: dict[str, Any] = field(default_factory=dict)
@@ -301,32 +324,72 @@ def prepare_plan(
     doors_list = list(plan.doors)
     door_rooms = link_doors(rooms, doors_list, 0.025 * diag)
     doors = np.array([[*d.a, *d.b] for d in doors_list], dtype=np.float64).reshape(-1, 4)
-    adj = adjacency_masks(rooms, door_rooms, mode=adjacency, touch_tol=0.01 * diag)
     perimeter = float(np.hypot(*(ends - starts).T).sum())
-    pts, nrm, owner = sample_boundaries(rings, perimeter / samples, doors, door_tol=0.012 * diag)
+    step = perimeter / samples
+    pts, nrm, owner = sample_boundaries(rings, step, doors, door_tol=0.012 * diag)
+    owner_room = ring_room_arr[owner]
+    bare_pts = np.zeros((0, 2))
+    # open plans: a room boundary no plan wall runs along is not a wall (and links the rooms)
+    walls = getattr(plan, "walls", None)
+    if walls is not None and len(walls):
+        segs = np.vstack([np.asarray(walls, dtype=np.float64).reshape(-1, 4), doors])
+        tol = 0.01 * diag
+        supported = _segment_distance(pts, segs[:, :2], segs[:, 2:]).min(axis=1) <= tol
+        bare = np.flatnonzero(~supported)
+        if len(bare):
+            d = _segment_distance(pts[bare], starts, ends)  # (U, E)
+            d[edge_room[None, :] == owner_room[bare, None]] = np.inf
+            nearest = np.full((len(bare), n), np.inf)
+            np.minimum.at(nearest.T, edge_room, d.T)
+            other = np.argmin(nearest, axis=1)
+            close = nearest[np.arange(len(bare)), other] <= tol
+            pairs = np.sort(np.column_stack([owner_room[bare][close], other[close]]), axis=1)
+            if len(pairs):
+                uniq, counts = np.unique(pairs, axis=0, return_counts=True)
+                # both rooms sample the shared stretch: half the count times the spacing
+                for (i, j), c in zip(uniq.tolist(), counts.tolist(), strict=True):
+                    if 0.5 * c * step >= 0.025 * diag:
+                        door_rooms.append((i, j))
+        bare_pts = pts[~supported]
+        pts, nrm, owner_room = pts[supported], nrm[supported], owner_room[supported]
+    adj = adjacency_masks(rooms, door_rooms, mode=adjacency, touch_tol=0.01 * diag)
     pres = diag / dt_px
     pframe = RasterFrame.around((minx, miny, maxx, maxy), pres, margin=0.05 * diag)
     lines = np.zeros(pframe.shape, np.uint8)
-    cv2.polylines(
-        lines,
-        [
-            np.round(((r - pframe.origin) / pres - 0.5) * _FIX).astype(np.int32).reshape(-1, 1, 2)
-            for r in rings
-        ],
-        True,
-        1,
-        lineType=cv2.LINE_8,
-        shift=_SHIFT,
-    )
+    cells = np.floor((pts - pframe.origin) / pres).astype(np.intp)
+    lines[np.clip(cells[:, 1], 0, pframe.height - 1), np.clip(cells[:, 0], 0, pframe.width - 1)] = 1
     plan_dt = cv2.distanceTransform(1 - lines, cv2.DIST_L2, 3) * np.float32(pres)
+    openings = np.zeros(pframe.shape, np.uint8)
+    for x1, y1, x2, y2 in doors:
+        a, b = (np.array([[x1, y1], [x2, y2]]) - pframe.origin) / pres - 0.5
+        cv2.line(
+            openings,
+            tuple(np.round(a * _FIX).astype(int)),
+            tuple(np.round(b * _FIX).astype(int)),
+            1,
+            1,
+            cv2.LINE_8,
+            _SHIFT,
+        )
+    if len(bare_pts):
+        cells = np.floor((bare_pts - pframe.origin) / pres).astype(np.intp)
+        openings[np.clip(cells[:, 1], 0, pframe.height - 1), np.clip(cells[:, 0], 0, pframe.width - 1)] = 1
+    open_dt = (
+        cv2.distanceTransform(1 - openings, cv2.DIST_L2, 3) * np.float32(pres) if openings.any() else None
+    )
     area = float(moments[:, 0].sum())
     cell = math.sqrt(area / inner_points)
     iframe = RasterFrame.around((minx, miny, maxx, maxy), cell)
     lab = _fill(room_rings, room_holes, range(n), np.eye(3), iframe, labels=True)
     ir, ic = np.nonzero(lab)
     inner = (np.column_stack([ic, ir]) + 0.5) * cell + iframe.origin
+    inner_room = lab[ir, ic] - 1
+    empty = np.setdiff1d(np.arange(n), inner_room)  # rooms too small for the grid: one point each
+    if len(empty):
+        extra = np.array([polys[i].representative_point().coords[0] for i in empty])
+        inner = np.vstack([inner, extra])
+        inner_room = np.concatenate([inner_room, empty])
     eye = np.eye(n)
-    owner_room = ring_room_arr[owner]
     cstride = max(1, len(pts) // coarse_samples)
     return PlanModel(
         ids=[r.id for r in rooms],
@@ -345,15 +408,20 @@ def prepare_plan(
         room_areas=moments[:, 0].copy(),
         perimeter=perimeter,
         samples=pts,
+        sample_step=step,
         sample_normals=nrm,
         sample_room=owner_room,
         plan_dt=plan_dt,
+        open_dt=open_dt,
         plan_frame=pframe,
         inner=inner,
-        inner_onehot=eye[lab[ir, ic] - 1],
+        inner_onehot=eye[inner_room].astype(np.float32),
         inner_cell=cell * cell,
+        door_width=float(np.median(np.hypot(doors[:, 2] - doors[:, 0], doors[:, 3] - doors[:, 1])))
+        if len(doors)
+        else 0.0,
         coarse_samples=pts[::cstride],
-        coarse_onehot=eye[owner_room[::cstride]],
+        coarse_onehot=eye[owner_room[::cstride]].astype(np.float32),
     )
 
 
@@ -392,7 +460,7 @@ class Hypothesis:
 
 
 def _coarse_hypotheses(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int
+    pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
 ) -> list[Hypothesis]:
     """The ``top_k`` (subset, dihedral case) pairs by shape-feature distance to the map, each
     with its moment-matched plan -> grid-frame matrix."""
@@ -421,8 +489,10 @@ def _coarse_hypotheses(
         f = _features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1)
         a = np.sqrt(mcov[0, 0] / vx)
         b = np.sqrt(mcov[1, 1] / vy)
-        cost = np.sum((f - fmap) ** 2, axis=1)
         ratio = b / a
+        # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
+        cost = np.sum((f - fmap) ** 2, axis=1) + 0.01 * np.log(ratio) ** 2
+        cost = cost - 0.01 * np.log(np.maximum(_door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
         costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
         a_all.append(a)
         b_all.append(b)
@@ -477,31 +547,76 @@ def _fill(
 
 
 def _lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
-    """Nearest-cell values of ``img`` (row 0 = lowest y) at metric points; ``fill`` outside."""
-    h, w = img.shape
-    c = np.floor((x - origin[0]) * (1.0 / resolution)).astype(np.intp)
-    r = np.floor((y - origin[1]) * (1.0 / resolution)).astype(np.intp)
-    ok = (c >= 0) & (r >= 0) & (c < w) & (r < h)
-    idx = np.clip(r, 0, h - 1) * w + np.clip(c, 0, w - 1)
-    return np.where(ok, img.ravel()[idx], fill)
+    """Nearest-cell values of ``img`` (row 0 = lowest y; uint8 or float32) at metric points
+    (x, y arrays of one shape, at most 32767 wide); ``fill`` outside (cv2.remap)."""
+    shape = x.shape
+    x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
+    y2 = y.reshape(x2.shape)
+    inv = np.float32(1.0 / resolution)
+    mx = (x2 - np.float32(origin[0])) * inv - np.float32(0.5)
+    my = (y2 - np.float32(origin[1])) * inv - np.float32(0.5)
+    out = cv2.remap(
+        img,
+        mx.astype(np.float32),
+        my.astype(np.float32),
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float(fill),
+    )
+    return out.reshape(shape)
 
 
 def _apply(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(H, 2, 2), (H, 2) affine maps applied to (P, 2) points: x, y arrays of shape (H, P)."""
-    px, py = pts[None, :, 0], pts[None, :, 1]
+    a = a.astype(np.float32)
+    t = t.astype(np.float32)
+    p = pts.astype(np.float32)
+    px, py = p[None, :, 0], p[None, :, 1]
     x = a[:, 0, 0, None] * px + a[:, 0, 1, None] * py + t[:, 0, None]
     y = a[:, 1, 0, None] * px + a[:, 1, 1, None] * py + t[:, 1, None]
     return x, y
 
 
-def _coarse_scores(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]) -> None:
+def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
+    """Plausibility (0..1] of a scale (metres per plan unit) from the plan's median door width:
+    1 while the door is ``door_width_m`` = (lo, hi) metres wide, a log-normal fall-off outside."""
+    scale = np.asarray(scale, dtype=np.float64)
+    if door_width_m is None or pm.door_width <= 0:
+        return np.ones_like(scale)
+    lo, hi = door_width_m
+    w = np.log(np.maximum(scale * pm.door_width, 1e-12))
+    excess = np.maximum(0.0, np.maximum(math.log(lo) - w, w - math.log(hi)))
+    return np.exp(-0.5 * (excess / 0.35) ** 2)
+
+
+def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
+    """(H,) 0.25 + 0.75 × share of the map's exits (free space running into unobserved space)
+    that land near a plan opening (door or open-plan boundary); 1 without exits or openings."""
+    exits = obs.exit_points if exits is None else exits
+    if pm.open_dt is None or len(exits) == 0:
+        return np.ones(len(ainv))
+    x, y = _apply(ainv, tinv, exits)
+    pf = pm.plan_frame
+    d = _lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9)
+    near = d < (np.maximum(tol, 0.3) / scale + pf.resolution)[:, None]
+    return 0.25 + 0.75 * near.mean(axis=1)
+
+
+def _coarse_scores(
+    pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], door_width_m=None, points: int | None = None
+) -> None:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
     IoU from the plan's interior grid points landing on the coarse footprint; precision from the
     boundary samples landing near a wall-side free cell; recall from the map's wall-side free
-    cells landing near a plan boundary (all at tolerance 1.5 coarse cells).
+    cells landing near a plan boundary (all at tolerance 1.5 coarse cells). ``points`` caps the
+    points of each kind (a cheaper first pass).
     """
     n = len(pm.ids)
+
+    def sub(arr: np.ndarray) -> np.ndarray:
+        return arr if points is None or len(arr) <= points else arr[:: int(math.ceil(len(arr) / points))]
+
     mats = np.stack([h.matrix for h in hyps])  # (H, 3, 3)
     a, t = mats[:, :2, :2], mats[:, :2, 2]
     det = np.abs(np.linalg.det(a))
@@ -509,27 +624,31 @@ def _coarse_scores(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]) -
     cf = obs.coarse_frame
     tol = 1.5 * cf.resolution
     # IoU
-    x, y = _apply(a, t, pm.inner)
-    on = _lookup(obs.coarse_footprint, x, y, cf.resolution, (0.0, 0.0), False)
-    per_room = on.astype(np.float64) @ pm.inner_onehot  # (H, n)
-    inter = (per_room * member).sum(axis=1) * pm.inner_cell * det
+    inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
+    x, y = _apply(a, t, inner)
+    on = _lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
+    frac = (on.astype(np.float32) @ inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    inter = (frac * member) @ pm.room_areas * det
     area_s = member @ pm.room_areas * det
-    iou = inter / np.maximum(area_s + obs.area - inter, 1e-12)
+    iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
     # precision
-    x, y = _apply(a, t, pm.coarse_samples)
-    near = _lookup(obs.edge_dt, x, y, obs.frame.resolution, (0.0, 0.0), np.float32(np.inf)) < tol
-    hits = near.astype(np.float64) @ pm.coarse_onehot  # (H, n)
-    counts = member @ pm.coarse_onehot.sum(axis=0)
+    samples, onehot = sub(pm.coarse_samples), sub(pm.coarse_onehot)
+    x, y = _apply(a, t, samples)
+    near = _lookup(obs.edge_dt, x, y, obs.frame.resolution, (0.0, 0.0), 1e9) < tol
+    hits = near.astype(np.float32) @ onehot  # (H, n)
+    counts = member @ onehot.sum(axis=0)
     precision = (hits * member).sum(axis=1) / np.maximum(counts, 1.0)
     # recall
     ainv = np.linalg.inv(a)
     tinv = -np.einsum("hij,hj->hi", ainv, t)
-    x, y = _apply(ainv, tinv, obs.edge_points)
+    edges = sub(obs.edge_points)
+    x, y = _apply(ainv, tinv, edges)
     pf = pm.plan_frame
-    dp = _lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, np.float32(np.inf))
+    dp = _lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
     tol_plan = tol / np.sqrt(det) + pf.resolution
-    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(obs.edge_points) else np.zeros(len(hyps))
-    key = iou * precision * recall
+    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(hyps))
+    exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
+    key = iou * precision * recall * exits * _door_prior(pm, np.sqrt(det), door_width_m)
     for h, i_, k_ in zip(hyps, iou, key, strict=True):
         h.coarse_iou = float(i_)
         h.key = float(k_)
@@ -616,7 +735,7 @@ def _refine_from(
     """Refine from ``init`` = (flipped, theta, sx, sy, tx, ty, delta) on a subsample of the plan's
     boundary samples about ``spacing_px`` map cells apart (at most ``max_points``)."""
     flipped, theta, sx, sy, tx, ty, delta = init
-    base = pm.perimeter / max(len(pm.samples), 1)  # plan units between samples
+    base = pm.sample_step  # plan units between samples
     want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
     stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
     return refine(
@@ -639,7 +758,9 @@ def _refine_from(
 DEFAULTS: dict[str, Any] = {
     "adjacency": "doors",  # room graph for subsets: doors | touch | both
     "max_aspect": 1.6,  # bound on sy/sx (plan aspect errors up to about ±30 %)
-    "top_k": 96,  # hypotheses (subset, dihedral case) scored on the coarse grid
+    "pool_k": 512,  # hypotheses (subset, dihedral case) kept by shape features, scored coarsely
+    "first_pass_points": 100,  # points of each kind in that first, cheap coarse pass
+    "top_k": 96,  # hypotheses scored on the coarse grid with all points
     "refine_k": 3,  # distinct hypotheses refined
     "max_subsets_per_level": 3000,
     "coarse_px": 80,
@@ -647,12 +768,13 @@ DEFAULTS: dict[str, Any] = {
     "max_points": 3000,
     "quick_points": 500,  # boundary samples when screening the refined hypotheses
     "iterations": 8,  # Gauss-Newton iterations per robust-scale stage
-    "delta": None,  # wall half-thickness prior (m); default one map cell
-    "delta_sigma": 0.1,
+    "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
+    "delta_sigma": 0.05,
     "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
     "min_score": 0.5,  # below this IoU x structure precision x recall: no match (another building)
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
+    "door_width_m": (0.5, 3.5),  # plausible median door opening (m); None: no scale prior
 }
 
 
@@ -674,6 +796,19 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
         return Registration.failure(
             f"internal error: {type(exc).__name__}: {exc}", METHOD, time.perf_counter() - t0
         )
+
+
+def _placement_prior(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, tol: float, opts: dict) -> float:
+    """Exit agreement × door-width plausibility of one placement (see :func:`_exit_factor`)."""
+    a, t = matrix[None, :2, :2], matrix[None, :2, 2]
+    if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(a[0])) <= 0:
+        return 0.0
+    ainv = np.linalg.inv(a)
+    tinv = -np.einsum("hij,hj->hi", ainv, t)
+    scale = np.sqrt(np.abs(np.linalg.det(a)))
+    return float(
+        _exit_factor(pm, obs, ainv, tinv, scale, tol)[0] * _door_prior(pm, scale, opts["door_width_m"])[0]
+    )
 
 
 def _room_bools(n: int, rooms) -> np.ndarray:
@@ -702,10 +837,16 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         if len(seeds) == 0:
             return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
     masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=opts["max_subsets_per_level"])
-    hyps = _coarse_hypotheses(pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["top_k"])
+    hyps = _coarse_hypotheses(
+        pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
+    )
     if not hyps:
         return fail("no room subset fits the map's shape within the aspect bound")
-    _coarse_scores(pm, obs, hyps)
+    if len(hyps) > opts["top_k"]:  # cheap first pass on a few points of each kind
+        _coarse_scores(pm, obs, hyps, opts["door_width_m"], points=opts["first_pass_points"])
+        hyps.sort(key=lambda h: -h.key)
+        hyps = hyps[: opts["top_k"]]
+    _coarse_scores(pm, obs, hyps, opts["door_width_m"])
     hyps.sort(key=lambda h: -h.key)
     t_coarse = time.perf_counter()
 
@@ -719,7 +860,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             continue
         chosen.append(h)
         covered |= same_as(h.matrix)
-    delta0 = opts["delta"] if opts["delta"] is not None else obs.frame.resolution
+    delta0 = float(opts["delta"])
     tol_f = max(3.0 * obs.frame.resolution, 0.1)
     for h in chosen:  # screen: coarse robust scales, few points, scored on the coarse grid
         flipped, theta, sx, sy, tx, ty = params_from_matrix(h.matrix)
@@ -728,13 +869,13 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             obs,
             (flipped, theta, sx, sy, tx, ty, delta0),
             opts,
-            scales=(0.4, 0.15),
+            scales=(0.2, 0.1),
             spacing_px=4.0,
             max_points=opts["quick_points"],
         )
         iou, rooms = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
         prec, rec = _structure(pm, obs, h.refined.matrix, _room_bools(n, rooms), tol_f)
-        h.quick = iou * prec * rec
+        h.quick = iou * prec * rec * _placement_prior(pm, obs, h.refined.matrix, tol_f, opts)
     chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
     r0 = best.refined
@@ -743,7 +884,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         obs,
         (r0.flipped, r0.theta, r0.sx, r0.sy, r0.tx, r0.ty, r0.delta),
         opts,
-        scales=(0.1, 0.05),
+        scales=(0.08, 0.05),
         spacing_px=opts["sample_px"],
         max_points=opts["max_points"],
     )

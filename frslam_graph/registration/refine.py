@@ -120,7 +120,8 @@ def refine(
     *,
     delta: float = 0.0,
     delta_sigma: float = 0.1,
-    delta_bounds: tuple[float, float] = (-0.15, 0.4),
+    delta_bounds: tuple[float, float] = (-0.1, 0.25),
+    fixed_delta_stages: int = 1,
     scales: tuple[float, ...] = (0.4, 0.15, 0.05),
     iterations: int = 8,
 ) -> RefineResult:
@@ -128,7 +129,9 @@ def refine(
     (N, 2, plan frame); see the module docstring.
 
     ``scales``: Cauchy scales (metres) of successive stages, coarse to fine (the last is floored
-    at two pixels). ``delta`` starts at the given value with a Gaussian prior of ``delta_sigma``.
+    at two pixels). ``delta`` starts at the given value with a Gaussian prior of ``delta_sigma``;
+    it is held fixed in the first ``fixed_delta_stages`` stages (wide robust scales would trade it
+    against the scales).
     """
     p = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -146,7 +149,8 @@ def refine(
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
     jac = np.empty((len(p), 6))
-    for c in stage_scales:
+    for stage, c in enumerate(stage_scales):
+        free_delta = stage >= fixed_delta_stages
         kn = None
         for it in range(iterations):
             cth, sth = math.cos(x[0]), math.sin(x[0])
@@ -171,7 +175,7 @@ def refine(
             jac[:, 2] = gy
             jac[:, 3] = (gx * cth + gy * sth) * ax
             jac[:, 4] = (gy * cth - gx * sth) * ay
-            jac[:, 5] = gx * nx + gy * ny
+            jac[:, 5] = (gx * nx + gy * ny) if free_delta else 0.0
             jw = jac * w_all[:, None]
             jtj = jac.T @ jw
             jtr = jw.T @ r
@@ -184,6 +188,8 @@ def refine(
             try:
                 step = -np.linalg.solve(a, jtr)
             except np.linalg.LinAlgError:
+                break
+            if not np.all(np.isfinite(step)):
                 break
             x = x + step
             x[5] = float(np.clip(x[5], *delta_bounds))
