@@ -1,7 +1,8 @@
 """Reading throughput of the recording readers on the shared logs and bag (Markdown table).
 
-For each recording: the median over ``--runs`` of opening it and iterating every scan, as scans
-per second and as a multiple of the recording's real time. Baselines timed in the same run:
+For each recording: the median over ``--runs`` of opening it and iterating every scan (wall and
+CPU time; CPU time is the steadier figure on a shared machine), as scans per CPU-second and as a
+multiple of the recording's real time. Baselines timed in the same run:
 for CARMEN logs, decompressing and splitting every line (the floor of any Python text reader);
 for the demo bag, rosbags' own indexed reader deserialising the same messages from a copy whose
 index records were repaired (rosbags cannot read the original).
@@ -73,13 +74,15 @@ def rosbags_read(path: Path) -> int:
     return n
 
 
-def median_time(fn, runs: int) -> tuple[float, object]:
-    times, out = [], None
+def median_time(fn, runs: int) -> tuple[float, float, object]:
+    """Median wall time, median CPU time of this process (robust on a shared machine), result."""
+    wall, cpu, out = [], [], None
     for _ in range(runs):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return statistics.median(wall), statistics.median(cpu), out
 
 
 def main() -> None:
@@ -90,23 +93,25 @@ def main() -> None:
     rows = []
     for name in ("intel", "fr079", "aces"):
         path = args.data / "carmen" / f"{name}.clf.bz2"
-        t, (n, duration) = median_time(lambda p=path: read_all(p), args.runs)
-        t_base, _ = median_time(lambda p=path: split_lines(p), args.runs)
-        rows.append((path.name, n, t, duration, "decompress + split lines", t_base))
+        t, c, (n, duration) = median_time(lambda p=path: read_all(p), args.runs)
+        _, c_base, _ = median_time(lambda p=path: split_lines(p), args.runs)
+        rows.append((path.name, n, t, c, duration, "decompress + split lines", c_base))
     bag = args.data / "bags" / "scan_tools_demo.bag"
-    t, (n, duration) = median_time(lambda: read_all(bag), args.runs)
+    t, c, (n, duration) = median_time(lambda: read_all(bag), args.runs)
     with tempfile.TemporaryDirectory() as tmp:
         fixed = repaired_copy(bag, Path(tmp) / "fixed.bag")
-        t_base, _ = median_time(lambda: rosbags_read(fixed), args.runs)
-    rows.append((bag.name, n, t, duration, "rosbags Reader on a repaired copy", t_base))
+        _, c_base, _ = median_time(lambda: rosbags_read(fixed), args.runs)
+    rows.append((bag.name, n, t, c, duration, "rosbags Reader on a repaired copy", c_base))
     print(f"Reading throughput, median of {args.runs} runs (open + iterate every scan)\n")
     print(
-        "| recording | scans | time (s) | scans/s | × real time | baseline | baseline (s) | time / baseline |"
+        "| recording | scans | wall (s) | CPU (s) | scans per CPU-s | × real time (CPU) "
+        "| baseline | baseline CPU (s) | CPU / baseline |"
     )
-    print("|---|---:|---:|---:|---:|---|---:|---:|")
-    for name, n, t, duration, base, t_base in rows:
+    print("|---|---:|---:|---:|---:|---:|---|---:|---:|")
+    for name, n, t, c, duration, base, c_base in rows:
         print(
-            f"| {name} | {n:,} | {t:.2f} | {n / t:,.0f} | {duration / t:,.0f} | {base} | {t_base:.2f} | {t / t_base:.1f} |"
+            f"| {name} | {n:,} | {t:.2f} | {c:.2f} | {n / c:,.0f} | {duration / c:,.0f} | {base} "
+            f"| {c_base:.2f} | {c / c_base:.1f} |"
         )
 
 
