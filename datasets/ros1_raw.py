@@ -33,7 +33,7 @@ OP_MSG, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 
 
 @dataclass(frozen=True)
 class RawConnection:
-    """One connection: id, topic, message type and its definition text."""
+    """One connection: id, topic, message type (``pkg/msg/Name``) and its definition text."""
 
     conn: int
     topic: str
@@ -211,6 +211,8 @@ class Ros1RawBag:
         fields = _fields(data, f"byte {offset}", self.path)
         topic = h.get("topic", fields.get("topic", b"")).decode("utf-8", "replace")
         msgtype = fields.get("type", b"").decode("utf-8", "replace")
+        parts = msgtype.split("/")  # ROS 1 names sensor_msgs/LaserScan; rosbags sensor_msgs/msg/LaserScan
+        msgtype = f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
         msgdef = fields.get("message_definition", b"").decode("utf-8", "replace")
         self.connections[conn] = RawConnection(conn, topic, msgtype, msgdef)
 

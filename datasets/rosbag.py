@@ -37,12 +37,6 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 _PC2_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
-def _normalise_type(msgtype: str) -> str:
-    """``sensor_msgs/LaserScan`` (ROS 1) -> ``sensor_msgs/msg/LaserScan``."""
-    parts = msgtype.split("/")
-    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
-
-
 def bag_path(path: Path) -> Path | None:
     """The bag inside ``path`` (file, rosbag2 folder or simulator folder), or None if none is."""
     if path.is_file() and path.suffix.lower() in (".bag", ".mcap", ".db3"):
@@ -123,11 +117,11 @@ class _RawSource:
         self.first_problem = self.bag.first_problem
 
     def topics(self) -> dict[str, tuple[str, int]]:
-        return {t: (_normalise_type(m), n) for t, (m, n) in self.bag.topics().items()}
+        return self.bag.topics()
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
         for c, t, raw in self.bag.messages(topics):
-            msgtype = _normalise_type(c.msgtype)
+            msgtype = c.msgtype
             try:
                 msg = self.bag.deserialize(raw, msgtype)
             except Exception as exc:  # corrupt message or unknown type: reported by the caller
