@@ -123,6 +123,7 @@ class UpdatesConfig(_Section):
     enabled: bool = True
     register_min_growth_m2: float = Field(4.0, ge=0.0)
     relocation_distance_D: float = Field(1.0, gt=0.0)
+    relocation_angle_deg: float = Field(30.0, gt=0.0)  # also relocalise after turning this much
     obstruction_speed: float = Field(0.02, ge=0.0)
     obstruction_time_s: float = Field(5.0, gt=0.0)
     max_ambiguity: float = Field(0.9, gt=0.0, le=1.0)
@@ -133,6 +134,7 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
+    max_walls_in_free_space: float = Field(0.04, ge=0.0, le=1.0)  # observed plan walls crossing free space
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
     max_registrations: int = Field(40, ge=1)
@@ -145,6 +147,8 @@ class UpdatesConfig(_Section):
     reloc_inlier_distance: float = Field(0.1, gt=0.0)
     wall_half_thickness: float = Field(0.06, ge=0.0)
     reloc_cov_inflation: float = Field(4.0, ge=1.0)
+    reloc_sigma_floor_xy: float = Field(0.02, gt=0.0)
+    reloc_sigma_floor_theta_deg: float = Field(0.3, gt=0.0)
     # chi2 gate: the estimate's marginal covariance plus drift since the last accepted prior
     gate_drift_frac: float = Field(0.05, ge=0.0)
     gate_drift_deg_per_m: float = Field(1.0, ge=0.0)
@@ -152,6 +156,9 @@ class UpdatesConfig(_Section):
     gate_sigma_theta_deg: float = Field(1.0, gt=0.0)
     # a prior whose residual after optimisation exceeds this chi2 is removed as proven wrong
     remove_chi2: float = Field(30.0, gt=0.0)
+    remove_min_xy: float = Field(0.15, ge=0.0)  # ... and is at least this far off (m)
+    remove_min_theta_deg: float = Field(3.0, ge=0.0)  # ... or turned (deg)
+    remove_max_share: float = Field(0.3, gt=0.0, le=1.0)  # more contradicted at once: keep all
     prior_kind: Literal["full", "translation"] = "full"
 
 
@@ -187,8 +194,8 @@ class LoopClosureConfig(_Section):
     coarse_step_xy: float = Field(0.3, gt=0.0)
     coarse_step_theta_deg: float = Field(1.5, gt=0.0)
     likelihood_sigma: float = Field(0.1, gt=0.0)
-    max_query_points: int = Field(200, ge=20)
-    icp_iterations: int = Field(15, ge=1)
+    max_query_points: int = Field(150, ge=20)
+    icp_iterations: int = Field(10, ge=1)
     icp_max_distance: float = Field(0.5, gt=0.0)
     inlier_distance: float = Field(0.1, gt=0.0)
     min_coarse_score: float = Field(0.62, ge=0.0, le=1.0)  # below it: rejected without ICP
@@ -199,8 +206,8 @@ class LoopClosureConfig(_Section):
     peak_separation_xy: float = Field(1.0, gt=0.0)
     peak_separation_theta_deg: float = Field(10.0, gt=0.0)
     # Large corrections need a second, consistent closure before entering the graph.
-    confirm_xy: float = Field(0.5, ge=0.0)
-    confirm_theta_deg: float = Field(5.0, ge=0.0)
+    confirm_xy: float = Field(0.15, ge=0.0)
+    confirm_theta_deg: float = Field(1.5, ge=0.0)
     consistency_xy: float = Field(0.3, gt=0.0)
     consistency_theta_deg: float = Field(3.0, gt=0.0)
     pending_keyframes: int = Field(30, ge=1)
@@ -210,7 +217,7 @@ class LoopClosureConfig(_Section):
     sigma_floor_xy: float = Field(0.02, gt=0.0)
     sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
     kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
-    kernel_param: float = Field(1.0, gt=0.0)
+    kernel_param: float = Field(4.0, gt=0.0)
     batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
 
 

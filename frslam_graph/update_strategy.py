@@ -38,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from frslam_graph.config import UpdatesConfig
@@ -54,7 +55,8 @@ class UpdateEvent:
 
     ``kind``: "register" (a registration was attempted; ``reason`` says accepted / why not),
     "registration_replaced", "relocalise", "prior_added", "prior_rejected", "prior_removed",
-    "obstructed".
+    "prior_conflict" (many priors contradicted at once: none removed), "registration_retracted"
+    (the grown map contradicts the accepted registration: its priors are removed), "obstructed".
     """
 
     stamp: float
@@ -101,6 +103,8 @@ class FloorPlanUpdater:
             window_theta=np.deg2rad(cfg.reloc_window_theta_deg),
             inlier_distance=cfg.reloc_inlier_distance,
             cov_inflation=cfg.reloc_cov_inflation,
+            sigma_floor_xy=cfg.reloc_sigma_floor_xy,
+            sigma_floor_theta=np.deg2rad(cfg.reloc_sigma_floor_theta_deg),
         )
         self._cover = np.zeros(0, dtype=np.int64)
         self._dist = 0.0  # metres travelled (odometry)
@@ -108,6 +112,8 @@ class FloorPlanUpdater:
         self._area_at_attempt = 0.0
         self._attempts = 0
         self._dist_at_reloc = 0.0
+        self._turn = 0.0  # radians turned (odometry)
+        self._turn_at_reloc = 0.0
         self._dist_at_prior = 0.0
         self._obstructed = False
         self._obstruction_reported = False
@@ -149,6 +155,8 @@ class FloorPlanUpdater:
         i = keyframe.index
         if self._last_odom is not None:
             self._dist += float(np.hypot(*(keyframe.pose_odom[:2] - self._last_odom[:2])))
+            dth = keyframe.pose_odom[2] - self._last_odom[2]
+            self._turn += abs(float((dth + np.pi) % (2 * np.pi) - np.pi))
         self._last_odom = np.asarray(keyframe.pose_odom, float).copy()
         points = slam.keyframe_scans()[0][i]
         self._update_coverage(keyframe.pose_map, points)
@@ -171,10 +179,13 @@ class FloorPlanUpdater:
                     reason = "progress obstructed"
         if reason is not None:
             self._register(slam, keyframe, reason)
-        elif self.accepted is not None and (
-            self._dist - self._dist_at_reloc >= cfg.relocation_distance_D or obstructed
-        ):
-            self._relocalise_current(slam, keyframe, "obstructed" if obstructed else "relocation distance")
+        elif self.accepted is not None:
+            if obstructed:
+                self._relocalise_current(slam, keyframe, "obstructed")
+            elif self._dist - self._dist_at_reloc >= cfg.relocation_distance_D:
+                self._relocalise_current(slam, keyframe, "relocation distance")
+            elif self._turn - self._turn_at_reloc >= np.deg2rad(cfg.relocation_angle_deg):
+                self._relocalise_current(slam, keyframe, "relocation angle")
 
     # ------------------------------------------------------------------ events
     def _event(
@@ -246,6 +257,8 @@ class FloorPlanUpdater:
         self._area_at_attempt = area
         stamp, i = float(keyframe.stamp), keyframe.index
         grid = slam.occupancy_grid(cfg.map_resolution)
+        if self.accepted is not None:
+            self._recheck_accepted(slam, keyframe, grid)
         try:
             reg = self.register_fn(self.plan, grid)
         except FrslamError as exc:
@@ -268,6 +281,50 @@ class FloorPlanUpdater:
             self._reanchor(slam, previous)
         self._try_prior(slam, keyframe, reloc, "registration accepted")
         self._dist_at_reloc = self._dist
+        self._turn_at_reloc = self._turn
+
+    def _recheck_accepted(self, slam, keyframe, grid) -> None:
+        """Retract the accepted registration when the grown map contradicts it (its walls cross
+        space the robot has seen free): its priors are removed and the next registration is
+        judged as a first one."""
+        cfg = self.config
+        acc = self.accepted
+        crossing = _walls_through_free_space(acc.relocaliser, grid)
+        if crossing <= cfg.max_walls_in_free_space:
+            return
+        why = (
+            f"registration {acc.id} contradicted by the map: {crossing:.0%} of its observed walls "
+            f"cross free space > {cfg.max_walls_in_free_space:.0%}"
+        )
+        self._event(
+            slam,
+            keyframe.stamp,
+            "registration_retracted",
+            why,
+            keyframe.index,
+            False,
+            walls_in_free_space=crossing,
+        )
+        self.accepted = None
+        self._remove_priors_of(slam, acc, why)
+        self._dist_at_prior = 0.0  # the trajectory is back on odometry: gate loosely
+
+    def _remove_priors_of(self, slam, acc: _Accepted, why: str) -> list:
+        tag = f"reloc:reg{acc.id}"
+        handles = [h for h in slam.graph.priors() if h.source == tag]
+        for h in handles:
+            slam.remove_prior(h, reason=why)
+            self._event(
+                slam,
+                slam.keyframe(h.keyframe).stamp,
+                "prior_removed",
+                why,
+                h.keyframe,
+                False,
+                mirror=False,
+                prior=h.id,
+            )
+        return handles
 
     def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float]):
         """Accept / reject a registration; returns (accepted, relocaliser, relocalisation) or None."""
@@ -293,6 +350,13 @@ class FloorPlanUpdater:
         nums["map_fit"] = fit
         if fit < cfg.min_map_fit:
             return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
+        crossing = _walls_through_free_space(relocaliser, grid)
+        nums["walls_in_free_space"] = crossing
+        if crossing > cfg.max_walls_in_free_space:
+            return reject(
+                f"{crossing:.0%} of the plan's observed walls cross free space in the map "
+                f"> {cfg.max_walls_in_free_space:.0%}"
+            )
         if self.accepted is not None:
             disp = _matrix_disagreement(self.plan, self.accepted.registration.matrix, reg.matrix)
             old_fit = self.accepted.relocaliser.fit_points(occ)
@@ -322,19 +386,7 @@ class FloorPlanUpdater:
 
     def _reanchor(self, slam, previous: _Accepted) -> None:
         """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""
-        tag = f"reloc:reg{previous.id}"
-        handles = [h for h in slam.graph.priors() if h.source == tag]
-        for h in handles:
-            slam.remove_prior(h, reason=f"registration {previous.id} replaced")
-            self._event(
-                slam,
-                slam.keyframe(h.keyframe).stamp,
-                "prior_removed",
-                f"registration {previous.id} replaced",
-                h.keyframe,
-                mirror=False,
-                prior=h.id,
-            )
+        handles = self._remove_priors_of(slam, previous, f"registration {previous.id} replaced")
         scans = slam.keyframe_scans()[0]
         for h in handles:
             kf = slam.keyframe(h.keyframe)
@@ -348,6 +400,7 @@ class FloorPlanUpdater:
         reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map)
         self.timings["relocalise"] += time.perf_counter() - t0
         self._dist_at_reloc = self._dist
+        self._turn_at_reloc = self._turn
         self._try_prior(slam, keyframe, reloc, why)
         self._check_priors(slam, keyframe.stamp)
 
@@ -415,29 +468,60 @@ class FloorPlanUpdater:
         self._event(slam, stamp, "prior_added", why, i, True, mirror=False, prior=handle.id, **nums)
 
     def _check_priors(self, slam, stamp: float) -> None:
-        """Remove priors whose residual after optimisation is far beyond their covariance."""
+        """Remove priors whose residual after optimisation is far beyond their covariance.
+
+        A prior is proven wrong when the rest of the graph (odometry and the other priors)
+        contradicts it. When a large share of the priors is contradicted at once, the culprit is
+        something else (e.g. a wrong loop closure bending the trajectory): then nothing is
+        removed and a "prior_conflict" event is logged instead.
+        """
         cfg = self.config
         handles = [h for h in slam.graph.priors() if h.source.startswith("reloc:")]
         if not handles:
             return
         slam.graph.estimates()  # fills the estimate cache for the residuals
+        bad = []
         for h in handles:
             res = slam.graph.prior_residual(h)
-            if res.chi2 > cfg.remove_chi2:
-                why = f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f} (weight {res.weight:.2f})"
-                slam.remove_prior(h, reason=why)
-                self._event(
-                    slam,
-                    stamp,
-                    "prior_removed",
-                    why,
-                    h.keyframe,
-                    False,
-                    mirror=False,
-                    prior=h.id,
-                    chi2=res.chi2,
-                    weight=res.weight,
-                )
+            e = np.asarray(res.error, float)
+            far = (len(e) >= 2 and float(np.hypot(e[0], e[1])) > cfg.remove_min_xy) or (
+                len(e) != 2 and abs(float(e[-1])) > np.deg2rad(cfg.remove_min_theta_deg)
+            )
+            if res.chi2 > cfg.remove_chi2 and far:
+                bad.append((h, res, e))
+        if not bad:
+            return
+        if len(bad) > max(1, cfg.remove_max_share * len(handles)):
+            self._event(
+                slam,
+                stamp,
+                "prior_conflict",
+                f"{len(bad)} of {len(handles)} priors contradicted at once: the trajectory, not the "
+                "priors, is suspect; none removed",
+                None,
+                False,
+                contradicted=len(bad),
+                priors=len(handles),
+            )
+            return
+        for h, res, e in bad:
+            why = (
+                f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f}, "
+                f"error {np.round(e, 3).tolist()} (weight {res.weight:.2f})"
+            )
+            slam.remove_prior(h, reason=why)
+            self._event(
+                slam,
+                stamp,
+                "prior_removed",
+                why,
+                h.keyframe,
+                False,
+                mirror=False,
+                prior=h.id,
+                chi2=res.chi2,
+                weight=res.weight,
+            )
 
 
 # --------------------------------------------------------------------------- helpers
@@ -457,6 +541,31 @@ def _occupied_points(grid, max_points: int = 4000) -> np.ndarray:
         k = np.linspace(0, len(rows) - 1, max_points).round().astype(np.intp)
         rows, cols = rows[k], cols[k]
     return grid.cell_to_world(np.column_stack((cols, rows)).astype(np.float64) + 0.5)
+
+
+def _walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2) -> float:
+    """Share of the plan's wall surface, where the map has observed it, that lies in free space
+    clear of any occupied cell (by ``margin`` metres). Near 0 for a right registration; a wrong
+    one draws walls across rooms the robot has seen empty."""
+    f = relocaliser.field
+    rows, cols = np.nonzero(np.abs(f.sdf) < 0.75 * f.frame.resolution)
+    if not len(rows):
+        return 1.0
+    if len(rows) > 20000:
+        k = np.linspace(0, len(rows) - 1, 20000).round().astype(np.intp)
+        rows, cols = rows[k], cols[k]
+    xy = f.frame.to_world(np.column_stack((cols + 0.5, rows + 0.5)))
+    cr = np.floor(grid.world_to_cell(xy)).astype(np.intp)
+    h, w = grid.shape
+    inside = (cr[:, 0] >= 0) & (cr[:, 0] < w) & (cr[:, 1] >= 0) & (cr[:, 1] < h)
+    cr = cr[inside]
+    occ = grid.occupied_mask().astype(np.uint8)
+    r = max(1, int(round(margin / grid.resolution)))
+    near = cv2.dilate(occ, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+    clear = grid.free_mask() & ~near
+    n_clear = int(clear[cr[:, 1], cr[:, 0]].sum())
+    n_near = int(near[cr[:, 1], cr[:, 0]].sum())
+    return n_clear / max(n_clear + n_near, 1)
 
 
 def _matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:

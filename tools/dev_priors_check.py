@@ -92,11 +92,18 @@ def main() -> None:
     ap.add_argument("--wrong-frac", type=float, default=0.25)
     ap.add_argument("--beams", type=int, default=720)
     ap.add_argument("--modes", nargs="+", default=["none", "plan", "other", "wrong"])
+    ap.add_argument(
+        "--wheel-only",
+        action="store_true",
+        help="no scan matching in the odometry (motion model on the wheel odometry, ~2 %% drift)",
+    )
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     plan = load_plan(args.plan)
     other = load_plan(args.other or ("r2v" if args.plan == "synthetic" else "synthetic"))
     cfg = FRSlamConfig()
+    if args.wheel_only:  # fewer valid points than this -> motion-model fallback instead of ICP
+        cfg = cfg.with_updates(odometry={"min_points": 10**9})
     print(
         "| seed | route m | mode | ATE RMSE m | ratio vs none | run s | registrations acc/tried | priors added/rejected/removed |"
     )
