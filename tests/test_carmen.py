@@ -275,6 +275,7 @@ def test_inspect_command(test_data, capsys):
     assert "FLASER" in out and "scans/s" in out and "180" in out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name, beams",
     [("intel", 180), ("fr079", 360), ("aces", 180)],
