@@ -140,6 +140,7 @@ def observe_map(
     obstacle_m2: float = 0.5,
     coarse_px: int = 80,
     max_edge_points: int = 400,
+    min_exit_m: float = 0.4,
 ) -> MapObservation | str:
     """Prepare ``grid`` (an OccupancyGrid); returns a failure reason string when unusable."""
     known_all = ~grid.unknown_mask()
@@ -181,6 +182,11 @@ def observe_map(
     # exits: where free space runs out of the observed area (open doorways, open-plan boundaries)
     outside = (~footprint).astype(np.uint8)
     exits = free & cv2.dilate(outside, cross).astype(bool)
+    # a doorway is wider than ~0.4 m; single missing wall cells are noise
+    m, lab3, st3, _ = cv2.connectedComponentsWithStats(exits.astype(np.uint8), connectivity=8)
+    wide = np.zeros(m, bool)
+    wide[1:] = np.maximum(st3[1:, cv2.CC_STAT_WIDTH], st3[1:, cv2.CC_STAT_HEIGHT]) * res >= min_exit_m
+    exits &= wide[lab3]
     xr, xc = np.nonzero(exits)
     xs = max(1, len(xr) // 150)
     exit_points = (np.column_stack([xc[::xs], xr[::xs]]).astype(np.float64) + 0.5) * res
@@ -586,7 +592,7 @@ def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
     lo, hi = door_width_m
     w = np.log(np.maximum(scale * pm.door_width, 1e-12))
     excess = np.maximum(0.0, np.maximum(math.log(lo) - w, w - math.log(hi)))
-    return np.exp(-0.5 * (excess / 0.35) ** 2)
+    return np.exp(-0.5 * (excess / 0.5) ** 2)
 
 
 def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
@@ -774,7 +780,7 @@ DEFAULTS: dict[str, Any] = {
     "min_score": 0.5,  # below this IoU x structure precision x recall: no match (another building)
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
-    "door_width_m": (0.5, 3.5),  # plausible median door opening (m); None: no scale prior
+    "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
 }
 
 
