@@ -59,6 +59,32 @@ def _polygons(geom: Any) -> list[Polygon]:
     return [g for g in shapely.get_parts(np.asarray([geom], dtype=object)) if isinstance(g, Polygon)]
 
 
+def _polygonal(geom: Any) -> Polygon | MultiPolygon:
+    """The polygonal part of a geometry as a Polygon or MultiPolygon (empty Polygon if none)."""
+    parts = [p for p in _polygons(geom) if p.area > 0.0]
+    if not parts:
+        return Polygon()
+    return parts[0] if len(parts) == 1 else MultiPolygon(parts)
+
+
+def _drop_slivers(walls: Any, e: float) -> Polygon | MultiPolygon:
+    """Walls without slivers thinner than ``2 e`` (left where a doorway grazes a wall, or where
+    rooms overlap): the pieces a morphological opening by ``e`` removes, except the tiny corner
+    chamfers the opening also cuts (perimeter < 6 e), so wall corners stay square.
+
+    Bevel joins: GEOS' negative mitre buffer loses whole rings of polygons with holes.
+    """
+    walls = _polygonal(walls)
+    if walls.is_empty:
+        return walls
+    opened = walls.buffer(-e, join_style="bevel").buffer(e, join_style="bevel")
+    residue = walls.difference(opened)
+    slivers = [g for g in _polygons(residue) if g.length > 6.0 * e]
+    if slivers:
+        walls = walls.difference(shapely.union_all(slivers))
+    return _polygonal(shapely.union_all([p for p in _polygons(walls) if p.area > 1e-6]))
+
+
 def _door_opening(a: np.ndarray, b: np.ndarray, depth: float) -> Polygon:
     """Rectangle spanning the door segment a–b, ``depth`` across the wall (centred)."""
     u = b - a
@@ -140,22 +166,17 @@ class House:
         rooms_free = shapely.union_all(list(eroded.values()))
         open_space = shapely.union_all([rooms_free, *openings])
         walls = envelope.difference(open_space)
-        # Drop slivers thinner than half a wall (left where a doorway only grazes a wall).
-        e = wall_thickness / 4.0
-        walls = (
-            walls.buffer(-e, join_style="mitre", mitre_limit=3.0)
-            .buffer(e, join_style="mitre", mitre_limit=3.0)
-            .intersection(envelope)
-        )
-        walls = shapely.union_all([p for p in _polygons(walls) if p.area > 1e-6])
+        walls = _drop_slivers(walls, wall_thickness / 4.0)
         rng = rng if rng is not None else np.random.default_rng(0)
         obstacles = _place_clutter(hplan, eroded, clutter, rng) if clutter else []
         free = envelope.difference(walls)
         free = free.difference(shapely.union_all(obstacles)) if obstacles else free
+        # Keep polygons only (set operations may leave stray lines / points in a collection).
+        free = _polygonal(free)
         room_free = {}
         for r in hplan.rooms:
             g = eroded[r.id]
-            room_free[r.id] = g.difference(shapely.union_all(obstacles)) if obstacles else g
+            room_free[r.id] = _polygonal(g.difference(shapely.union_all(obstacles)) if obstacles else g)
         walls_s = walls.simplify(1e-6)
         segments = np.vstack([polygon_segments(walls_s), *[polygon_segments(o) for o in obstacles]])
         if len(segments) == 0:

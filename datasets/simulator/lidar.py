@@ -185,7 +185,7 @@ class RayCaster:
             try:
                 self._scene = _build_scene(self.segments)
                 method = "open3d"
-            except ImportError:
+            except (ImportError, OSError):  # OSError: a system library open3d needs is missing
                 if method == "open3d":
                     raise ConfigError("open3d is not installed", where="lidar.method") from None
                 method = "sweep"
