@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "evaluate",
     "simulate",
     "register",
+    "navigate",
 )
 
 for _name in COMMAND_MODULES:

@@ -1,0 +1,71 @@
+"""``frslam navigate PLAN.json --from X Y --to ROOM --out path.png``: a path on a registered plan.
+
+The plan must be in metres (a registered plan, e.g. ``registered_plan.json`` written by
+``frslam run``); ``--to`` is a room id or ``X,Y`` in metres.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from frslam_graph.cli.app import app, console
+from frslam_graph.errors import FrslamError
+
+
+def _goal(text: str):
+    parts = text.replace(";", ",").split(",")
+    if len(parts) == 2:
+        try:
+            return (float(parts[0]), float(parts[1]))
+        except ValueError:
+            pass
+    return text
+
+
+@app.command("navigate")
+def navigate(
+    plan_path: Path = typer.Argument(..., help="Registered floor plan in metres (our JSON)."),
+    start: tuple[float, float] = typer.Option(..., "--from", help="Start x y in metres (map frame)."),
+    to: str = typer.Option(..., "--to", help="Goal: a room id, or X,Y in metres."),
+    out: Path = typer.Option(Path("path.png"), "--out", "-o", help="PNG to write."),
+    clearance: float = typer.Option(0.25, help="Minimum distance from walls (m)."),
+    resolution: float = typer.Option(0.05, help="Planning grid resolution (m)."),
+) -> None:
+    """Plan a path through the plan's doors to a room (or point); print length and rooms."""
+    from matplotlib.figure import Figure
+
+    from frslam_graph.floorplan import FloorPlan
+    from frslam_graph.floorplan.render import draw_plan
+    from frslam_graph.navigation import plan_path as plan_route
+    from frslam_graph.navigation import room_graph
+
+    plan = FloorPlan.load(plan_path)
+    goal = _goal(to)
+    path = plan_route(plan, start, goal, grid_resolution=resolution, clearance=clearance)
+    fig = Figure(figsize=(9, 8))
+    ax = fig.add_subplot(1, 1, 1)
+    draw_plan(ax, plan, alpha=0.35)
+    ax.plot([start[0]], [start[1]], "go", ms=8, label="start")
+    if path.ok:
+        ax.plot(path.points[:, 0], path.points[:, 1], "r-", lw=2, label=f"path {path.length:.2f} m")
+        ax.plot([path.points[-1, 0]], [path.points[-1, 1]], "r*", ms=12, label="goal")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(f"{plan_path.name}: to {to}")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    if not path.ok:
+        links = room_graph(plan)
+        doors = ", ".join(f"{a}-{b}" for a in sorted(links) for b in sorted(links[a]) if a < b) or "none"
+        raise FrslamError(
+            f"no path: {path.reason} (doors: {doors}); wrote {out}", source=plan_path, where="--to"
+        )
+    console.print(
+        f"path of {path.length:.2f} m through {' -> '.join(path.rooms) or 'no room'} "
+        f"({len(path.points)} points); wrote {out}"
+    )
