@@ -315,6 +315,8 @@ def prepare_plan(
     edge_room = ring_room_arr[edge_ring]
     n = len(rooms)
     angle = _dominant_angle(ends - starts)
+    if abs(angle) < math.radians(0.5):  # a plan drawn axis-aligned: its own axes, exactly
+        angle = 0.0
     rot = _rot(-angle)
     moments = rings_moments(starts @ rot.T, ends @ rot.T, edge_room, n)
     xy = starts @ rot.T
@@ -731,22 +733,29 @@ def _structure(
 def _refine_from(
     pm: PlanModel,
     obs: MapObservation,
-    init: tuple,
+    matrix: np.ndarray,
+    delta: float,
     opts: dict,
     *,
     scales: tuple,
     spacing_px: float,
     max_points: int,
 ) -> RefineResult:
-    """Refine from ``init`` = (flipped, theta, sx, sy, tx, ty, delta) on a subsample of the plan's
-    boundary samples about ``spacing_px`` map cells apart (at most ``max_points``)."""
-    flipped, theta, sx, sy, tx, ty, delta = init
+    """Refine the placement ``matrix`` (plan -> grid frame) on a subsample of the plan's boundary
+    samples about ``spacing_px`` map cells apart (at most ``max_points``).
+
+    The scales act along the plan's wall directions: the plan is first turned by ``-pm.angle``
+    (zero for plans drawn axis-aligned); the result's matrix includes that turn.
+    """
+    pre = np.eye(3)
+    pre[:2, :2] = _rot(-pm.angle)
+    flipped, theta, sx, sy, tx, ty = params_from_matrix(matrix @ pre.T)
     base = pm.sample_step  # plan units between samples
     want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
     stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
-    return refine(
-        pm.samples[::stride],
-        pm.sample_normals[::stride],
+    r = refine(
+        pm.samples[::stride] @ pre[:2, :2].T,
+        pm.sample_normals[::stride] @ pre[:2, :2].T,
         obs.field,
         flipped,
         theta,
@@ -759,6 +768,8 @@ def _refine_from(
         scales=scales,
         iterations=opts["iterations"],
     )
+    r.pre = pre
+    return r
 
 
 DEFAULTS: dict[str, Any] = {
@@ -777,7 +788,8 @@ DEFAULTS: dict[str, Any] = {
     "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
     "delta_sigma": 0.05,
     "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
-    "min_score": 0.5,  # below this IoU x structure precision x recall: no match (another building)
+    "min_score": 0.25,  # below this IoU x structure precision x recall: no match (another building)
+    "min_recall": 0.5,  # share of the map's walls the placed plan must explain
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
     "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
@@ -869,11 +881,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     delta0 = float(opts["delta"])
     tol_f = max(3.0 * obs.frame.resolution, 0.1)
     for h in chosen:  # screen: coarse robust scales, few points, scored on the coarse grid
-        flipped, theta, sx, sy, tx, ty = params_from_matrix(h.matrix)
         h.refined = _refine_from(
             pm,
             obs,
-            (flipped, theta, sx, sy, tx, ty, delta0),
+            h.matrix,
+            delta0,
             opts,
             scales=(0.2, 0.1),
             spacing_px=4.0,
@@ -888,7 +900,8 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     best.refined = _refine_from(
         pm,
         obs,
-        (r0.flipped, r0.theta, r0.sx, r0.sy, r0.tx, r0.ty, r0.delta),
+        r0.matrix,
+        r0.delta,
         opts,
         scales=(0.08, 0.05),
         spacing_px=opts["sample_px"],
@@ -933,7 +946,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         "time_fine_s": t_fine - t_coarse,
     }
     candidates = [
-        (float(h.quick), bool(h.refined.flipped), _wrap_deg(math.degrees(h.refined.theta))) for h in chosen
+        (
+            float(h.quick),
+            *(lambda f, r: (bool(f), _wrap_deg(math.degrees(r))))(*params_from_matrix(h.refined.matrix)[:2]),
+        )
+        for h in chosen
     ]
     reg = Registration.from_matrix(
         matrix,
@@ -945,11 +962,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         candidates=candidates,
         details=details,
     )
-    if quality < opts["min_score"]:
+    if quality < opts["min_score"] or rec < opts["min_recall"]:
         reg.ok = False
         reg.reason = (
             f"no match: IoU {best.score:.2f} x wall precision {prec:.2f} x recall {rec:.2f} = {quality:.2f} "
-            f"< {opts['min_score']} (a plan of another building?)"
+            f"(needs >= {opts['min_score']} and recall >= {opts['min_recall']}; a plan of another building?)"
         )
     reg.time_s = time.perf_counter() - t0
     return reg

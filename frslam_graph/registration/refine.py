@@ -101,10 +101,12 @@ class RefineResult:
     n_points: int
     covariance: np.ndarray | None  # (x, y, theta)
     covariance_full: np.ndarray | None  # (theta, tx, ty, lsx, lsy, delta)
+    pre: np.ndarray | None = None  # 3×3 applied to plan points before the parametrised transform
 
     @property
     def matrix(self) -> np.ndarray:
-        return matrix_from_params(self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty)
+        m = matrix_from_params(self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty)
+        return m if self.pre is None else m @ self.pre
 
 
 def refine(
