@@ -117,6 +117,7 @@ class MapObservation:
     coarse_frame: RasterFrame
     coarse_footprint: np.ndarray
     coarse_footprint_u8: np.ndarray
+    footprint_u8: np.ndarray
     edge_dt: np.ndarray  # metres to the nearest wall-side free cell (full resolution)
     edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
     exit_points: np.ndarray  # (J, 2) free cells next to unobserved space outside the footprint
@@ -141,6 +142,7 @@ def observe_map(
     coarse_px: int = 80,
     max_edge_points: int = 400,
     min_exit_m: float = 0.4,
+    max_exit_m: float = 2.5,
 ) -> MapObservation | str:
     """Prepare ``grid`` (an OccupancyGrid); returns a failure reason string when unusable."""
     known_all = ~grid.unknown_mask()
@@ -182,14 +184,12 @@ def observe_map(
     # exits: where free space runs out of the observed area (open doorways, open-plan boundaries)
     outside = (~footprint).astype(np.uint8)
     exits = free & cv2.dilate(outside, cross).astype(bool)
-    # a doorway is wider than ~0.4 m; single missing wall cells are noise
-    m, lab3, st3, _ = cv2.connectedComponentsWithStats(exits.astype(np.uint8), connectivity=8)
-    wide = np.zeros(m, bool)
-    wide[1:] = np.maximum(st3[1:, cv2.CC_STAT_WIDTH], st3[1:, cv2.CC_STAT_HEIGHT]) * res >= min_exit_m
-    exits &= wide[lab3]
-    xr, xc = np.nonzero(exits)
-    xs = max(1, len(xr) // 150)
-    exit_points = (np.column_stack([xc[::xs], xr[::xs]]).astype(np.float64) + 0.5) * res
+    # doorway-like exits: 0.4 to 2.5 m across (single missing wall cells are noise; big ragged
+    # openings are gaps in what the sensor saw, not doors); one point (centroid) per doorway
+    m, _, st3, cen3 = cv2.connectedComponentsWithStats(exits.astype(np.uint8), connectivity=8)
+    span = np.maximum(st3[1:, cv2.CC_STAT_WIDTH], st3[1:, cv2.CC_STAT_HEIGHT]) * res
+    door_like = (span >= min_exit_m) & (span <= max_exit_m)
+    exit_points = (cen3[1:][door_like] + 0.5) * res
 
     # dominant wall direction from the free-space edges
     fimg = cv2.GaussianBlur(free.astype(np.float32), (5, 5), 1.0)
@@ -230,6 +230,7 @@ def observe_map(
         coarse_frame=coarse_frame,
         coarse_footprint=block >= 0.5,
         coarse_footprint_u8=(block >= 0.5).astype(np.uint8),
+        footprint_u8=footprint.astype(np.uint8),
         edge_dt=edge_dt,
         edge_points=edge_points,
         exit_points=exit_points,
@@ -598,8 +599,8 @@ def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
 
 
 def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
-    """(H,) 0.25 + 0.75 × share of the map's exits (free space running into unobserved space)
-    that land near a plan opening (door or open-plan boundary); 1 without exits or openings."""
+    """(H,) 0.5 + 0.5 × share of the map's doorway-like exits (free space running into unobserved
+    space) that land near a plan opening (door or open-plan boundary); 1 without either."""
     exits = obs.exit_points if exits is None else exits
     if pm.open_dt is None or len(exits) == 0:
         return np.ones(len(ainv))
@@ -607,7 +608,7 @@ def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: flo
     pf = pm.plan_frame
     d = _lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9)
     near = d < (np.maximum(tol, 0.3) / scale + pf.resolution)[:, None]
-    return 0.25 + 0.75 * near.mean(axis=1)
+    return 0.5 + 0.5 * near.mean(axis=1)
 
 
 def _coarse_scores(
@@ -639,13 +640,13 @@ def _coarse_scores(
     inter = (frac * member) @ pm.room_areas * det
     area_s = member @ pm.room_areas * det
     iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
-    # precision
-    samples, onehot = sub(pm.coarse_samples), sub(pm.coarse_onehot)
+    # precision: plan walls that land on the observed area must be walls of the map
+    samples = sub(pm.coarse_samples)
     x, y = _apply(a, t, samples)
-    near = _lookup(obs.edge_dt, x, y, obs.frame.resolution, (0.0, 0.0), 1e9) < tol
-    hits = near.astype(np.float32) @ onehot  # (H, n)
-    counts = member @ onehot.sum(axis=0)
-    precision = (hits * member).sum(axis=1) / np.maximum(counts, 1.0)
+    res = obs.frame.resolution
+    inside = _lookup(obs.footprint_u8, x, y, res, (0.0, 0.0), 0) > 0
+    near = (_lookup(obs.edge_dt, x, y, res, (0.0, 0.0), 1e9) < tol) & inside
+    precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
     # recall
     ainv = np.linalg.inv(a)
     tinv = -np.einsum("hij,hj->hi", ainv, t)
@@ -688,32 +689,26 @@ def _structure(
     pm: PlanModel,
     obs: MapObservation,
     matrix: np.ndarray,
-    rooms: np.ndarray,
     tol: float,
     max_points: int = 300,
 ) -> tuple[float, float]:
     """(precision, recall) of the room structure under a placement, within ``tol`` metres.
 
-    precision: share of the boundary samples of ``rooms`` (bool per room) that land near a
-    wall-side free cell of the map; recall: share of the map's wall-side free cells that land
+    precision: share of the plan's wall samples landing on the observed footprint that land near
+    a wall-side free cell of the map (unobserved rooms' walls off the footprint do not count); recall: share of the map's wall-side free cells that land
     near a boundary of any plan room. A room stretched over several observed rooms explains
     the outline but not the inner walls: its recall is low.
     """
     res = obs.frame.resolution
-    sel = rooms[pm.sample_room]
-    pts = pm.samples[sel]
+    pts = pm.samples
     if len(pts) == 0 or len(obs.edge_points) == 0:
         return 0.0, 0.0
     pts = pts[:: max(1, len(pts) // max_points)]
     a, t = matrix[:2, :2], matrix[:2, 2]
     q = pts @ a.T + t
-    h, w = obs.edge_dt.shape
-    c = np.floor(q[:, 0] / res).astype(np.intp)
-    r = np.floor(q[:, 1] / res).astype(np.intp)
-    ok = (c >= 0) & (r >= 0) & (c < w) & (r < h)
-    d = np.full(len(q), np.inf, np.float32)
-    d[ok] = obs.edge_dt[r[ok], c[ok]]
-    precision = float(np.mean(d < tol))
+    inside = _lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
+    d = _lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)
+    precision = float(np.sum((d < tol) & inside) / max(int(inside.sum()), 1))
     det = abs(float(np.linalg.det(a)))
     if det <= 0:
         return precision, 0.0
@@ -728,6 +723,32 @@ def _structure(
     dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
     recall = float(np.mean(dp < tol + pf.resolution * math.sqrt(det)))
     return precision, recall
+
+
+def _local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opts: dict) -> None:
+    """Coordinate search on the coarse key over each map axis's scale and shift (about the
+    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis."""
+    rm = np.eye(3)
+    rm[:2, :2] = _rot(obs.angle)
+    c = _rot(-obs.angle) @ obs.centroid
+    ext = obs.bbox_aligned[2:] - obs.bbox_aligned[:2]
+    rounds = (((0.85, 0.92, 1.0, 1.08, 1.17), 0.08), ((0.96, 0.98, 1.0, 1.02, 1.04), 0.03))
+    for h in hyps:
+        for factors, shift in rounds:
+            for axis in (0, 1):
+                trials = []
+                for f in factors:
+                    for sh in (-shift, 0.0, shift):
+                        d = np.eye(3)
+                        d[axis, axis] = f
+                        d[axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+                        trials.append(
+                            Hypothesis(h.mask, h.k, h.flipped, rm @ d @ rm.T @ h.matrix, h.feature_cost)
+                        )
+                _coarse_scores(pm, obs, trials, opts["door_width_m"])
+                top = max(trials, key=lambda t: t.key)
+                if top.key > h.key:
+                    h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
 
 
 def _refine_from(
@@ -779,6 +800,7 @@ DEFAULTS: dict[str, Any] = {
     "first_pass_points": 100,  # points of each kind in that first, cheap coarse pass
     "top_k": 96,  # hypotheses scored on the coarse grid with all points
     "refine_k": 3,  # distinct hypotheses refined
+    "search_below_iou": 0.85,  # search scales and shifts when the best coarse IoU is below this
     "max_subsets_per_level": 3000,
     "coarse_px": 80,
     "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
@@ -829,12 +851,6 @@ def _placement_prior(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, tol
     )
 
 
-def _room_bools(n: int, rooms) -> np.ndarray:
-    b = np.zeros(n, bool)
-    b[list(rooms)] = True
-    return b
-
-
 def _register(plan, grid, opts: dict, t0: float) -> Registration:
     def fail(reason: str, **details: Any) -> Registration:
         return Registration.failure(reason, METHOD, time.perf_counter() - t0, **details)
@@ -866,6 +882,10 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         hyps = hyps[: opts["top_k"]]
     _coarse_scores(pm, obs, hyps, opts["door_width_m"])
     hyps.sort(key=lambda h: -h.key)
+    if hyps[0].coarse_iou < opts["search_below_iou"]:
+        # the map holds area the plan lacks (or the reverse): the moment fit is off; search
+        _local_search(pm, obs, hyps[: opts["refine_k"]], opts)
+        hyps.sort(key=lambda h: -h.key)
     t_coarse = time.perf_counter()
 
     chosen: list[Hypothesis] = []
@@ -891,8 +911,8 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             spacing_px=4.0,
             max_points=opts["quick_points"],
         )
-        iou, rooms = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
-        prec, rec = _structure(pm, obs, h.refined.matrix, _room_bools(n, rooms), tol_f)
+        iou, _ = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
+        prec, rec = _structure(pm, obs, h.refined.matrix, tol_f)
         h.quick = iou * prec * rec * _placement_prior(pm, obs, h.refined.matrix, tol_f, opts)
     chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
@@ -909,7 +929,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     )
     r = best.refined
     best.score, best.rooms = _score(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
-    prec, rec = _structure(pm, obs, r.matrix, _room_bools(n, best.rooms), tol_f, 1000)
+    prec, rec = _structure(pm, obs, r.matrix, tol_f, 1000)
     quality = best.score * prec * rec
     second = max(
         (h.quick for h in chosen[1:] if not _same_placement(h.refined.matrix, r0.matrix, obs)), default=0.0
