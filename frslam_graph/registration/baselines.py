@@ -177,6 +177,7 @@ def register_features(
     min_inliers: int = 6,
     try_mirror: bool = True,
     blur: float = 1.5,
+    pad: int = 32,
     **_: Any,
 ) -> Registration:
     """Feature matching + RANSAC affine (``kind`` in orb / sift / akaze). See module docstring."""
@@ -193,7 +194,10 @@ def register_features(
         det, norm = _make_detector(kind)
     except ValueError as exc:
         return fail(str(exc))
-    map_img, plan_img = mi.image, pi.image
+    # pad: ORB/SIFT ignore a border band (ORB's edgeThreshold is 31 px), which on a small
+    # partial map is most of the image
+    map_img = cv2.copyMakeBorder(mi.image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    plan_img = cv2.copyMakeBorder(pi.image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
     if blur > 0:
         map_img = cv2.GaussianBlur(map_img, (0, 0), blur)
         plan_img = cv2.GaussianBlur(plan_img, (0, 0), blur)
@@ -230,6 +234,8 @@ def register_features(
     inliers, a3, n_good = hyps[0]
     if inliers < min_inliers:
         return fail(f"only {inliers} RANSAC inliers (need {min_inliers})", inliers=inliers)
+    unpad = np.array([[1, 0, -pad], [0, 1, -pad], [0, 0, 1.0]])
+    a3 = unpad @ a3 @ np.linalg.inv(unpad)
     matrix = mi.px_to_map @ a3 @ pi.plan_to_px
     if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) < 1e-12:
         return fail("degenerate affine estimate")
