@@ -79,6 +79,10 @@ class OdometryConfig(_Section):
     )  # Mahalanobis sigma gate on (wheel - ICP) beyond which ICP is trusted
     odom_jump_min_m: float = Field(0.15, ge=0.0)  # and the disagreement is at least this large
     odom_jump_min_deg: float = Field(5.0, ge=0.0)
+    # What an ICP result beyond the gate from an accepted wheel increment means: "fuse" (plain EKF
+    # update; on real logs with lagging odometry stamps ICP is usually the right one) or "reject"
+    # (ICP fell into a wrong minimum: the motion model carries the step, the scan is not mapped).
+    icp_gate: Literal["fuse", "reject"] = "fuse"
     max_speed: float = Field(3.0, gt=0.0)  # m/s; faster wheel increments are jumps
     max_turn_rate_deg: float = Field(360.0, gt=0.0)
     gap_factor: float = Field(2.5, gt=1.0)  # stamp gap > gap_factor * nominal period -> dropped scans

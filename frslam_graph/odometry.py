@@ -12,8 +12,10 @@ Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by 
 when the normals span only one direction (a featureless corridor) the scan is *degenerate*: the
 covariance is inflated along the corridor axis so the motion model carries that direction.
 Scans without enough valid points (all-NaN) fall back to the motion model. Wheel increments that
-are physically impossible or disagree with ICP beyond a Mahalanobis gate are *odometry jumps*:
-ICP is trusted. Stamp gaps larger than ``gap_factor`` nominal periods count as dropped scans.
+are physically impossible, or that the scan rejects in favour of constant velocity (when the two
+disagree both seeds are aligned and the better map fit wins), are *odometry jumps*: ICP is
+trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
+failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamp gaps larger than ``gap_factor`` nominal periods count as dropped scans.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ class OdometryResult:
     odom_jump: bool = False
     dropped: int = 0
     n_points: int = 0
+    icp_rejected: bool = False
 
 
 @dataclass(slots=True)
@@ -75,6 +78,7 @@ class OdometryStats:
     fallbacks: int = 0
     degenerate_scans: int = 0
     odom_jumps: int = 0
+    icp_rejections: int = 0
     dropped_scans: int = 0
     gaps: int = 0
     out_of_order: int = 0
@@ -249,9 +253,8 @@ class ScanOdometry:
         if wheel is not None:
             self._prev_wheel = wheel
 
-        snap = self._ekf.snapshot()
         prev_rel = self._ekf.x
-        degenerate, fallback, axis = False, False, None
+        degenerate, fallback, axis, icp_rejected = False, False, None, False
         if len(pts) < cfg.min_points:
             self.stats.empty_scans += 1
             fallback = True
@@ -259,33 +262,34 @@ class ScanOdometry:
             self._resync_icp(u)
             R_body = None
         else:
-            chosen = self._register(pts, seeds)
+            chosen, new_pose, guess, frame_ds = self._align(pts, seeds)
             if chosen == 1:  # the scan sides with constant velocity: the wheel increment jumped
                 jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
-            icp_pose = from_matrix(self._icp.last_pose)
+            icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
             geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
             R_body, degenerate, fallback, axis = self._icp_covariance(geo)
             R = vector_cov(z, R_body)
             self._ekf.predict(u, cov_u)
-            if used_wheel and not fallback:
+            if cfg.icp_gate == "reject" and used_wheel and not fallback and not degenerate:
                 y, m2 = self._ekf.innovation(z, R)
-                if (
-                    m2 > cfg.odom_jump_gate**2
-                    and (
-                        np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
-                        or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
-                    )
-                    and not degenerate
-                ):
-                    # wheel odometry inconsistent with ICP: trust ICP (constant-velocity prior)
-                    jump = True
-                    self._ekf.restore(snap)
-                    self._ekf.predict(cv_u, cv_cov)
-            self._ekf.update(z, R)
-            if degenerate or fallback:
-                # keep KISS-ICP on the fused estimate along the unobservable axis
-                self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
+                # ICP far from a plausible wheel increment (which agreed with constant velocity,
+                # or the two-seed test would have flagged a jump): ICP fell into a wrong minimum
+                icp_rejected = m2 > cfg.odom_jump_gate**2 and (
+                    np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
+                    or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
+                )
+            if icp_rejected:
+                self.stats.icp_rejections += 1
+                fallback = True
+                R_body = None
+                self._resync_icp(u)  # the scan is not added to the local map
+            else:
+                self._ekf.update(z, R)
+                self._commit(frame_ds, new_pose, guess)
+                if degenerate or fallback:
+                    # keep KISS-ICP on the fused estimate along the unobservable axis
+                    self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
         if jump:
             self.stats.odom_jumps += 1
         if degenerate:
@@ -298,7 +302,9 @@ class ScanOdometry:
         self._last_dt = dt
         is_kf = np.hypot(rel[0], rel[1]) >= self._kf_dist or abs(rel[2]) >= self._kf_angle
         if is_kf:
-            return self._new_keyframe(stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, len(pts))
+            return self._new_keyframe(
+                stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, len(pts), icp_rejected
+            )
         _, cov_t = self._ekf.relative()
         return OdometryResult(
             stamp,
@@ -314,6 +320,7 @@ class ScanOdometry:
             jump,
             dropped,
             len(pts),
+            icp_rejected,
         )
 
     # ----------------------------------------------------------------- helpers
@@ -384,12 +391,15 @@ class ScanOdometry:
         big = np.hypot(d[0], d[1]) > cfg.odom_jump_min_m or abs(d[2]) > np.deg2rad(cfg.odom_jump_min_deg)
         return bool(big and d @ np.linalg.solve(cov, d) > cfg.odom_jump_gate**2)
 
-    def _register(self, pts: np.ndarray, seeds: list[np.ndarray]) -> int:
-        """KISS-ICP's register_frame with one or more seed increments; returns the seed used.
+    def _align(
+        self, pts: np.ndarray, seeds: list[np.ndarray]
+    ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """KISS-ICP's register_frame up to the alignment, with one or more seed increments.
 
-        Same steps as ``KissICP.register_frame`` (preprocess, voxelise, align, update threshold /
-        map / delta / pose). With two seeds, both are aligned without touching the map and the
-        one whose result has more source points near the local map wins (ties keep seed 0).
+        Same steps as ``KissICP.register_frame`` (preprocess, voxelise, align); nothing is changed
+        until :meth:`_commit`. With two seeds, both are aligned and the one whose result has more
+        source points near the local map wins (ties keep seed 0). Returns (seed index, pose 4×4,
+        initial guess 4×4, thinned frame for the map).
         """
         icp = self._icp
         frame = np.column_stack((pts, np.zeros(len(pts))))
@@ -415,18 +425,23 @@ class ScanOdometry:
                     icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
                 )
                 best = int(scores[1] > scores[0] + 0.05)
-        new_pose = poses[best]
-        icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guesses[best]) @ new_pose)
+        return best, poses[best], guesses[best], frame_ds
+
+    def _commit(self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray) -> None:
+        """The rest of ``register_frame``: threshold model, local map, delta and pose."""
+        icp = self._icp
+        icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ new_pose)
         icp.local_map.update(frame_ds, new_pose)
         icp.last_delta = np.linalg.inv(icp.last_pose) @ new_pose
         icp.last_pose = new_pose
-        return best
 
     def _resync_icp(self, u: np.ndarray) -> None:
         self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
         self._icp.last_delta = to_matrix4(u)
 
-    def _new_keyframe(self, stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, n_points):
+    def _new_keyframe(
+        self, stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, n_points, icp_rejected=False
+    ):
         between_pose, cov = self._ekf.relative()
         self._kf_pose = compose(self._kf_pose, rel)
         self._kf_icp = (
@@ -449,6 +464,7 @@ class ScanOdometry:
             jump,
             dropped,
             n_points,
+            icp_rejected,
         )
 
 

@@ -196,12 +196,18 @@ class FRSlam:
                 stamp=stamp,
                 count=res.dropped,
             )
-        if res.fallback:
+        if res.fallback and not res.icp_rejected:
             self.log_event(
                 "motion_model_fallback",
                 f"{res.n_points} valid points: motion model used instead of ICP",
                 stamp=stamp,
                 n_points=res.n_points,
+            )
+        if res.icp_rejected:
+            self.log_event(
+                "icp_rejected",
+                "ICP far from the wheel increment; motion model used, scan not mapped",
+                stamp=stamp,
             )
         if res.odom_jump:
             self.log_event("odom_jump", "wheel odometry inconsistent with ICP; ICP trusted", stamp=stamp)

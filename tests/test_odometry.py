@@ -184,3 +184,38 @@ def test_out_of_order_and_bad_input(room):
         o.process(float("nan"), points[1])
     with pytest.raises(RecordingError, match="odom"):
         o.process(2.0, points[1], odom=(1.0, 2.0))
+
+
+@pytest.mark.parametrize("mode", ["fuse", "reject"])
+def test_icp_failure_gate(room, mode):
+    """An ICP result 0.5 m / 10 deg off a plausible wheel increment: 'reject' keeps the motion model
+    and does not map the scan; 'fuse' (default, for logs with lagging odometry) fuses it."""
+    truth, points, odom = room
+    o = ScanOdometry(CFG.model_copy(update={"icp_gate": mode}))
+    real_align = o._align
+    bad = {300}
+
+    def align(pts, seeds):
+        best, pose, guess, frame = real_align(pts, seeds)
+        if o.stats.scans - 1 in bad:
+            pose = pose @ np.array(
+                [
+                    [np.cos(0.17), -np.sin(0.17), 0, 0.5],
+                    [np.sin(0.17), np.cos(0.17), 0, 0],
+                    [0, 0, 1, 0],
+                    [0, 0, 0, 1],
+                ]
+            )
+        return best, pose, guess, frame
+
+    o._align = align
+    poses = np.array(
+        [o.process(row[0], pts, odom[i]).pose for i, (row, pts) in enumerate(zip(truth, points, strict=True))]
+    )
+    err = end_error(truth, poses)
+    if mode == "reject":
+        assert o.stats.icp_rejections == 1 and o.stats.fallbacks == 1
+        assert err / path_length(truth) < 0.01
+    else:
+        assert o.stats.icp_rejections == 0
+        assert err > 0.2  # the wrong ICP result went into the odometry
