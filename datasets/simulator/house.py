@@ -67,6 +67,16 @@ def _polygonal(geom: Any) -> Polygon | MultiPolygon:
     return parts[0] if len(parts) == 1 else MultiPolygon(parts)
 
 
+def _erode(geom: Any, d: float) -> Polygon | MultiPolygon:
+    """Inward offset by ``d``: mitre joins (square corners) for polygons without holes, bevel
+    joins for polygons with holes (GEOS' negative mitre buffer can drop rings of those)."""
+    parts = []
+    for p in _polygons(geom):
+        style = "bevel" if len(p.interiors) else "mitre"
+        parts.append(p.buffer(-d, join_style=style, mitre_limit=3.0))
+    return _polygonal(shapely.union_all(parts)) if parts else Polygon()
+
+
 def _drop_slivers(walls: Any, e: float) -> Polygon | MultiPolygon:
     """Walls without slivers thinner than ``2 e`` (left where a doorway grazes a wall, or where
     rooms overlap): the pieces a morphological opening by ``e`` removes, except the tiny corner
@@ -147,7 +157,7 @@ class House:
         half = wall_thickness / 2.0
         rooms_union = shapely.union_all([r.polygon for r in hplan.rooms])
         envelope = rooms_union.buffer(half, join_style="mitre", mitre_limit=3.0)
-        eroded = {r.id: r.polygon.buffer(-half, join_style="mitre", mitre_limit=3.0) for r in hplan.rooms}
+        eroded = {r.id: _erode(r.polygon, half) for r in hplan.rooms}
         openings, open_ids = [], []
         for d in hplan.doors:
             if d.id in closed or len(set(d.rooms)) < 2 or d.width <= 1e-9:
@@ -156,13 +166,21 @@ class House:
             seg = shapely.LineString([d.a, d.b])
             reach = max(hplan.room(rid).polygon.distance(seg) for rid in d.rooms)
             depth = wall_thickness + 0.5 + 2.0 * reach
+            # Cut only the wall between the door's two rooms (never an outer wall).
+            near = reach + half + 0.05
+            ra, rb = (hplan.room(rid).polygon for rid in d.rooms[:2])
             opening = _door_opening(a, b, depth).intersection(envelope)
+            opening = opening.intersection(ra.buffer(near)).intersection(rb.buffer(near))
             if opening.is_empty:
                 continue
             openings.append(opening)
             open_ids.append(d.id)
         bare_openings, open_bounds = _bare_boundaries(hplan, wall_thickness, min_opening)
         openings += [o.intersection(envelope) for o in bare_openings]
+        # The outer wall (half a wall either side of the house's outline) is never cut: exterior
+        # doors are closed, and a misplaced door or open boundary along the outline leaks rays.
+        outer = envelope.difference(_erode(rooms_union, half))
+        openings = [o.difference(outer) for o in openings]
         rooms_free = shapely.union_all(list(eroded.values()))
         open_space = shapely.union_all([rooms_free, *openings])
         walls = envelope.difference(open_space)
@@ -321,6 +339,7 @@ def _bare_boundaries(
     tol = max(0.1, 0.01 * math.hypot(maxx - minx, maxy - miny))
     supported = shapely.union_all(lines).buffer(tol)
     polys = [r.polygon for r in plan.rooms]
+    inner = shapely.union_all(polys).buffer(-tol / 2.0)
     tree = shapely.STRtree(polys)
     openings, pairs = [], []
     for i, a in enumerate(plan.rooms):
@@ -331,7 +350,8 @@ def _bare_boundaries(
             shared = a.polygon.boundary.intersection(b.polygon.buffer(tol / 2.0))
             if shared.is_empty or shared.length < min_opening:
                 continue
-            bare = shared.difference(supported)
+            # Only interior boundaries: never open an outer wall where two rooms' edges coincide.
+            bare = shared.difference(supported).intersection(inner)
             if bare.is_empty:
                 continue
             merged = shapely.line_merge(bare) if bare.geom_type == "MultiLineString" else bare
