@@ -178,9 +178,13 @@ def register_features(
     try_mirror: bool = True,
     blur: float = 1.5,
     pad: int = 32,
+    scales: tuple[float, ...] = (1.0,),
     **_: Any,
 ) -> Registration:
-    """Feature matching + RANSAC affine (``kind`` in orb / sift / akaze). See module docstring."""
+    """Feature matching + RANSAC affine (``kind`` in orb / sift / akaze). See module docstring.
+
+    ``scales``: plan renderings relative to the map-diagonal match (several = multi-scale).
+    """
     t0 = time.perf_counter()
     prep = _prepare(plan, grid, kind, t0)
     if isinstance(prep, Registration):
@@ -194,49 +198,54 @@ def register_features(
         det, norm = _make_detector(kind)
     except ValueError as exc:
         return fail(str(exc))
+
     # pad: ORB/SIFT ignore a border band (ORB's edgeThreshold is 31 px), which on a small
     # partial map is most of the image
-    map_img = cv2.copyMakeBorder(mi.image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    plan_img = cv2.copyMakeBorder(pi.image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    if blur > 0:
-        map_img = cv2.GaussianBlur(map_img, (0, 0), blur)
-        plan_img = cv2.GaussianBlur(plan_img, (0, 0), blur)
-    kp_m, des_m = det.detectAndCompute(map_img, None)
+    def prepare(img: np.ndarray) -> np.ndarray:
+        img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        return cv2.GaussianBlur(img, (0, 0), blur) if blur > 0 else img
+
+    kp_m, des_m = det.detectAndCompute(prepare(mi.image), None)
     if des_m is None or len(kp_m) < 3:
         return fail(f"only {0 if des_m is None else len(kp_m)} keypoints in the map image")
     pts_m = np.float32([k.pt for k in kp_m])
     matcher = cv2.BFMatcher(norm)
-    hp = plan_img.shape[0]
-    variants = [(False, plan_img)] + ([(True, np.ascontiguousarray(plan_img[::-1]))] if try_mirror else [])
-    hyps: list[tuple[int, np.ndarray, int]] = []  # (inliers, plan px -> map px 3x3, n matches)
-    for mirrored, img in variants:
-        kp_p, des_p = det.detectAndCompute(img, None)
-        if des_p is None or len(kp_p) < 3:
-            continue
-        knn = matcher.knnMatch(des_p, des_m, k=2)
-        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance]
-        if len(good) < 3:
-            continue
-        src = np.float32([kp_p[m.queryIdx].pt for m in good])
-        dst = pts_m[[m.trainIdx for m in good]]
-        a, inl = cv2.estimateAffine2D(
-            src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px, maxIters=3000, confidence=0.995
+    unpad = np.array([[1, 0, -pad], [0, 1, -pad], [0, 0, 1.0]])
+    hyps: list[tuple[int, np.ndarray, int]] = []  # (inliers, plan -> map metres 3x3, n matches)
+    diag = math.hypot(*mi.image.shape)
+    for scale in scales:
+        pi_s = pi if scale == 1.0 else plan_image(plan, diag * scale)
+        plan_img = prepare(pi_s.image)
+        hp = plan_img.shape[0]
+        variants = [(False, plan_img)] + (
+            [(True, np.ascontiguousarray(plan_img[::-1]))] if try_mirror else []
         )
-        if a is None or inl is None:
-            continue
-        m3 = _h(a)
-        if mirrored:  # mirrored px (c, r) = (c, hp - 1 - r) of the original
-            m3 = m3 @ np.array([[1, 0, 0], [0, -1, hp - 1], [0, 0, 1.0]])
-        hyps.append((int(inl.sum()), m3, len(good)))
+        for mirrored, img in variants:
+            kp_p, des_p = det.detectAndCompute(img, None)
+            if des_p is None or len(kp_p) < 3:
+                continue
+            knn = matcher.knnMatch(des_p, des_m, k=2)
+            good = [m[0] for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+            if len(good) < 3:
+                continue
+            src = np.float32([kp_p[m.queryIdx].pt for m in good])
+            dst = pts_m[[m.trainIdx for m in good]]
+            a, inl = cv2.estimateAffine2D(
+                src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px, maxIters=3000, confidence=0.995
+            )
+            if a is None or inl is None:
+                continue
+            m3 = _h(a)
+            if mirrored:  # mirrored px (c, r) = (c, hp - 1 - r) of the original
+                m3 = m3 @ np.array([[1, 0, 0], [0, -1, hp - 1], [0, 0, 1.0]])
+            m3 = mi.px_to_map @ unpad @ m3 @ np.linalg.inv(unpad) @ pi_s.plan_to_px
+            hyps.append((int(inl.sum()), m3, len(good)))
     if not hyps:
         return fail("too few feature matches for RANSAC")
     hyps.sort(key=lambda h: -h[0])
-    inliers, a3, n_good = hyps[0]
+    inliers, matrix, n_good = hyps[0]
     if inliers < min_inliers:
         return fail(f"only {inliers} RANSAC inliers (need {min_inliers})", inliers=inliers)
-    unpad = np.array([[1, 0, -pad], [0, 1, -pad], [0, 0, 1.0]])
-    a3 = unpad @ a3 @ np.linalg.inv(unpad)
-    matrix = mi.px_to_map @ a3 @ pi.plan_to_px
     if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) < 1e-12:
         return fail("degenerate affine estimate")
     second = hyps[1][0] if len(hyps) > 1 else 0
