@@ -509,3 +509,20 @@ def test_cli_simulate(plan, tmp_path):
     assert main(args) == 2  # existing output without --overwrite
     assert main([*args, "--overwrite", "--fov", "400"]) == 2  # bad option -> one-line error
     assert main([*args, "--overwrite"]) == 0
+
+
+def test_r2v_houses_are_closed(shared_data):
+    """No beam from inside a house built from a real plan escapes it (outer walls never cut)."""
+    files = sorted((shared_data / "floorplans" / "r2v").glob("*.txt"))[:12]
+    lid = Lidar(beams=360, fov=2 * math.pi, max_range=60.0)
+    for k, path in enumerate(files):
+        plan = FloorPlan.load(path)
+        rng = np.random.default_rng(k)
+        d = Distortion.random(rng, rotation="any", plan_bounds=plan.bounds)
+        house = House.from_plan(plan, d, clutter=2, rng=rng)
+        minx, miny, maxx, maxy = house.free_space.bounds
+        pts = rng.uniform((minx, miny), (maxx, maxy), size=(400, 2))
+        pts = pts[shapely.contains_xy(house.free_space, pts[:, 0], pts[:, 1])][:25]
+        poses = np.column_stack((pts, rng.uniform(-math.pi, math.pi, len(pts))))
+        ranges = RayCaster(house.segments, method="sweep").cast(poses, lid.angles, lid.max_range)
+        assert np.isfinite(ranges).all(), (path.name, int((~np.isfinite(ranges)).sum()))
