@@ -363,6 +363,11 @@ def _completeness_table(rows: list[dict[str, Any]], methods: list[str], rotset: 
         "| Method | " + " | ".join(f"{c} %" for c in comps) + " |",
         "|---|" + "---:|" * len(comps),
     ]
+    cov = []
+    for c in comps:
+        vals = [r["covered"] for r in rows if r["rotset"] == rotset and r["completeness"] == c]
+        cov.append(f"{100 * np.mean(vals):.1f} %" if vals else "–")
+    out.append("| *explored share of the room area (mean)* | " + " | ".join(cov) + " |")
     for m in methods:
         cells = []
         for c in comps:
@@ -618,6 +623,13 @@ def report(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path | None) -
     if prb:
         lines += _table(prb, methods, "PRBonn real gmapping map (all crops)")
         lines += _table([r for r in prb if r["completeness"] >= 100], methods, "PRBonn real map, full map")
+    full = [r for r in r2v if r["covered"] >= 0.99 and r["rotset"] == "step90"]
+    if full:
+        lines += _table(
+            full,
+            methods,
+            "R2V, 90° steps, fully explored maps only (explored share >= 99 %: the paper's best case)",
+        )
     lines += _targets(r2v, prb)
     lines += ["#### Most common failure reason per method", ""]
     for m in methods:
