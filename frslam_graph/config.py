@@ -138,7 +138,7 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
-    max_walls_in_free_space: float = Field(0.04, ge=0.0, le=1.0)  # observed plan walls crossing free space
+    max_walls_in_free_space: float = Field(0.06, ge=0.0, le=1.0)  # observed interior plan walls in free space
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
     max_registrations: int = Field(40, ge=1)
@@ -207,6 +207,10 @@ class LoopClosureConfig(_Section):
     # Acceptance.
     min_inlier_fraction: float = Field(0.6, ge=0.0, le=1.0)
     max_ambiguity: float = Field(0.85, gt=0.0, le=1.0)  # second peak / best
+    # query points in space the reference saw free (farther than free_space_margin from its
+    # points) contradict the match: another place that looks alike
+    max_free_violation: float = Field(0.1, ge=0.0, le=1.0)
+    free_space_margin: float = Field(0.3, gt=0.0)
     peak_separation_xy: float = Field(1.0, gt=0.0)
     peak_separation_theta_deg: float = Field(10.0, gt=0.0)
     # Large corrections need a second, consistent closure before entering the graph.

@@ -544,13 +544,19 @@ def _occupied_points(grid, max_points: int = 4000) -> np.ndarray:
 
 
 def _walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2) -> float:
-    """Share of the plan's wall surface, where the map has observed it, that lies in free space
-    clear of any occupied cell (by ``margin`` metres). Near 0 for a right registration; a wrong
-    one draws walls across rooms the robot has seen empty."""
+    """Share of the plan's interior walls, where the map has observed them, that lie in free
+    space clear of any occupied cell (by ``margin`` metres). Near 0 for a right registration; a
+    wrong one draws walls across rooms the robot has seen empty."""
     f = relocaliser.field
-    rows, cols = np.nonzero(np.abs(f.sdf) < 0.75 * f.frame.resolution)
+    res = f.frame.resolution
+    # interior walls only (between two rooms): an outer wall may legitimately have free space
+    # beyond it in the map (open windows and doors, glass)
+    deep = (f.sdf < -(f.wall_offset + 1.5 * res)).astype(np.uint8)
+    k = int(np.ceil((2.0 * f.wall_offset + 2.0 * res) / res))
+    near_outside = cv2.dilate(deep, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))) > 0
+    rows, cols = np.nonzero((f.sdf <= 0) & ~near_outside)
     if not len(rows):
-        return 1.0
+        return 0.0
     if len(rows) > 20000:
         k = np.linspace(0, len(rows) - 1, 20000).round().astype(np.intp)
         rows, cols = rows[k], cols[k]
