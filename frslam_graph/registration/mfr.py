@@ -83,20 +83,35 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray
     return np.hypot(rx - t * u[None, :, 0], ry - t * u[None, :, 1])
 
 
-def _dominant_angle(vectors: np.ndarray, weights: np.ndarray | None = None) -> float:
-    """Direction modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors, weighted by length."""
-    z = vectors[:, 0] + 1j * vectors[:, 1]
-    mag = np.abs(z)
+def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) -> list[float]:
+    """Wall directions modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors weighted by their
+    length: peaks of a circular 1° histogram (smoothed over ±2°), the strongest first, each refined
+    by the weighted circular mean within ±6°; a second peak counts when it is at least ``rel``
+    of the first and 10° away. Robust to a few diagonal walls, unlike one overall mean."""
+    mag = np.hypot(vectors[:, 0], vectors[:, 1])
     ok = mag > 0
-    z, mag = z[ok], mag[ok]
-    if weights is not None:
-        w = weights[ok]
-    else:
-        w = mag
-    s = np.sum(w * (z / mag) ** 4)
-    if abs(s) == 0:
-        return 0.0
-    return float(np.angle(s) / 4.0)
+    if not ok.any():
+        return [0.0]
+    v, w = vectors[ok], mag[ok]
+    a4 = np.mod(4.0 * np.arctan2(v[:, 1], v[:, 0]), 2 * np.pi)  # 4x angle: walls at 90° agree
+    bins = 360
+    hist = np.bincount((a4 / (2 * np.pi) * bins).astype(np.intp) % bins, weights=w, minlength=bins)
+    kernel = np.exp(-0.5 * (np.arange(-8, 9) / 4.0) ** 2)  # ±2° of wall angle = ±8 bins of 4x angle
+    smooth = np.convolve(np.concatenate([hist[-8:], hist, hist[:8]]), kernel, mode="valid")
+    peaks = [i for i in range(bins) if smooth[i] >= smooth[i - 1] and smooth[i] > smooth[(i + 1) % bins]]
+    peaks.sort(key=lambda i: -smooth[i])
+    out: list[float] = []
+    for i in peaks[:max_peaks]:
+        if out and smooth[i] < rel * smooth[peaks[0]]:
+            break
+        centre = (i + 0.5) / bins * 2 * np.pi
+        d = np.angle(np.exp(1j * (a4 - centre)))
+        near = np.abs(d) < np.radians(24.0)  # ±6° of wall angle
+        mean = centre + (np.sum(w[near] * d[near]) / max(np.sum(w[near]), 1e-12))
+        ang = float(np.angle(np.exp(1j * mean)) / 4.0)
+        if all(abs(np.angle(np.exp(4j * (ang - o)))) > np.radians(40.0) for o in out):
+            out.append(ang)
+    return out or [0.0]
 
 
 # ----------------------------------------------------------------------------------------- map
@@ -109,11 +124,11 @@ class MapObservation:
     footprint: np.ndarray
     free: np.ndarray
     field: DistanceField
-    angle: float
+    angles: list[float]  # wall directions (radians), strongest first
     area: float
     centroid: np.ndarray
     cov: np.ndarray
-    bbox_aligned: np.ndarray  # x0, y0, x1, y1 in the frame rotated by -angle
+    bboxes: list[np.ndarray]  # per angle: x0, y0, x1, y1 in the frame rotated by -angle
     coarse_frame: RasterFrame
     coarse_footprint: np.ndarray
     coarse_footprint_u8: np.ndarray
@@ -196,7 +211,7 @@ def observe_map(
     gx = cv2.Sobel(fimg, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(fimg, cv2.CV_32F, 0, 1, ksize=3)
     sel = (np.abs(gx) + np.abs(gy)) > 0.05
-    angle = _dominant_angle(np.column_stack([gx[sel], gy[sel]]).astype(np.float64)) if sel.any() else 0.0
+    angles = _dominant_angles(np.column_stack([gx[sel], gy[sel]]).astype(np.float64)) if sel.any() else [0.0]
 
     mom = cv2.moments(footprint.astype(np.uint8), binaryImage=True)
     m00 = max(mom["m00"], 1.0)
@@ -205,11 +220,15 @@ def observe_map(
     cov += np.eye(2) * res * res / 12.0
     contours, _ = cv2.findContours(footprint.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     pts = (np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64) + 0.5) * res
-    pa = pts @ _rot(-angle).T
     half = 0.5 * res
-    bbox = np.array(
-        [pa[:, 0].min() - half, pa[:, 1].min() - half, pa[:, 0].max() + half, pa[:, 1].max() + half]
-    )
+    bboxes = []
+    for angle in angles:
+        pa = pts @ _rot(-angle).T
+        bboxes.append(
+            np.array(
+                [pa[:, 0].min() - half, pa[:, 1].min() - half, pa[:, 0].max() + half, pa[:, 1].max() + half]
+            )
+        )
 
     h, w = footprint.shape
     k = max(1, int(math.ceil(max(h, w) / coarse_px)))
@@ -222,11 +241,11 @@ def observe_map(
         footprint=footprint,
         free=free,
         field=field_,
-        angle=angle,
+        angles=angles,
         area=area,
         centroid=centroid,
         cov=cov,
-        bbox_aligned=bbox,
+        bboxes=bboxes,
         coarse_frame=coarse_frame,
         coarse_footprint=block >= 0.5,
         coarse_footprint_u8=(block >= 0.5).astype(np.uint8),
@@ -315,7 +334,7 @@ def prepare_plan(
     ring_room_arr = np.array(ring_room)
     edge_room = ring_room_arr[edge_ring]
     n = len(rooms)
-    angle = _dominant_angle(ends - starts)
+    angle = _dominant_angles(ends - starts, max_peaks=1)[0]
     if abs(angle) < math.radians(0.5):  # a plan drawn axis-aligned: its own axes, exactly
         angle = 0.0
     rot = _rot(-angle)
@@ -460,6 +479,7 @@ class Hypothesis:
     flipped: bool
     matrix: np.ndarray  # plan -> grid frame metres
     feature_cost: float
+    angle_index: int = 0  # which of the map's wall directions
     coarse_iou: float = 0.0
     refined: RefineResult | None = None
     key: float = 0.0  # coarse IoU x structure precision x recall
@@ -471,15 +491,26 @@ class Hypothesis:
 def _coarse_hypotheses(
     pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
 ) -> list[Hypothesis]:
-    """The ``top_k`` (subset, dihedral case) pairs by shape-feature distance to the map, each
-    with its moment-matched plan -> grid-frame matrix."""
+    """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
+    the map, each with its moment-matched plan -> grid-frame matrix."""
     n = len(pm.ids)
     member = mask_matrix(masks, n)
     geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
-    rm = _rot(-obs.angle)
+    out: list[Hypothesis] = []
+    for ai in range(len(obs.angles)):
+        out += _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
+    out.sort(key=lambda h: h.feature_cost)
+    return out[:top_k]
+
+
+def _coarse_hypotheses_at(
+    pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
+) -> list[Hypothesis]:
+    angle = obs.angles[ai]
+    rm = _rot(-angle)
     mc = rm @ obs.centroid
     mcov = rm @ obs.cov @ rm.T
-    bx0, by0, bx1, by1 = obs.bbox_aligned
+    bx0, by0, bx1, by1 = obs.bboxes[ai]
     fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
     costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
     for k, flipped in DIHEDRAL:
@@ -517,7 +548,7 @@ def _coarse_hypotheses(
     cy = np.stack(cy_all, axis=1)[si, ji]
     gs = np.stack([_dihedral(k, f) for k, f in DIHEDRAL])[ji]  # (H, 2, 2)
     rp = _rot(-pm.angle)
-    rmap = _rot(obs.angle)
+    rmap = _rot(angle)
     lin = rmap[None] @ (np.stack([a, b], axis=1)[:, :, None] * gs) @ rp[None]
     t_al = np.column_stack([mc[0] - a * cx, mc[1] - b * cy])
     mats = np.zeros((len(flat), 3, 3))
@@ -525,7 +556,7 @@ def _coarse_hypotheses(
     mats[:, :2, 2] = t_al @ rmap.T
     mats[:, 2, 2] = 1.0
     return [
-        Hypothesis(int(masks[s_]), DIHEDRAL[j_][0], DIHEDRAL[j_][1], mats[i], float(costs[s_, j_]))
+        Hypothesis(int(masks[s_]), DIHEDRAL[j_][0], DIHEDRAL[j_][1], mats[i], float(costs[s_, j_]), ai)
         for i, (s_, j_) in enumerate(zip(si.tolist(), ji.tolist(), strict=True))
     ]
 
@@ -728,12 +759,13 @@ def _structure(
 def _local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opts: dict) -> None:
     """Coordinate search on the coarse key over each map axis's scale and shift (about the
     footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis."""
-    rm = np.eye(3)
-    rm[:2, :2] = _rot(obs.angle)
-    c = _rot(-obs.angle) @ obs.centroid
-    ext = obs.bbox_aligned[2:] - obs.bbox_aligned[:2]
     rounds = (((0.85, 0.92, 1.0, 1.08, 1.17), 0.08), ((0.96, 0.98, 1.0, 1.02, 1.04), 0.03))
     for h in hyps:
+        angle, bbox = obs.angles[h.angle_index], obs.bboxes[h.angle_index]
+        rm = np.eye(3)
+        rm[:2, :2] = _rot(angle)
+        c = _rot(-angle) @ obs.centroid
+        ext = bbox[2:] - bbox[:2]
         for factors, shift in rounds:
             for axis in (0, 1):
                 trials = []
@@ -761,6 +793,7 @@ def _refine_from(
     scales: tuple,
     spacing_px: float,
     max_points: int,
+    iterations: int,
 ) -> RefineResult:
     """Refine the placement ``matrix`` (plan -> grid frame) on a subsample of the plan's boundary
     samples about ``spacing_px`` map cells apart (at most ``max_points``).
@@ -787,7 +820,7 @@ def _refine_from(
         delta=delta,
         delta_sigma=opts["delta_sigma"],
         scales=scales,
-        iterations=opts["iterations"],
+        iterations=iterations,
     )
     r.pre = pre
     return r
@@ -804,9 +837,10 @@ DEFAULTS: dict[str, Any] = {
     "max_subsets_per_level": 3000,
     "coarse_px": 80,
     "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
-    "max_points": 3000,
-    "quick_points": 500,  # boundary samples when screening the refined hypotheses
-    "iterations": 8,  # Gauss-Newton iterations per robust-scale stage
+    "max_points": 1500,
+    "quick_points": 300,  # boundary samples when screening the refined hypotheses
+    "quick_iterations": 5,  # Gauss-Newton iterations per robust-scale stage when screening
+    "iterations": 10,  # Gauss-Newton iterations of the final stage
     "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
     "delta_sigma": 0.05,
     "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
@@ -910,6 +944,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             scales=(0.2, 0.1),
             spacing_px=4.0,
             max_points=opts["quick_points"],
+            iterations=opts["quick_iterations"],
         )
         iou, _ = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
         prec, rec = _structure(pm, obs, h.refined.matrix, tol_f)
@@ -923,9 +958,10 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         r0.matrix,
         r0.delta,
         opts,
-        scales=(0.08, 0.05),
+        scales=(0.05,),
         spacing_px=opts["sample_px"],
         max_points=opts["max_points"],
+        iterations=opts["iterations"],
     )
     r = best.refined
     best.score, best.rooms = _score(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
@@ -954,7 +990,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         "fit": r.inliers,
         "rms_m": r.rms,
         "n_points": r.n_points,
-        "map_angle_deg": math.degrees(obs.angle),
+        "map_angles_deg": [math.degrees(a) for a in obs.angles],
         "plan_angle_deg": math.degrees(pm.angle),
         "observed_area_m2": obs.area,
         "n_subsets": int(len(masks)),
