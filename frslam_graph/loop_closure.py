@@ -19,8 +19,10 @@ Cauchy kernel, so a wrong closure that slips through cannot bend the map.
 A robust kernel also refuses a *true* closure that disagrees with the current estimate by many
 sigmas (after a long excursion). So a closure that would move the graph by more than
 ``confirm_xy`` / ``confirm_theta_deg`` waits until a second closure from another keyframe agrees
-with it geometrically; then both enter the graph without the kernel, the graph converges to them
-(iSAM2, an LM batch when the correction is large), and they are swapped for their robust versions.
+with it geometrically (pairwise consistency, as in PCM); then both enter the graph as plain
+Gaussians (the graph converges to them with iSAM2, or an LM batch when the correction is large).
+The bounded pull of a robust kernel could not hold such a correction against the stiff odometry
+chain; the pairwise check takes its place as the guard against wrong closures.
 """
 
 from __future__ import annotations
@@ -100,8 +102,16 @@ class ReferenceSubmap:
     """Points of a reference submap with a likelihood field (correlative search) and a k-d tree
     with normals (ICP). ``points`` (M, 2) in the reference keyframe's frame."""
 
-    def __init__(self, points: np.ndarray, resolution: float, sigma: float, margin: float):
-        pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution / 2.0)
+    def __init__(
+        self,
+        points: np.ndarray,
+        resolution: float,
+        sigma: float,
+        margin: float,
+        scans: list[tuple[np.ndarray, np.ndarray]] | None = None,
+        free_margin: float = 0.3,
+    ):
+        pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
         self.points = pts
         self.resolution = res = float(resolution)
         self.tree = cKDTree(pts) if len(pts) else None
@@ -116,12 +126,47 @@ class ReferenceSubmap:
         w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
         self.shape = (h, w)
         free = np.full((h, w), 255, np.uint8)
+        owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
         if len(pts):
             ij = np.floor((pts - lo) / res).astype(int)
             free[ij[:, 1], ij[:, 0]] = 0
+            owner[ij[:, 1] * w + ij[:, 0]] = np.arange(len(pts), dtype=np.int32)
         dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
         self.field = np.exp(-0.5 * (dist / sigma) ** 2).astype(np.float32)
+        # free space seen by the reference scans (sensor -> end points polygons), away from any
+        # end point: a query point there contradicts the reference (another place)
+        self.free = None
+        if scans:
+            seen = np.zeros((h, w), np.uint8)
+            polys = [
+                np.round((np.vstack((o[None], e)) - lo) / res).astype(np.int32)
+                for o, e in scans
+                if len(e) >= 2
+            ]
+            cv2.fillPoly(seen, polys, 1)
+            self.free = ((seen > 0) & (dist > free_margin)).ravel()
+        # nearest reference point of every cell (labels number the zero cells in raster order)
+        if len(pts):
+            _, labels = cv2.distanceTransformWithLabels(
+                free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+            )
+            zeros = np.flatnonzero(free.ravel() == 0)
+            self.nearest = owner[zeros[np.clip(labels.ravel() - 1, 0, len(zeros) - 1)]]
+        else:
+            self.nearest = owner
         self._dilated: dict[int, np.ndarray] = {}
+
+    def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """(indices into ``points`` with a reference point within max_distance, those reference
+        points' indices): nearest neighbours by a cell look-up (exact up to one cell)."""
+        h, w = self.shape
+        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        sel = np.flatnonzero(inside)
+        j = self.nearest[ij[sel, 1] * w + ij[sel, 0]]
+        d = np.hypot(*(points[sel] - self.points[np.maximum(j, 0)]).T)
+        ok = (j >= 0) & (d <= max_distance)
+        return sel[ok], j[ok]
 
     def dilated(self, cells: int) -> np.ndarray:
         """The likelihood field max-filtered over a (2·cells + 1)² window (flattened)."""
@@ -135,11 +180,20 @@ class ReferenceSubmap:
             self._dilated[cells] = f
         return f
 
-    def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
-        if self.tree is None or len(query) == 0:
+    def free_violation(self, query: np.ndarray, pose: np.ndarray) -> float:
+        """Share of query points (at ``pose``) in space the reference saw free (0 without scans)."""
+        if self.free is None or len(query) == 0:
             return 0.0
-        d, _ = self.tree.query(transform_points(pose, query), distance_upper_bound=distance)
-        return float(np.mean(np.isfinite(d)))
+        h, w = self.shape
+        ij = np.floor((transform_points(pose, query) - self.origin) / self.resolution).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        return float(self.free[ij[inside, 1] * w + ij[inside, 0]].sum()) / len(query)
+
+    def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
+        if len(self.points) == 0 or len(query) == 0:
+            return 0.0
+        sel, _ = self.nearest_points(transform_points(pose, query), distance)
+        return len(sel) / len(query)
 
 
 # ----------------------------------------------------------------------------- matcher
@@ -159,9 +213,15 @@ class ScanMatch:
     coarse_score: float
     n_points: int
     second: np.ndarray | None = None
+    free_violation: float = 0.0  # share of query points in the reference's free space
 
 
-def _coarse_search(
+def _dilation_cells(res: float, step_xy: float, step_theta: float, reach: float) -> int:
+    """Max-filter radius (cells) so a grid pose bounds every pose within half a step of it."""
+    return int(np.ceil((0.5 * step_xy + 0.5 * step_theta * reach) / res))
+
+
+def _grid_search(
     ref: ReferenceSubmap,
     query: np.ndarray,
     centre: np.ndarray,
@@ -169,8 +229,9 @@ def _coarse_search(
     window_theta: float,
     step_xy: float,
     step_theta: float,
+    reach: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Score every pose of the grid (thetas × offsets): returns (P, 3) poses and (P,) scores."""
+    """Score every pose of a (thetas × offsets) grid: returns (P, 3) poses and (P,) scores."""
     res = ref.resolution
     h, w = ref.shape
     n_th = int(np.ceil(window_theta / step_theta))
@@ -179,10 +240,7 @@ def _coarse_search(
     n_xy = int(np.ceil(window_xy / (s * res)))
     o = s * np.arange(-n_xy, n_xy + 1)
     ox, oy = (a.ravel() for a in np.meshgrid(o, o))
-    # the max filter covers half a translation step and half a rotation step at the query's reach
-    reach = float(np.percentile(np.hypot(*query.T), 90)) if len(query) else 0.0
-    cells = int(np.ceil((0.5 * s * res + 0.5 * step_theta * reach) / res))
-    field = ref.dilated(cells)
+    field = ref.dilated(_dilation_cells(res, s * res, step_theta, reach))
     c, sn = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     px = c * query[None, :, 0] - sn * query[None, :, 1] + centre[0]
     py = sn * query[None, :, 0] + c * query[None, :, 1] + centre[1]
@@ -196,7 +254,7 @@ def _coarse_search(
     base = (by * w + bx).astype(np.int32)  # (T, M)
     off = (oy * w + ox).astype(np.int32)  # (O,)
     scores = np.empty((len(thetas), len(off)), np.float32)
-    chunk = max(1, int(4_000_000 // max(1, len(off) * query.shape[0])))
+    chunk = max(1, int(2_000_000 // max(1, len(off) * query.shape[0])))
     for a in range(0, len(thetas), chunk):
         idx = base[a : a + chunk, None, :] + off[None, :, None]  # (t, O, M) flat cells
         scores[a : a + chunk] = field[idx].mean(axis=2)
@@ -205,6 +263,51 @@ def _coarse_search(
         (np.tile(centre[0] + ox * res, len(thetas)), np.tile(centre[1] + oy * res, len(thetas)), tt)
     )
     return poses, scores.ravel()
+
+
+def _score_poses(ref: ReferenceSubmap, query: np.ndarray, poses: np.ndarray, cells: int) -> np.ndarray:
+    """Mean (max-filtered) likelihood of ``query`` at each of ``poses`` (P, 3)."""
+    field = ref.dilated(cells)
+    h, w = ref.shape
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    px = c * query[None, :, 0] - s * query[None, :, 1] + poses[:, 0:1]
+    py = s * query[None, :, 0] + c * query[None, :, 1] + poses[:, 1:2]
+    bx = np.floor((px - ref.origin[0]) / ref.resolution).astype(np.int64)
+    by = np.floor((py - ref.origin[1]) / ref.resolution).astype(np.int64)
+    out = (bx < 0) | (bx >= w) | (by < 0) | (by >= h)
+    bx[out] = 0
+    by[out] = 0  # the corner cell lies in the zero margin
+    return field[by * w + bx].mean(axis=1)
+
+
+def _coarse_search(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    step_xy: float,
+    step_theta: float,
+    sep_xy: float = 1.0,
+    sep_theta: float = np.deg2rad(10.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two-level correlative search: a grid at twice the steps on a wider max filter (an upper
+    bound of the finer level), then the finer grid inside the best cells and the best distinct
+    cells. Returns the finer-level (P, 3) poses and (P,) scores."""
+    reach = float(np.percentile(np.hypot(*query.T), 90)) if len(query) else 0.0
+    poses1, scores1 = _grid_search(
+        ref, query, centre, window_xy, window_theta, 2.0 * step_xy, 2.0 * step_theta, reach
+    )
+    n = min(len(scores1), 16)
+    top = np.argpartition(-scores1, n - 1)[:n]
+    cells = np.union1d(top, _distinct_peaks(poses1, scores1, 8, sep_xy, sep_theta))
+    d = np.array([-1.0, 0.0, 1.0])
+    dx, dy, dt = (a.ravel() for a in np.meshgrid(d * step_xy, d * step_xy, d * step_theta, indexing="ij"))
+    fine = (poses1[cells][:, None, :] + np.column_stack((dx, dy, dt))[None]).reshape(-1, 3)
+    res = ref.resolution
+    s = max(1, int(round(step_xy / res)))
+    scores = _score_poses(ref, query, fine, _dilation_cells(res, s * res, step_theta, reach))
+    return fine, scores
 
 
 def _distinct_peaks(
@@ -244,11 +347,10 @@ def icp_point_to_line(
     for it in range(iterations):
         dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
         p = transform_points(x, query)
-        d, j = ref.tree.query(p, distance_upper_bound=dmax)
-        ok = np.isfinite(d)
-        if ok.sum() < 10:
+        sel, j = ref.nearest_points(p, dmax)
+        if len(sel) < 10:
             return None
-        p, j = p[ok], j[ok]
+        p = p[sel]
         n, q = ref.normals[j], ref.quality[j]
         r = np.einsum("ij,ij->i", p - ref.points[j], n)
         rel = p - x[:2]
@@ -301,10 +403,18 @@ def match_scan(
         coarse = coarse[rng.choice(len(coarse), cfg.max_query_points, replace=False)]
     step_th = np.deg2rad(cfg.coarse_step_theta_deg)
     c0 = np.asarray(centre, dtype=np.float64)
-    poses, scores = _coarse_search(
-        reference, coarse, c0, window_xy, min(window_theta, np.pi), cfg.coarse_step_xy, step_th
-    )
     sep_xy, sep_th = cfg.peak_separation_xy, np.deg2rad(cfg.peak_separation_theta_deg)
+    poses, scores = _coarse_search(
+        reference,
+        coarse,
+        c0,
+        window_xy,
+        min(window_theta, np.pi),
+        cfg.coarse_step_xy,
+        step_th,
+        sep_xy,
+        sep_th,
+    )
     peaks = _distinct_peaks(poses, scores, 3, sep_xy, sep_th)
     top = float(scores[peaks[0]])
     if top < cfg.min_coarse_score:  # not even the optimistic coarse score: no ICP
@@ -338,7 +448,8 @@ def match_scan(
             second, second_pose = inl, p
             break
     amb = max(second / best[0], unrefined) if best[0] > 0 else 1.0
-    return ScanMatch(best[1], best[0], float(amb), best[2], top, len(fine), second_pose)
+    free = reference.free_violation(fine, best[1])
+    return ScanMatch(best[1], best[0], float(amb), best[2], top, len(fine), second_pose, free)
 
 
 # ----------------------------------------------------------------------------- loop closer
@@ -462,14 +573,24 @@ class LoopCloser:
         idx = idx[ok]
         order = idx[np.argsort(dist[ok], kind="stable")]
         cells = np.floor(est[order, :2] / cfg.candidate_spacing).astype(int)
-        out, seen = [], set()
-        for c, cell in zip(order.tolist(), map(tuple, cells.tolist()), strict=True):
+        # one candidate per cell (the nearest); the first pick is the nearest cell not tried
+        # recently, the others go round-robin (never tried first, then the least recently tried)
+        # so that a wide search area is covered over the keyframes
+        picks, seen = [], set()
+        for rank, (c, cell) in enumerate(zip(order.tolist(), map(tuple, cells.tolist()), strict=True)):
             if cell in seen:
                 continue
             seen.add(cell)
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue
+            picks.append((-1 if last is None else last, rank, c, cell))
+        if picks:
+            first = min(picks, key=lambda t: t[1])
+            picks.remove(first)
+            picks = [first, *sorted(picks)]
+        out = []
+        for _, _, c, cell in picks[: cfg.max_candidates]:
             window = np.deg2rad(
                 cfg.theta_window_base_deg
                 + cfg.theta_window_per_m_deg * d_rel[c]
@@ -477,19 +598,17 @@ class LoopCloser:
             )
             out.append((c, float(radius[c]), float(min(window, np.pi))))
             self._tried[cell] = i
-            if len(out) == cfg.max_candidates:
-                break
         return out
 
     def _submap(
         self, slam: FRSlam, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
-    ) -> np.ndarray:
-        """Points of keyframes lo..hi (within ± travel of ``centre``) in ``centre``'s frame."""
+    ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+        """Points of keyframes lo..hi (within ± travel of ``centre``) in ``centre``'s frame, and
+        per keyframe (sensor origin, end points in beam order) in that frame."""
         cfg = self.config
         pts_all, origins = slam.keyframe_scans()
         trav = np.asarray(self._travel)
-        chunks = []
-        inv_c = est[centre]
+        scans = []
         for k in range(max(lo, 0), min(hi, len(pts_all) - 1) + 1):
             if abs(trav[k] - trav[centre]) > travel:
                 continue
@@ -497,8 +616,10 @@ class LoopCloser:
             if len(p) == 0:
                 continue
             p = p[np.hypot(*(p - origins[k]).T) <= cfg.max_point_range]
-            chunks.append(transform_points(between(inv_c, est[k]), p))
-        return np.vstack(chunks) if chunks else np.zeros((0, 2))
+            rel = between(est[centre], est[k])
+            scans.append((transform_points(rel, origins[k][None])[0], transform_points(rel, p)))
+        pts = np.vstack([q for _, q in scans]) if scans else np.zeros((0, 2))
+        return pts, scans
 
     def _reference(self, slam: FRSlam, est: np.ndarray, c: int, i: int) -> ReferenceSubmap:
         sub = self._submaps.get(c)
@@ -507,9 +628,9 @@ class LoopCloser:
             return sub
         cfg = self.config
         hi = min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
-        pts = self._submap(slam, est, c, c - cfg.submap_keyframes, hi, cfg.submap_travel)
+        pts, scans = self._submap(slam, est, c, c - cfg.submap_keyframes, hi, cfg.submap_travel)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
-        sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin)
+        sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin)
         self._submaps[c] = sub
         while len(self._submaps) > 24:
             self._submaps.popitem(last=False)
@@ -526,7 +647,7 @@ class LoopCloser:
         cands = self._candidates(est, i)
         if not cands:
             return []
-        query = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
+        query, _ = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
         added: list[LoopClosure] = []
         for c, radius, window_th in cands:
             self.stats.attempts += 1
@@ -554,6 +675,9 @@ class LoopCloser:
                 continue
             if m.ambiguity > cfg.max_ambiguity:
                 self._reject(slam, i, c, "ambiguous", **data)
+                continue
+            if m.free_violation > cfg.max_free_violation:
+                self._reject(slam, i, c, "free_space", free=round(m.free_violation, 3), **data)
                 continue
             cov = regularise_covariance(
                 m.covariance * cfg.covariance_inflation,
@@ -610,9 +734,12 @@ class LoopCloser:
         return gtsam.BetweenFactorPose2(key(lc.reference), key(lc.query), pose2(lc.relative), noise)
 
     def _add(self, slam: FRSlam, closures: list[LoopClosure], settle: bool) -> None:
-        """Add closures to the graph. Small corrections enter under the robust kernel; a confirmed
-        large correction (``settle``) enters as plain Gaussians (a bounded-influence kernel could
-        not pull the stiff odometry chain that far) and an LM batch runs when it moves far."""
+        """Add closures to the graph. A single closure with a small correction enters under the
+        robust kernel. A confirmed pair (``settle``: two closures from different keyframes that
+        agree) enters as plain Gaussians: a bounded-influence kernel cannot pull the stiff odometry
+        chain far, not even after the graph has converged to the closure (the chain's stress
+        exceeds the kernel's maximal pull and the graph slides back); an LM batch runs when the
+        correction moved the graph far."""
         graph = slam.graph
         before = graph.estimates()
         if settle:

@@ -1,0 +1,201 @@
+"""Loop closure: matcher accuracy and ambiguity, drift corrected on a loop, wrong closures held
+off by verification and the robust kernel, config switch."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+from synthetic_world import ROOM_LOOP, box, cast, corridor_world, room_world, route, scans_along, to_points
+
+from frslam_graph.config import FRSlamConfig
+from frslam_graph.errors import ConfigError
+from frslam_graph.graph import key
+from frslam_graph.loop_closure import (
+    LoopCloser,
+    LoopClosure,
+    ReferenceSubmap,
+    match_scan,
+    transform_points,
+)
+from frslam_graph.motion_model import between, compose
+from frslam_graph.pipeline import FRSlam
+
+CFG = {"odometry": {"max_range": 10.0}}
+
+
+def _points(world, pose, seed=0):
+    r, amin, inc = cast(world, np.asarray(pose, float), rng=np.random.default_rng(seed))
+    return to_points(r, amin, inc)
+
+
+def _reference(world, pose, cfg=None):
+    cfg = cfg or FRSlamConfig().loop_closure
+    pts = _points(world, pose, 1)  # in the frame of pose: the sensor sits at the origin
+    return ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, 6.0, [(np.zeros(2), pts)])
+
+
+# ------------------------------------------------------------------------------------ matcher
+def test_match_scan_recovers_the_relative_pose():
+    world = room_world()
+    a, b = np.array([4.0, 2.0, 0.3]), np.array([5.1, 2.6, 0.55])
+    ref = _reference(world, a)
+    truth = between(a, b)
+    # the prediction is off by 0.8 m and 12 degrees: the grid search must find it
+    guess = truth + np.array([0.6, -0.5, np.deg2rad(12.0)])
+    m = match_scan(ref, _points(world, b, 2), guess, 1.5, np.deg2rad(20.0))
+    assert m is not None
+    err = between(truth, m.pose)
+    assert np.hypot(err[0], err[1]) < 0.03 and abs(err[2]) < np.deg2rad(0.5)
+    assert m.inlier_fraction > 0.75 and m.ambiguity < 0.8  # some of b is occluded from a
+    w = np.linalg.eigvalsh(m.covariance)
+    assert w.min() > 0 and np.sqrt(w.max()) < 0.05
+
+
+def test_corridor_match_is_ambiguous_or_unsupported():
+    # a featureless corridor: sliding along it fits equally well -> ambiguous, not accepted
+    world = corridor_world(60.0, 2.0)
+    cfg = FRSlamConfig().loop_closure
+    a, b = np.array([0.0, 0.0, 0.0]), np.array([0.4, 0.1, 0.05])
+    m = match_scan(_reference(world, a), _points(world, b, 3), between(a, b), 2.0, np.deg2rad(10.0), cfg)
+    assert m is not None
+    assert m.ambiguity > cfg.max_ambiguity
+
+
+def test_similar_but_different_place_is_rejected():
+    # two rooms of the same size but with different furniture: the walls alone do not match
+    room_a = np.vstack([box(0, 0, 8, 6), box(2.0, 2.0, 2.6, 2.6), box(5.5, 3.5, 6.5, 4.2)])
+    room_b = np.vstack([box(0, 0, 8, 6), box(5.0, 1.0, 5.6, 1.6), box(1.5, 4.0, 2.5, 4.7)])
+    cfg = FRSlamConfig().loop_closure
+    pose = np.array([4.0, 3.0, 0.0])
+    ref = _reference(room_a, pose)
+    m = match_scan(ref, _points(room_b, pose, 4), np.zeros(3), 2.0, np.deg2rad(30.0), cfg)
+    assert m is not None and m.inlier_fraction > cfg.min_inlier_fraction  # the walls do fit
+    assert m.free_violation > cfg.max_free_violation  # but b's furniture stands in a's free space
+    # ... while the same room matches
+    same = match_scan(ref, _points(room_a, pose, 5), np.zeros(3), 2.0, np.deg2rad(30.0), cfg)
+    assert same.inlier_fraction >= cfg.min_inlier_fraction and same.ambiguity <= cfg.max_ambiguity
+    assert same.free_violation < 0.02
+
+
+# ------------------------------------------------------------------------------ full pipeline
+def _inject_drift(slam: FRSlam, heading_per_m: float, scale: float) -> None:
+    """Odometry between-factors get a heading bias per metre and a scale error (scans stay true)."""
+    process = slam.odometry.process
+
+    def drifting(*args, **kwargs):
+        res = process(*args, **kwargs)
+        if res is not None and res.between is not None:
+            b = np.asarray(res.between, float)
+            d = float(np.hypot(b[0], b[1]))
+            bad = np.array([b[0] * (1 + scale), b[1] * (1 + scale), b[2] + heading_per_m * d])
+            res = dataclasses.replace(res, between=bad)
+        return res
+
+    slam.odometry.process = drifting
+
+
+@pytest.fixture(scope="module")
+def two_laps():
+    world = room_world()
+    truth = route(ROOM_LOOP + ROOM_LOOP[1:] + ROOM_LOOP[1:2])  # about 2.3 laps of the room
+    ranges, amin, inc = scans_along(world, truth)
+    return truth, ranges, amin, inc
+
+
+def _run(data, loop: bool):
+    truth, ranges, amin, inc = data
+    cfg = dict(CFG, loop_closure={"enabled": loop})
+    slam = FRSlam(cfg)
+    _inject_drift(slam, np.deg2rad(0.5), 0.02)
+    for i in range(len(truth)):
+        slam.add_scan(truth[i, 0], ranges[i], amin, inc, None)
+    slam.finish()
+    err = _errors(slam, truth)
+    return slam, float(np.sqrt(np.mean(err**2))), float(err[-1])
+
+
+def _errors(slam: FRSlam, truth: np.ndarray) -> np.ndarray:
+    """Position errors; without wheel odometry map starts at the first scan, so map -> world."""
+    est = slam.trajectory()[:, 1:]
+    world = np.array([compose(truth[0, 1:], p) for p in est])
+    return np.hypot(*(world[:, :2] - truth[:, 1:3]).T)
+
+
+@pytest.fixture(scope="module")
+def runs(two_laps):
+    return _run(two_laps, loop=False), _run(two_laps, loop=True)
+
+
+def test_loop_closure_corrects_drift(runs):
+    (_, ate_off, end_off), (slam, ate_on, end_on) = runs
+    closures = [e for e in slam.log if e.kind == "loop_closure"]
+    assert closures, "no loop closure on a route that revisits the room twice"
+    assert ate_off > 0.5  # the injected drift is substantial
+    assert ate_on < 0.2 * ate_off and end_on < 0.2 * end_off
+    assert ate_on < 0.25  # a 2 % scale error is not observable by closures
+    st = slam.loop_closer.stats
+    assert st.accepted == len(slam.loop_closer.closures) == len(closures)
+    # every closure is a factor of the batch graph between the two keyframes
+    pairs = {(c.reference, c.query) for c in slam.loop_closer.closures}
+    graph_pairs = {
+        (int(gtsam.Symbol(f.keys()[0]).index()), int(gtsam.Symbol(f.keys()[1]).index()))
+        for f in slam.graph._factors
+        if isinstance(f, gtsam.BetweenFactorPose2)
+    }
+    assert pairs <= graph_pairs
+
+
+def test_disabled_gives_no_closures(runs):
+    (slam_off, _, _), _ = runs
+    assert slam_off.loop_closer is None
+    assert not [e for e in slam_off.log if e.kind.startswith("loop")]
+
+
+def test_wrong_closure_cannot_bend_the_map(runs, two_laps):
+    _, (slam, ate_on, _) = runs
+    truth = two_laps[0]
+    closer = slam.loop_closer
+    good = closer.closures[-1]
+    # a closure 3 m and 40 degrees off (e.g. a similar room elsewhere) under the robust kernel
+    wrong_rel = compose(good.relative, np.array([3.0, -1.0, np.deg2rad(40.0)]))
+    wrong = LoopClosure(good.reference, good.query, wrong_rel, good.covariance, good.match, np.zeros(3))
+    slam.graph.add_factor(closer._factor(wrong, robust=True))
+    slam.finish()
+    err = _errors(slam, truth)
+    assert np.sqrt(np.mean(err**2)) < max(2.0 * ate_on, 0.15)
+
+
+def test_large_correction_waits_for_a_consistent_second_closure():
+    closer = LoopCloser()
+    est = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0], [11.0, 0.0, 0.0]])
+    m = None
+    # keyframes 2 and 3 (1 m apart) are really at 0 and 1: both closures imply the same shift
+    a = LoopClosure(0, 2, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
+    b = LoopClosure(1, 3, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
+    closer._pending.append(a)
+    assert closer._consistent_pending(b, est) is a
+    # a closure implying a different shift is not confirmed by it
+    c = LoopClosure(1, 3, np.array([2.0, 0.0, 0.3]), np.eye(3) * 1e-4, m, np.zeros(3))
+    assert closer._consistent_pending(c, est) is None
+
+
+def test_loop_closure_config_is_validated():
+    cfg = FRSlamConfig()
+    assert cfg.loop_closure.enabled
+    with pytest.raises(ConfigError) as exc:
+        FRSlamConfig.from_dict({"loop_closure": {"min_inlier_fraction": 1.5}})
+    assert exc.value.where == "loop_closure.min_inlier_fraction"
+    with pytest.raises(ConfigError):
+        FRSlamConfig.from_dict({"loop_closure": {"no_such_field": 1}})
+
+
+def test_transform_points_matches_compose():
+    pose = np.array([1.0, -2.0, 0.7])
+    pts = np.array([[0.5, 0.2], [-1.0, 3.0]])
+    out = transform_points(pose, pts)
+    for p, o in zip(pts, out, strict=True):
+        np.testing.assert_allclose(compose(pose, np.array([*p, 0.0]))[:2], o)
+    assert key(3) == gtsam.symbol("x", 3)
