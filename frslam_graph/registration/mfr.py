@@ -98,8 +98,9 @@ def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35)
     hist = np.bincount((a4 / (2 * np.pi) * bins).astype(np.intp) % bins, weights=w, minlength=bins)
     kernel = np.exp(-0.5 * (np.arange(-8, 9) / 4.0) ** 2)  # ±2° of wall angle = ±8 bins of 4x angle
     smooth = np.convolve(np.concatenate([hist[-8:], hist, hist[:8]]), kernel, mode="valid")
-    peaks = [i for i in range(bins) if smooth[i] >= smooth[i - 1] and smooth[i] > smooth[(i + 1) % bins]]
-    peaks.sort(key=lambda i: -smooth[i])
+    is_peak = (smooth >= np.roll(smooth, 1)) & (smooth > np.roll(smooth, -1))
+    peaks = np.flatnonzero(is_peak)
+    peaks = peaks[np.argsort(-smooth[peaks], kind="stable")].tolist()
     out: list[float] = []
     for i in peaks[:max_peaks]:
         if out and smooth[i] < rel * smooth[peaks[0]]:
@@ -490,22 +491,25 @@ class Hypothesis:
 
 def _coarse_hypotheses(
     pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
-) -> list[Hypothesis]:
+) -> dict[str, np.ndarray]:
     """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
-    the map, each with its moment-matched plan -> grid-frame matrix."""
+    the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
+    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction)."""
     n = len(pm.ids)
     member = mask_matrix(masks, n)
     geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
-    out: list[Hypothesis] = []
-    for ai in range(len(obs.angles)):
-        out += _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
-    out.sort(key=lambda h: h.feature_cost)
-    return out[:top_k]
+    parts = [
+        _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
+        for ai in range(len(obs.angles))
+    ]
+    pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(pool["cost"], kind="stable")[:top_k]
+    return {k: v[order] for k, v in pool.items()}
 
 
 def _coarse_hypotheses_at(
     pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
-) -> list[Hypothesis]:
+) -> dict[str, np.ndarray]:
     angle = obs.angles[ai]
     rm = _rot(-angle)
     mc = rm @ obs.centroid
@@ -555,10 +559,13 @@ def _coarse_hypotheses_at(
     mats[:, :2, :2] = lin
     mats[:, :2, 2] = t_al @ rmap.T
     mats[:, 2, 2] = 1.0
-    return [
-        Hypothesis(int(masks[s_]), DIHEDRAL[j_][0], DIHEDRAL[j_][1], mats[i], float(costs[s_, j_]), ai)
-        for i, (s_, j_) in enumerate(zip(si.tolist(), ji.tolist(), strict=True))
-    ]
+    return {
+        "mask": masks[si],
+        "case": ji,
+        "mats": mats,
+        "cost": costs[si, ji],
+        "angle": np.full(len(si), ai),
+    }
 
 
 def _fill(
@@ -643,8 +650,13 @@ def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: flo
 
 
 def _coarse_scores(
-    pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], door_width_m=None, points: int | None = None
-) -> None:
+    pm: PlanModel,
+    obs: MapObservation,
+    mats: np.ndarray,
+    masks: np.ndarray,
+    door_width_m=None,
+    points: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
     IoU from the plan's interior grid points landing on the coarse footprint; precision from the
@@ -657,10 +669,9 @@ def _coarse_scores(
     def sub(arr: np.ndarray) -> np.ndarray:
         return arr if points is None or len(arr) <= points else arr[:: int(math.ceil(len(arr) / points))]
 
-    mats = np.stack([h.matrix for h in hyps])  # (H, 3, 3)
     a, t = mats[:, :2, :2], mats[:, :2, 2]
     det = np.abs(np.linalg.det(a))
-    member = mask_matrix(np.array([h.mask for h in hyps], dtype=np.uint64), n).astype(np.float64)  # (H, n)
+    member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
     cf = obs.coarse_frame
     tol = 1.5 * cf.resolution
     # IoU
@@ -686,9 +697,21 @@ def _coarse_scores(
     pf = pm.plan_frame
     dp = _lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
     tol_plan = tol / np.sqrt(det) + pf.resolution
-    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(hyps))
+    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
     exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
     key = iou * precision * recall * exits * _door_prior(pm, np.sqrt(det), door_width_m)
+    return iou, key
+
+
+def _score_hypotheses(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], door_width_m=None) -> None:
+    """:func:`_coarse_scores` for a list of hypotheses (sets ``coarse_iou`` and ``key``)."""
+    iou, key = _coarse_scores(
+        pm,
+        obs,
+        np.stack([h.matrix for h in hyps]),
+        np.array([h.mask for h in hyps], dtype=np.uint64),
+        door_width_m,
+    )
     for h, i_, k_ in zip(hyps, iou, key, strict=True):
         h.coarse_iou = float(i_)
         h.key = float(k_)
@@ -777,7 +800,7 @@ def _local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], op
                         trials.append(
                             Hypothesis(h.mask, h.k, h.flipped, rm @ d @ rm.T @ h.matrix, h.feature_cost)
                         )
-                _coarse_scores(pm, obs, trials, opts["door_width_m"])
+                _score_hypotheses(pm, obs, trials, opts["door_width_m"])
                 top = max(trials, key=lambda t: t.key)
                 if top.key > h.key:
                     h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
@@ -839,6 +862,7 @@ DEFAULTS: dict[str, Any] = {
     "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
     "max_points": 1500,
     "quick_points": 300,  # boundary samples when screening the refined hypotheses
+    "quick_scales": (0.2, 0.1),  # robust scales (m) of the screening refinement
     "quick_iterations": 5,  # Gauss-Newton iterations per robust-scale stage when screening
     "iterations": 10,  # Gauss-Newton iterations of the final stage
     "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
@@ -905,16 +929,24 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         if len(seeds) == 0:
             return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
     masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=opts["max_subsets_per_level"])
-    hyps = _coarse_hypotheses(
+    pool = _coarse_hypotheses(
         pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
     )
-    if not hyps:
+    if len(pool["mask"]) == 0:
         return fail("no room subset fits the map's shape within the aspect bound")
-    if len(hyps) > opts["top_k"]:  # cheap first pass on a few points of each kind
-        _coarse_scores(pm, obs, hyps, opts["door_width_m"], points=opts["first_pass_points"])
-        hyps.sort(key=lambda h: -h.key)
-        hyps = hyps[: opts["top_k"]]
-    _coarse_scores(pm, obs, hyps, opts["door_width_m"])
+    if len(pool["mask"]) > opts["top_k"]:  # cheap first pass on a few points of each kind
+        _, key = _coarse_scores(
+            pm, obs, pool["mats"], pool["mask"], opts["door_width_m"], points=opts["first_pass_points"]
+        )
+        keep = np.argsort(-key, kind="stable")[: opts["top_k"]]
+        pool = {k: v[keep] for k, v in pool.items()}
+    iou, key = _coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
+    hyps = [
+        Hypothesis(int(m), DIHEDRAL[c][0], DIHEDRAL[c][1], mat, float(cost), int(ai), float(i), key=float(k))
+        for m, c, mat, cost, ai, i, k in zip(
+            pool["mask"], pool["case"], pool["mats"], pool["cost"], pool["angle"], iou, key, strict=True
+        )
+    ]
     hyps.sort(key=lambda h: -h.key)
     if hyps[0].coarse_iou < opts["search_below_iou"]:
         # the map holds area the plan lacks (or the reverse): the moment fit is off; search
@@ -941,7 +973,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             h.matrix,
             delta0,
             opts,
-            scales=(0.2, 0.1),
+            scales=opts["quick_scales"],
             spacing_px=4.0,
             max_points=opts["quick_points"],
             iterations=opts["quick_iterations"],
