@@ -119,6 +119,7 @@ class FloorPlanUpdater:
         self._obstruction_reported = False
         self._history: list[tuple[float, float]] = []  # (stamp, distance) per keyframe
         self._inconsistent_run = 0
+        self._checks = 0
         self._next_id = 0
         self.timings: dict[str, float] = {"register": 0.0, "relocalise": 0.0, "coverage": 0.0}
 
@@ -177,6 +178,11 @@ class FloorPlanUpdater:
                     reason = f"mapped area grew by {grown:.1f} m² to {area:.1f} m²"
                 elif obstructed and grown >= 1.0:
                     reason = "progress obstructed"
+                elif self._inconsistent_run >= 5:
+                    reason = (
+                        f"{self._inconsistent_run} relocalisations in a row inconsistent with the estimate"
+                    )
+                    self._inconsistent_run = 0
         if reason is not None:
             self._register(slam, keyframe, reason)
         elif self.accepted is not None:
@@ -479,6 +485,9 @@ class FloorPlanUpdater:
         handles = [h for h in slam.graph.priors() if h.source.startswith("reloc:")]
         if not handles:
             return
+        self._checks += 1
+        if self._checks % 10 and len(handles) > 30:  # every time the recent ones, now and then all
+            handles = handles[-30:]
         slam.graph.estimates()  # fills the estimate cache for the residuals
         bad = []
         for h in handles:
