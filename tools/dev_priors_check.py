@@ -97,6 +97,14 @@ def main() -> None:
         action="store_true",
         help="no scan matching in the odometry (motion model on the wheel odometry, ~2 %% drift)",
     )
+    ap.add_argument(
+        "--prior-floor",
+        type=float,
+        nargs=2,
+        metavar=("XY_M", "THETA_DEG"),
+        help="sigma floors of the floor-plan priors (graph and relocalisation), e.g. 0.005 0.1",
+    )
+    ap.add_argument("--no-loop-closure", action="store_true")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     plan = load_plan(args.plan)
@@ -104,6 +112,14 @@ def main() -> None:
     cfg = FRSlamConfig()
     if args.wheel_only:  # fewer valid points than this -> motion-model fallback instead of ICP
         cfg = cfg.with_updates(odometry={"min_points": 10**9})
+    if args.prior_floor:
+        xy, th = args.prior_floor
+        cfg = cfg.with_updates(
+            graph={"prior_sigma_floor_xy": xy, "prior_sigma_floor_theta_deg": th},
+            updates={"reloc_sigma_floor_xy": xy, "reloc_sigma_floor_theta_deg": th},
+        )
+    if args.no_loop_closure:
+        cfg = cfg.with_updates(loop_closure={"enabled": False})
     print(
         "| seed | route m | mode | ATE RMSE m | ratio vs none | run s | registrations acc/tried | priors added/rejected/removed |"
     )
