@@ -74,9 +74,9 @@ class OdometryConfig(_Section):
     cv_sigma_xy_per_s: float = Field(0.5, gt=0.0)
     cv_sigma_theta_deg_per_s: float = Field(30.0, gt=0.0)
     # Fault gates.
-    odom_jump_gate: float = Field(
-        5.0, gt=0.0
-    )  # Mahalanobis sigma gate on (wheel - ICP) beyond which ICP is trusted
+    # Jump / ICP-failure gate: Mahalanobis sigmas on wheel-vs-constant-velocity (two-seed check)
+    # and, with icp_gate="reject", on ICP-vs-wheel; the disagreement must also exceed the minima.
+    odom_jump_gate: float = Field(5.0, gt=0.0)
     odom_jump_min_m: float = Field(0.15, ge=0.0)  # and the disagreement is at least this large
     odom_jump_min_deg: float = Field(5.0, ge=0.0)
     # What an ICP result beyond the gate from an accepted wheel increment means: "fuse" (plain EKF
