@@ -35,7 +35,7 @@ import numpy as np
 import shapely
 from shapely.geometry import LineString, Polygon
 
-from frslam_graph.errors import FrslamError
+from frslam_graph.errors import FloorPlanError, FrslamError
 from frslam_graph.raster import RasterFrame, rasterise_polygons
 
 _CHI2_3_99 = 11.345
@@ -60,11 +60,28 @@ class PlanField:
 
     @classmethod
     def from_plan(
-        cls, plan, resolution: float = 0.025, wall_offset: float = 0.06, margin: float = 1.0
+        cls,
+        plan,
+        resolution: float = 0.025,
+        wall_offset: float = 0.06,
+        margin: float = 1.0,
+        max_pixels: int = 8_000_000,
     ) -> PlanField:
-        """Field of ``plan`` (map metres). ``wall_offset`` is half the wall thickness (metres)."""
+        """Field of ``plan`` (map metres). ``wall_offset`` is half the wall thickness (metres).
+
+        Buildings needing more than ``max_pixels`` get a coarser resolution."""
         if not (np.isfinite(resolution) and resolution > 0):
             raise FrslamError(f"resolution must be positive, got {resolution}", where="resolution")
+        if plan.units != "m" and plan.metres_per_unit != 1.0:
+            raise FloorPlanError(
+                f"the plan is in {plan.units!r}, not metres: register it first (registration.apply(plan))",
+                source=plan.source,
+                where="units",
+            )
+        b = plan.bounds
+        pixels = (b[2] - b[0] + 2 * margin) * (b[3] - b[1] + 2 * margin) / resolution**2
+        if pixels > max_pixels:  # a very large building: a coarser field rather than gigabytes
+            resolution = float(resolution * np.sqrt(pixels / max_pixels))
         offset = max(float(wall_offset), 0.75 * resolution)  # keep a wall band between rooms
         try:
             frame = RasterFrame.around(plan.bounds, resolution, margin=margin + offset)

@@ -7,7 +7,7 @@ import pytest
 from shapely.geometry import box as sbox
 from synthetic_world import box, cast
 
-from frslam_graph.errors import FrslamError
+from frslam_graph.errors import FloorPlanError, FrslamError
 from frslam_graph.floorplan import Door, FloorPlan, Room
 from frslam_graph.relocalisation import PlanField, Relocaliser, relocalise, subsample
 
@@ -180,3 +180,13 @@ def test_subsample_limits_and_spreads():
     assert len(sub) == 50 and np.all(np.isfinite(sub))
     a = np.sort(np.arctan2(sub[:, 1], sub[:, 0]))
     assert np.max(np.diff(a)) < 0.3  # spread around the whole circle
+
+
+def test_plan_must_be_metric_and_large_plans_get_coarser():
+    px = FloorPlan(rooms=[Room("a", "bedroom", sbox(0, 0, 600, 400))], units="px")
+    with pytest.raises(FloorPlanError, match="not metres"):
+        Relocaliser(px)
+    big = FloorPlan(rooms=[Room("a", "office", sbox(0, 0, 200, 150))], units="m")
+    f = PlanField.from_plan(big, resolution=0.025, max_pixels=1_000_000)
+    assert f.frame.height * f.frame.width <= 1_100_000
+    assert f.frame.resolution > 0.1
