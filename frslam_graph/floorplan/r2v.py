@@ -63,7 +63,7 @@ class R2VOptions:
     """Tuning of the wall -> room reconstruction (lengths in plan pixels unless noted)."""
 
     wall_px: int = 2  # thickness of drawn walls/doors, raster pixels
-    max_raster: int = 4000  # longest image side; larger plans are rasterised coarser
+    max_raster: int = 3000  # longest image side; larger plans are rasterised coarser
     min_room_area: float = 60.0  # unlabelled regions smaller than this (plan px²) are dropped
     simplify: float = 1.0  # Douglas-Peucker tolerance of the room outlines
     touch_px: float = 6.0  # a wall end closer than this to another segment is joined to it
@@ -289,15 +289,76 @@ def _draw_segments(img: np.ndarray, frame: _Frame, segs: np.ndarray, thickness: 
     axis = (np.abs(d[:, 0]) < 1e-9) | (np.abs(d[:, 1]) < 1e-9)
     for i in np.flatnonzero(axis).tolist():
         img[c0[i, 1] : c1[i, 1], c0[i, 0] : c1[i, 0]] = 255
-    for i in np.flatnonzero(~axis).tolist():
-        (a, b), (dx, dy) = p[i], d[i]
-        if c1[i, 0] <= c0[i, 0] or c1[i, 1] <= c0[i, 1]:
-            continue
-        cx = np.arange(c0[i, 0], c1[i, 0]) + 0.5 - a
-        cy = np.arange(c0[i, 1], c1[i, 1]) + 0.5 - b
-        t = np.clip((cx[None, :] * dx + cy[:, None] * dy) / (dx * dx + dy * dy), 0.0, 1.0)
-        dist2 = (cx[None, :] - t * dx) ** 2 + (cy[:, None] - t * dy) ** 2
-        img[c0[i, 1] : c1[i, 1], c0[i, 0] : c1[i, 0]][dist2 <= hw * hw + 1e-9] = 255
+    slanted = np.flatnonzero(~axis & (c1[:, 0] > c0[:, 0]) & (c1[:, 1] > c0[:, 1]))
+    if len(slanted):
+        _fill_capsules(img, p[slanted], q[slanted], c0[slanted, 1], c1[slanted, 1], hw)
+
+
+def _fill_capsules(
+    img: np.ndarray, p: np.ndarray, q: np.ndarray, r0: np.ndarray, r1: np.ndarray, hw: float
+) -> None:
+    """Fill slanted capsules (segments p-q, radius hw; image coordinates) row by row, all at once:
+    a convex capsule cuts each pixel-centre row in one interval, the hull of the intervals of
+    its band (|distance to the line| <= hw, 0 <= t <= 1) and of its two end discs."""
+    h, w = img.shape
+    counts = (r1 - r0).astype(np.int64)
+    seg = np.repeat(np.arange(len(p)), counts)
+    rows = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(r0, counts)
+    y = rows + 0.5
+    px, py, qx, qy = p[seg, 0], p[seg, 1], q[seg, 0], q[seg, 1]
+    dx, dy = qx - px, qy - py
+    length2 = dx * dx + dy * dy
+    lo = np.full(len(y), np.inf)
+    hi = np.full(len(y), -np.inf)
+    for cx, cy in ((px, py), (qx, qy)):  # end discs
+        rem = hw * hw - (y - cy) ** 2
+        ok = rem >= 0
+        half = np.sqrt(np.where(ok, rem, 0.0))
+        lo = np.where(ok, np.minimum(lo, cx - half), lo)
+        hi = np.where(ok, np.maximum(hi, cx + half), hi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        steep = np.abs(dy) > 1e-12
+        xc = px + (y - py) * dx / np.where(steep, dy, 1.0)  # the centre line at this row
+        half = hw * np.sqrt(length2) / np.where(steep, np.abs(dy), 1.0)
+        band_lo, band_hi = xc - half, xc + half
+        # 0 <= t <= 1 with t = ((x - px) dx + (y - py) dy) / |d|²; dx != 0 for slanted segments
+        ta = px - (y - py) * dy / dx
+        tb = px + (length2 - (y - py) * dy) / dx
+        slab_lo, slab_hi = np.minimum(ta, tb), np.maximum(ta, tb)
+        blo, bhi = np.maximum(band_lo, slab_lo), np.minimum(band_hi, slab_hi)
+    ok = steep & (blo <= bhi)
+    lo = np.where(ok, np.minimum(lo, blo), lo)
+    hi = np.where(ok, np.maximum(hi, bhi), hi)
+    c_start = np.clip(np.ceil(lo - 0.5), 0, w).astype(np.int64)
+    c_end = np.clip(np.floor(hi - 0.5) + 1, 0, w).astype(np.int64)  # exclusive
+    keep = np.isfinite(lo) & (c_end > c_start) & (rows >= 0) & (rows < h)
+    rows, c_start, c_end = rows[keep], c_start[keep], c_end[keep]
+    if len(rows) == 0:
+        return
+    ra, rb = int(rows.min()), int(rows.max()) + 1
+    ca, cb = int(c_start.min()), int(c_end.max())
+    diff = np.zeros((rb - ra, cb - ca + 1), dtype=np.int32)
+    np.add.at(diff, (rows - ra, c_start - ca), 1)
+    np.add.at(diff, (rows - ra, c_end - ca), -1)
+    img[ra:rb, ca:cb][np.cumsum(diff[:, :-1], axis=1) > 0] = 255
+
+
+def _closest_points(points: np.ndarray, segs: np.ndarray, own: np.ndarray | None = None):
+    """Yield (slice, foot (c, M, 2), dist (c, M)) of the closest points on every segment, for
+    chunks of ``points`` (bounded memory for large plans); ``own[k]`` = a segment to ignore."""
+    a = segs[None, :, :2]
+    d = segs[None, :, 2:] - a
+    dd = np.maximum((d * d).sum(-1), 1e-12)
+    chunk = max(1, 1_000_000 // max(len(segs), 1))
+    for s0 in range(0, len(points), chunk):
+        sl = slice(s0, min(s0 + chunk, len(points)))
+        ap = points[sl, None, :] - a
+        t = np.clip((ap * d).sum(-1) / dd, 0.0, 1.0)
+        foot = a + t[..., None] * d
+        dist = np.linalg.norm(points[sl, None, :] - foot, axis=-1)
+        if own is not None:
+            dist[np.arange(dist.shape[0]), own[sl]] = np.inf
+        yield sl, foot, dist
 
 
 def _connectors(segs: np.ndarray, tol: float, dangling_above: float | None = None) -> np.ndarray:
@@ -310,33 +371,26 @@ def _connectors(segs: np.ndarray, tol: float, dangling_above: float | None = Non
         return np.zeros((0, 4))
     ends = np.concatenate([segs[:, :2], segs[:, 2:]])
     own = np.tile(np.arange(len(segs)), 2)
-    a = segs[None, :, :2]
-    d = segs[None, :, 2:] - a
-    ap = ends[:, None, :] - a
-    dd = np.maximum((d * d).sum(-1), 1e-12)
-    t = np.clip((ap * d).sum(-1) / dd, 0.0, 1.0)
-    foot = a + t[..., None] * d  # (2N, N, 2) closest points
-    dist = np.linalg.norm(ends[:, None, :] - foot, axis=-1)
-    dist[np.arange(len(ends)), own] = np.inf
-    if dangling_above is None:
-        i, j = np.nonzero((dist > 1e-9) & (dist <= tol))
-    else:
-        j_all = np.argmin(dist, axis=1)
-        dmin = dist[np.arange(len(ends)), j_all]
-        i = np.flatnonzero((dmin > dangling_above) & (dmin <= tol))
-        j = j_all[i]
-    return np.concatenate([ends[i], foot[i, j]], axis=1)
+    out = [np.zeros((0, 4))]
+    for sl, foot, dist in _closest_points(ends, segs, own):
+        if dangling_above is None:
+            i, j = np.nonzero((dist > 1e-9) & (dist <= tol))
+        else:
+            j_all = np.argmin(dist, axis=1)
+            dmin = dist[np.arange(len(dist)), j_all]
+            i = np.flatnonzero((dmin > dangling_above) & (dmin <= tol))
+            j = j_all[i]
+        out.append(np.concatenate([ends[sl][i], foot[i, j]], axis=1))
+    return np.concatenate(out)
 
 
 # --------------------------------------------------------------------------------- wall repair
-def _point_segment_distance(p: np.ndarray, segs: np.ndarray) -> np.ndarray:
-    """(N, M) distances from points p (N, 2) to segments (M, 4)."""
-    a = segs[None, :, :2]
-    d = segs[None, :, 2:] - a
-    ap = p[:, None, :] - a
-    dd = np.maximum((d * d).sum(-1), 1e-12)
-    t = np.clip((ap * d).sum(-1) / dd, 0.0, 1.0)
-    return np.linalg.norm(ap - t[..., None] * d, axis=-1)
+def _min_distance(points: np.ndarray, segs: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest segment other than ``own``."""
+    out = np.full(len(points), np.inf)
+    for sl, _, dist in _closest_points(points, segs, own):
+        out[sl] = dist.min(axis=1)
+    return out
 
 
 def _extensions(
@@ -356,9 +410,7 @@ def _extensions(
         / np.tile(length, 2)[:, None]
     )
     own = np.tile(np.arange(len(walls)), 2)
-    dist = _point_segment_distance(ends, allsegs)
-    dist[np.arange(len(ends)), own] = np.inf
-    dangling = dist.min(axis=1) > opts.touch_px
+    dangling = _min_distance(ends, allsegs, own) > opts.touch_px
     if not dangling.any():
         return np.zeros((0, 4))
     ends, dirs = ends[dangling], dirs[dangling]
@@ -617,8 +669,14 @@ def _box_rooms(
     """Fallback for labels still outside: box rooms (see :func:`_box_room`); where the boxes of
     several labels overlap, the pixels are shared between them by geodesic distance."""
     boxes = {}
+    rows = np.flatnonzero(walls_img.any(axis=1))
+    cols = np.flatnonzero(walls_img.any(axis=0))
+    if len(rows) == 0:
+        return boxes
+    extent = (int(rows[0]), int(cols[0]), int(rows[-1]), int(cols[-1]))
+    outside = room == outside_id
     for i in missing:
-        mask = _box_room(walls_img, room, outside_id, frame, labels[i], opts)
+        mask = _box_room(walls_img, outside, extent, frame, labels[i], opts)
         if mask is not None:
             boxes[i] = mask
     if len(boxes) <= 1:
@@ -638,20 +696,22 @@ def _box_rooms(
 
 
 def _box_room(
-    walls_img: np.ndarray, room: np.ndarray, outside_id: int, frame: _Frame, label: R2VLabel, opts: R2VOptions
+    walls_img: np.ndarray,
+    outside: np.ndarray,
+    extent: tuple[int, int, int, int],
+    frame: _Frame,
+    label: R2VLabel,
+    opts: R2VOptions,
 ) -> np.ndarray | None:
     """Fallback: the box around the label bounded by the nearest wall in each axis direction (an
     open direction reaches the plan's wall extent, and at least past the label box), restricted
     to outside pixels connected to the label centre."""
     c, r = _label_pixels(frame, [label])[0]
     h, w = walls_img.shape
-    wall_pts = np.argwhere(walls_img > 0)
-    if len(wall_pts) == 0:
-        return None
     (bc0, br0), (bc1, br1) = np.floor(frame.to_img(np.array([label.box[:2], label.box[2:]]))).astype(int)
     pad = opts.wall_px
-    rmin, cmin = np.minimum(wall_pts.min(axis=0), (br0 - pad, bc0 - pad)).clip(0)
-    rmax, cmax = np.minimum(np.maximum(wall_pts.max(axis=0), (br1 + pad, bc1 + pad)), (h - 1, w - 1))
+    rmin, cmin = np.minimum(extent[:2], (br0 - pad, bc0 - pad)).clip(0)
+    rmax, cmax = np.minimum(np.maximum(extent[2:], (br1 + pad, bc1 + pad)), (h - 1, w - 1))
     row = walls_img[r, :]
     col = walls_img[:, c]
     left = np.flatnonzero(row[:c] > 0)
@@ -664,13 +724,13 @@ def _box_room(
     r1 = r + 1 + down[0] if len(down) else rmax + 1
     if c1 - c0 < 2 or r1 - r0 < 2:
         return None
-    cand = np.zeros((h, w), dtype=np.uint8)
-    cand[r0:r1, c0:c1] = 1
-    cand &= (room == outside_id).astype(np.uint8)
-    if not cand[r, c]:
+    if not outside[r, c]:
         return None
+    cand = outside[r0:r1, c0:c1].astype(np.uint8)
     _, comp = cv2.connectedComponents(cand, connectivity=4)
-    return comp == comp[r, c]
+    mask = np.zeros((h, w), dtype=bool)
+    mask[r0:r1, c0:c1] = comp == comp[r - r0, c - c0]
+    return mask
 
 
 def _to_plan(
