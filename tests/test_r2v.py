@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from shapely.geometry import Point
 
 from frslam_graph.errors import FloorPlanError
@@ -228,3 +230,34 @@ def test_shared_r2v_sample_loads_with_every_label_found(shared_data):
         res = load_r2v_detailed(path)
         assert res.all_found, (path.name, [lab for lab in res.labels if lab.room is None])
         assert len(res.plan.rooms) >= 2
+
+
+# ------------------------------------------------------------------------------ robustness
+_coord = st.floats(-50, 350, allow_nan=False).map(lambda v: round(v, 1))
+_row = st.tuples(
+    _coord,
+    _coord,
+    _coord,
+    _coord,
+    st.sampled_from(["wall", "wall", "wall", "door", "bedroom", "kitchen", "closet", "toilet", "balcony"]),
+)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(rows=st.lists(_row, min_size=1, max_size=25), boxed=st.booleans())
+def test_random_rows_give_a_valid_plan_or_a_floorplan_error(tmp_path, rows, boxed):
+    """Any well-formed file either loads (valid rooms, labels resolved or reported) or raises
+    FloorPlanError naming the file; nothing else escapes."""
+    rows = [(*r, 1, 1) for r in rows]
+    if boxed:
+        rows += _box_walls(0, 0, 300, 300)
+    path = _write(tmp_path / "random.txt", rows)
+    try:
+        res = load_r2v_detailed(path)
+    except FloorPlanError as err:
+        assert str(path) in str(err)
+        return
+    ids = set(res.plan.room_ids)
+    assert all(lab.room is None or lab.room in ids for lab in res.labels)
+    assert all(r.polygon.is_valid and r.area > 0 for r in res.plan.rooms)
+    assert _overlap_fraction(res.plan) < 0.02
