@@ -6,18 +6,26 @@ down). ``wall`` and ``door`` rows are segments (a door is an opening in a wall);
 ``bathtub``, ...) are boxes and are ignored here.
 
 Rooms are built from the walls by rasterising: walls and doors (doors close their openings) are
-drawn ``wall_px`` pixels thick, the free space is cut into 4-connected regions, the region
-touching the image border is the outside. Each room label claims the region under its centre;
-a region holding several labels is split between them (geodesic Voronoi from the label boxes);
-other enclosed regions become ``unknown`` rooms (slivers below ``min_room_area`` are dropped).
-Wall pixels are then shared out to the nearest region, so neighbouring rooms meet on the wall
-centre lines, and each region becomes a polygon with exact pixel edges, simplified.
+drawn ``wall_px`` pixels thick, exactly symmetric about their centre lines, and segment ends
+that miss another segment by up to ``touch_px`` are joined to it (annotation joints are often a
+few pixels off). The free space is cut into 4-connected regions; the region touching the image
+border is the outside. Each room label claims the region under its centre (label rows whose
+boxes coincide name one room); a region holding several labels (a Japanese LDK labelled
+``kitchen`` and ``living_room``) is split between them by geodesic distance from the label
+centres; other enclosed regions become ``unknown`` rooms (slivers below ``min_room_area`` are
+dropped). Wall pixels are then shared out to the nearest region, so neighbouring rooms meet on
+the wall centre lines without overlapping, and each region becomes a polygon with exact pixel
+edges, simplified by ``simplify`` (Douglas-Peucker).
 
 When a label lies outside every enclosed region (walls that do not close), the walls are
-repaired in steps until every label is enclosed: ``snap`` (dangling wall ends extended up to
-``snap_px`` to the next wall), ``extend`` (up to ``extend_frac`` of the plan size), ``close<k>``
-(morphological closing of the wall image with a growing kernel), and finally ``box`` (a box room
-bounded by the nearest walls around the label). The strategy used is reported.
+repaired in steps, each on the original walls, until every label is enclosed (or the step
+enclosing most labels is kept): ``snap`` (loose wall ends extended along their direction up to
+``snap_px`` to the next wall), ``extend`` (up to ``extend_frac`` of the plan size),
+``bridge<k>`` (also join each loose end to the nearest segment within k px), optional
+``close<k>`` (morphological closing; off by default: it bulges rooms out of the walls), and
+finally ``+box`` (a box room around each label still outside, bounded by the nearest wall in
+each axis direction or the plan's wall extent). :class:`R2VResult` reports the strategy used
+and which room holds each label.
 
 Output coordinates are plan pixels with y flipped (``y_plan = -y_px``) so the plan is
 right-handed; ``units = "px"``, ``metres_per_unit = None``.
