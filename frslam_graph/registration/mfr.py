@@ -8,20 +8,27 @@ matrix from plan coordinates to ``map`` metres.
 
 Steps
 1. Map: observed footprint = free ∪ occupied with holes filled, main connected component; free
-   space with small obstacles filled; the dominant wall direction ``phi_m`` (magnitude-weighted
-   mean of 4·gradient angle, so walls at 90° agree); the footprint's area moments and bounding box
-   in the frame rotated by ``-phi_m``.
-2. Plan: dominant direction ``phi_p`` of its room edges; per-room area moments and bounding boxes
-   in the frame rotated by ``-phi_p``; connected room subsets (doors, or shared walls where the
-   plan has no door information) with their moments as one matrix product.
-3. Coarse: every (subset, dihedral case) is scored by scale- and aspect-invariant shape features
-   (fill of the bounding box, normalised centroid and spreads, correlation, area over spreads);
-   the axis scales follow from the second moments (the paper's eq. 7 uses bounding boxes) and must
-   respect the aspect bound. The best ``top_k`` are rasterised at a coarse resolution and scored by
-   IoU with the footprint.
-4. Fine: the best distinct hypotheses are refined on the full-resolution free-space signed
-   distance (:mod:`frslam_graph.registration.refine`), then scored by IoU of the rooms they place
-   on the observed footprint. ``ambiguity`` = best score of a different placement / best score.
+   space with small obstacles filled; its signed distance field (full resolution); the
+   "wall-side" free cells (free next to a wall) and doorway-like exits (free running into
+   unobserved space, 0.4–2.5 m wide); up to two wall directions (peaks of the histogram of
+   4 × gradient angle, so walls at 90° agree); area moments and bounding boxes per direction.
+2. Plan: its wall direction; per-room area moments and bounding boxes; boundary samples with
+   inward normals, leaving out doors and open-plan boundaries (no plan wall along them, as in
+   R2V's living-dining-kitchens); the room graph (doors, open-plan boundaries, shared walls for
+   rooms without doors) and its connected subsets (:mod:`frslam_graph.registration.subsets`).
+3. Coarse: every (subset, dihedral case, map direction) gets axis scales from second moments
+   (the paper's eq. 7 uses bounding boxes) within the aspect bound, ranked by scale- and
+   aspect-invariant shape features plus an aspect and door-width tie-break; the best ``pool_k``
+   are scored on few points, the best ``top_k`` of those on more: key = IoU with the footprint
+   × wall precision (plan walls on the observed area that are map walls) × wall recall (map walls
+   explained by plan walls) × exit agreement × door-width plausibility, all vectorised over the
+   hypotheses (cv2.remap lookups). A poor best fit triggers a scale/shift search.
+4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored; the best
+   is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
+   two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
+   the rooms it places on the footprint; ``ambiguity`` = best re-score of a different placement
+   (or unrefined coarse key, scaled) / the best's; failure when IoU × precision × recall or the
+   recall is too low.
 """
 
 from __future__ import annotations
@@ -85,9 +92,9 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray
 
 def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) -> list[float]:
     """Wall directions modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors weighted by their
-    length: peaks of a circular 1° histogram (smoothed over ±2°), the strongest first, each refined
-    by the weighted circular mean within ±6°; a second peak counts when it is at least ``rel``
-    of the first and 10° away. Robust to a few diagonal walls, unlike one overall mean."""
+    length: peaks of a circular histogram (smoothed, σ = 3°), the strongest first, each refined by
+    the weighted circular mean within ±10°; a second peak counts when it is at least ``rel`` of
+    the first and 20° away. Robust to a few diagonal walls, unlike one overall mean."""
     mag = np.hypot(vectors[:, 0], vectors[:, 1])
     ok = mag > 0
     if not ok.any():
@@ -96,8 +103,11 @@ def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35)
     a4 = np.mod(4.0 * np.arctan2(v[:, 1], v[:, 0]), 2 * np.pi)  # 4x angle: walls at 90° agree
     bins = 360
     hist = np.bincount((a4 / (2 * np.pi) * bins).astype(np.intp) % bins, weights=w, minlength=bins)
-    kernel = np.exp(-0.5 * (np.arange(-8, 9) / 4.0) ** 2)  # ±2° of wall angle = ±8 bins of 4x angle
-    smooth = np.convolve(np.concatenate([hist[-8:], hist, hist[:8]]), kernel, mode="valid")
+    # smoothing σ = 3° of wall angle (12 bins of the 4x angle): gradients of rasterised oblique
+    # walls alias into two lobes a few degrees either side of the true direction
+    half = 36
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / 12.0) ** 2)
+    smooth = np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), kernel, mode="valid")
     is_peak = (smooth >= np.roll(smooth, 1)) & (smooth > np.roll(smooth, -1))
     peaks = np.flatnonzero(is_peak)
     peaks = peaks[np.argsort(-smooth[peaks], kind="stable")].tolist()
@@ -107,10 +117,10 @@ def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35)
             break
         centre = (i + 0.5) / bins * 2 * np.pi
         d = np.angle(np.exp(1j * (a4 - centre)))
-        near = np.abs(d) < np.radians(24.0)  # ±6° of wall angle
+        near = np.abs(d) < np.radians(40.0)  # ±10° of wall angle
         mean = centre + (np.sum(w[near] * d[near]) / max(np.sum(w[near]), 1e-12))
         ang = float(np.angle(np.exp(1j * mean)) / 4.0)
-        if all(abs(np.angle(np.exp(4j * (ang - o)))) > np.radians(40.0) for o in out):
+        if all(abs(np.angle(np.exp(4j * (ang - o)))) > np.radians(80.0) for o in out):  # 20° apart
             out.append(ang)
     return out or [0.0]
 
@@ -208,7 +218,7 @@ def observe_map(
     exit_points = (cen3[1:][door_like] + 0.5) * res
 
     # dominant wall direction from the free-space edges
-    fimg = cv2.GaussianBlur(free.astype(np.float32), (5, 5), 1.0)
+    fimg = cv2.GaussianBlur(free.astype(np.float32), (9, 9), 2.0)  # σ 2 cells: less aliasing
     gx = cv2.Sobel(fimg, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(fimg, cv2.CV_32F, 0, 1, ksize=3)
     sel = (np.abs(gx) + np.abs(gy)) > 0.05
@@ -358,7 +368,8 @@ def prepare_plan(
     pts, nrm, owner = sample_boundaries(rings, step, doors, door_tol=0.012 * diag)
     owner_room = ring_room_arr[owner]
     bare_pts = np.zeros((0, 2))
-    # open plans: a room boundary no plan wall runs along is not a wall (and links the rooms)
+    # open plans: a boundary between two rooms that no plan wall runs along is not a wall (and
+    # links the rooms)
     walls = getattr(plan, "walls", None)
     if walls is not None and len(walls):
         segs = np.vstack([np.asarray(walls, dtype=np.float64).reshape(-1, 4), doors])
@@ -379,27 +390,24 @@ def prepare_plan(
                 for (i, j), c in zip(uniq.tolist(), counts.tolist(), strict=True):
                     if 0.5 * c * step >= 0.025 * diag:
                         door_rooms.append((i, j))
-        bare_pts = pts[~supported]
-        pts, nrm, owner_room = pts[supported], nrm[supported], owner_room[supported]
+            # only a boundary shared with another room can be open; outer walls stay walls
+            keep = np.ones(len(pts), bool)
+            keep[bare[close]] = False
+            bare_pts = pts[~keep]
+            pts, nrm, owner_room = pts[keep], nrm[keep], owner_room[keep]
     adj = adjacency_masks(rooms, door_rooms, mode=adjacency, touch_tol=0.01 * diag)
     pres = diag / dt_px
     pframe = RasterFrame.around((minx, miny, maxx, maxy), pres, margin=0.05 * diag)
     lines = np.zeros(pframe.shape, np.uint8)
     cells = np.floor((pts - pframe.origin) / pres).astype(np.intp)
     lines[np.clip(cells[:, 1], 0, pframe.height - 1), np.clip(cells[:, 0], 0, pframe.width - 1)] = 1
-    plan_dt = cv2.distanceTransform(1 - lines, cv2.DIST_L2, 3) * np.float32(pres)
     openings = np.zeros(pframe.shape, np.uint8)
     for x1, y1, x2, y2 in doors:
         a, b = (np.array([[x1, y1], [x2, y2]]) - pframe.origin) / pres - 0.5
-        cv2.line(
-            openings,
-            tuple(np.round(a * _FIX).astype(int)),
-            tuple(np.round(b * _FIX).astype(int)),
-            1,
-            1,
-            cv2.LINE_8,
-            _SHIFT,
-        )
+        a, b = tuple(np.round(a * _FIX).astype(int)), tuple(np.round(b * _FIX).astype(int))
+        cv2.line(openings, a, b, 1, 1, cv2.LINE_8, _SHIFT)
+    # a closed door looks like a wall: map walls at plan doors are explained too (recall)
+    plan_dt = cv2.distanceTransform(1 - (lines | openings), cv2.DIST_L2, 3) * np.float32(pres)
     if len(bare_pts):
         cells = np.floor((bare_pts - pframe.origin) / pres).astype(np.intp)
         openings[np.clip(cells[:, 1], 0, pframe.height - 1), np.clip(cells[:, 0], 0, pframe.width - 1)] = 1
