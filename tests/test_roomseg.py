@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from shapely.geometry import Point
+from shapely.geometry import Point, Polygon
 
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan import FloorPlan
@@ -151,3 +151,13 @@ def test_shared_prbonn_segmentations(shared_data):
             shared_data / "prbonn" / f"{stem}RoomSeg.png", shared_data / "prbonn" / f"{stem}.yaml"
         )
         assert len(plan.rooms) == 12
+
+
+def test_small_holes_can_be_filled():
+    png, yaml = PRBONN / "GMapRoomSeg.png", PRBONN / "GMap.yaml"
+    exact = from_room_segmentation(png, yaml)
+    filled = from_room_segmentation(png, yaml, fill_holes_below=1.0)
+    assert sum(len(r.polygon.interiors) for r in exact.rooms) > 50
+    for a, b in zip(exact.rooms, filled.rooms, strict=True):
+        assert all(Polygon(h).area >= 1.0 for h in b.polygon.interiors)
+        assert b.area >= a.area

@@ -119,6 +119,7 @@ def from_room_segmentation(
     simplify: float = 1.0,
     room_type: str = "unknown",
     min_door_width: float = 0.3,
+    fill_holes_below: float = 0.0,
     name: str | None = None,
 ) -> FloorPlan:
     """Rooms (metres, map frame) of a room-segmentation image with its map_server YAML.
@@ -126,7 +127,9 @@ def from_room_segmentation(
     Values ``1..max_id`` are room ids (others: walls, unknown, free outside rooms); labels with
     fewer than ``min_pixels`` pixels are ignored. Room ids are ``room_<value>``, types
     ``room_type``. ``simplify``: Douglas-Peucker tolerance in pixels. Doors: shared boundaries
-    of two rooms at least ``min_door_width`` metres long.
+    of two rooms at least ``min_door_width`` metres long. Holes (furniture, noise inside a
+    room) smaller than ``fill_holes_below`` m² are filled (default: none, so areas match the
+    pixel counts).
     """
     src = str(png)
     res, (ox, oy, yaw), map_image = read_map_yaml(yaml)
@@ -170,6 +173,9 @@ def from_room_segmentation(
         simple = largest_polygon(simple if simple.is_valid else shapely.make_valid(simple))
         if simple is None:
             continue
+        if fill_holes_below > 0 and simple.interiors:
+            keep_holes = [h for h in simple.interiors if Polygon(h).area * res * res >= fill_holes_below]
+            simple = Polygon(simple.exterior, keep_holes)
         rid = f"room_{v}"
         rooms.append(
             Room(
