@@ -15,6 +15,8 @@ from frslam_graph.motion_model import between, compose, inverse, wrap
 from frslam_graph.pipeline import FRSlam, KeyframeInfo
 
 CFG = {"odometry": {"max_range": 10.0}}
+if "loop_closure" in FRSlamConfig.model_fields:  # these tests are about odometry + graph + seams
+    CFG["loop_closure"] = {"enabled": False}
 
 
 @pytest.fixture(scope="module")
@@ -34,10 +36,7 @@ def feed(slam, room, n=None, odom=True):
 
 def test_streaming_trajectory_is_accurate_and_complete(room):
     truth = room[0]
-    core = dict(CFG)
-    if "loop_closure" in FRSlamConfig.model_fields:  # odometry + graph only: no loop closures
-        core["loop_closure"] = {"enabled": False}
-    slam = FRSlam(core)
+    slam = FRSlam(CFG)
     poses = feed(slam, room)
     traj = slam.trajectory()
     assert traj.shape == (len(truth), 4)
