@@ -730,6 +730,8 @@ def _score(
 ) -> tuple[float, tuple[int, ...]]:
     """IoU of the rooms the placement puts on the footprint (>= ``min_cover`` of their area) with
     the footprint, and those rooms (indices)."""
+    if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
+        return 0.0, ()
     n = len(pm.ids)
     labels = _fill(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True)
     on = np.bincount(labels[footprint].ravel(), minlength=n + 1)[1:]
@@ -852,6 +854,8 @@ def _refine_from(
         delta_sigma=opts["delta_sigma"],
         scales=scales,
         iterations=iterations,
+        # the wall offset trades against the scales under wide robust scales: hold it there
+        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
     )
     r.pre = pre
     return r
@@ -862,7 +866,7 @@ DEFAULTS: dict[str, Any] = {
     "max_aspect": 1.6,  # bound on sy/sx (plan aspect errors up to about ±30 %)
     "pool_k": 512,  # hypotheses (subset, dihedral case) kept by shape features, scored coarsely
     "first_pass_points": 100,  # points of each kind in that first, cheap coarse pass
-    "top_k": 96,  # hypotheses scored on the coarse grid with all points
+    "top_k": 64,  # hypotheses scored on the coarse grid with all points
     "refine_k": 3,  # distinct hypotheses refined
     "search_below_iou": 0.85,  # search scales and shifts when the best coarse IoU is below this
     "max_subsets_per_level": 3000,
@@ -870,14 +874,15 @@ DEFAULTS: dict[str, Any] = {
     "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
     "max_points": 1500,
     "quick_points": 300,  # boundary samples when screening the refined hypotheses
-    "quick_scales": (0.2, 0.1),  # robust scales (m) of the screening refinement
-    "quick_iterations": 5,  # Gauss-Newton iterations per robust-scale stage when screening
+    "quick_scales": (0.15,),  # robust scales (m) of the screening refinement
+    "quick_iterations": 6,  # Gauss-Newton iterations per robust-scale stage when screening
     "iterations": 10,  # Gauss-Newton iterations of the final stage
     "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
     "delta_sigma": 0.05,
     "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
     "min_score": 0.25,  # below this IoU x structure precision x recall: no match (another building)
     "min_recall": 0.5,  # share of the map's walls the placed plan must explain
+    "ambiguous_at": 0.9,  # details["ambiguous"] when the ambiguity reaches this
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
     "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
@@ -1023,7 +1028,8 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         rot3[:2, :2] = _rot(grid.origin[2])
         cov = rot3 @ cov @ rot3.T
     details = {
-        "quality": quality,
+        "ambiguous": bool(ambiguity >= opts["ambiguous_at"]),
+        "quality": float(quality),
         "precision": prec,
         "recall": rec,
         "delta_m": r.delta,

@@ -191,8 +191,8 @@ def refine(
                 step = -np.linalg.solve(a, jtr)
             except np.linalg.LinAlgError:
                 break
-            if not np.all(np.isfinite(step)):
-                break
+            if not np.all(np.isfinite(step)) or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
+                break  # a degenerate system (too few points on walls): keep the last estimate
             x = x + step
             x[5] = float(np.clip(x[5], *delta_bounds))
             if (
