@@ -526,3 +526,17 @@ def test_r2v_houses_are_closed(shared_data):
         poses = np.column_stack((pts, rng.uniform(-math.pi, math.pi, len(pts))))
         ranges = RayCaster(house.segments, method="sweep").cast(poses, lid.angles, lid.max_range)
         assert np.isfinite(ranges).all(), (path.name, int((~np.isfinite(ranges)).sum()))
+
+
+def test_plan_scale_is_kept_when_known(plan):
+    from dataclasses import replace
+
+    metric = replace(plan, metres_per_unit=0.06)
+    run = simulate_run(metric, seed=2, options=SimulationOptions(**FAST))
+    assert run.distortion.metres_per_unit == 0.06
+    run = simulate_run(metric, seed=2, options=SimulationOptions(metres_per_unit=0.08, **FAST))
+    assert run.distortion.metres_per_unit == 0.08
+    minx, miny, maxx, maxy = plan.bounds
+    diag = math.hypot(maxx - minx, maxy - miny)
+    run = simulate_run(plan, seed=2, options=SimulationOptions(house_diagonal=(12.0, 12.0), **FAST))
+    assert run.distortion.metres_per_unit * diag == pytest.approx(12.0)

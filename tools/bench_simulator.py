@@ -50,7 +50,7 @@ def _houses(n: int, seed: int) -> list[tuple[str, House, np.ndarray]]:
     out = []
     for name, plan in plans:
         d = Distortion.random(rng, rotation="any", plan_bounds=plan.bounds)
-        house = House.from_plan(plan, d, clutter=5, rng=rng)
+        house = House.from_plan(plan, d, clutter=10, rng=rng)
         route = plan_route(house, rng, length=30.0)
         out.append((name, house, route.poses))
     return out

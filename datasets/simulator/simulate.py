@@ -237,10 +237,9 @@ def simulate_run(
     report = progress or (lambda stage, frac: None)
     rng = np.random.default_rng(int(seed))
     report("house", 0.0)
-    if options.metres_per_unit is None and plan.metres_per_unit is not None and plan.units == "m":
-        mpu: float | None = None  # metric plans still get a random realistic size by default
-    else:
-        mpu = options.metres_per_unit
+    # Scale: given, else the plan's own metres per unit (a metric plan keeps its size, up to the
+    # aspect error), else random for a realistic house (10-25 m diagonal by default).
+    mpu = options.metres_per_unit if options.metres_per_unit is not None else plan.metres_per_unit
     distortion = Distortion.random(
         rng,
         rotation=options.rotation,
