@@ -91,3 +91,15 @@ def test_compare_with_unusable_plan_still_reports_both(small_log, tmp_path, caps
     assert summary["with priors"]["ate"]["rmse"] < 0.2
     assert (out / "compare.png").exists()
     assert "with priors" in capsys.readouterr().out
+
+
+def test_usage_errors_exit_2_without_traceback(capsys):
+    assert main(["map", "show"]) == 2
+    assert main(["no-such-command"]) == 2
+    err = capsys.readouterr().err
+    assert "Missing argument" in err and "No such command" in err and "Traceback" not in err
+
+
+def test_error_message_with_brackets_is_printed_verbatim(tmp_path, capsys):
+    assert main(["map", "show", str(tmp_path / "map[1].yaml")]) == 2
+    assert "map[1].yaml" in capsys.readouterr().err

@@ -9,6 +9,8 @@ import importlib
 import importlib.util
 import sys
 
+from rich.markup import escape
+
 from frslam_graph.cli.app import app, err_console
 from frslam_graph.errors import FrslamError
 
@@ -33,24 +35,20 @@ for _name in COMMAND_MODULES:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line."""
-    try:
-        app(args=argv, standalone_mode=False)
-    except FrslamError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        return 2
-    except SystemExit as exc:  # typer/click exit codes
-        return int(exc.code or 0)
-    except Exception as exc:  # click usage errors
-        import click
+    """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line.
 
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            return exc.exit_code
-        if isinstance(exc, click.exceptions.Abort):
-            err_console.print("aborted")
-            return 1
-        raise
+    Usage errors are printed by typer (its own copy of click) with exit code 2; a
+    :class:`~frslam_graph.errors.FrslamError` (bad input file / field) becomes one red line and
+    exit code 2; any other exception is a bug and keeps its traceback.
+    """
+    try:
+        app(args=argv, standalone_mode=True)
+    except FrslamError as exc:
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        return 2
+    except SystemExit as exc:
+        code = exc.code
+        return code if isinstance(code, int) else (0 if code is None else 1)
     return 0
 
 
