@@ -222,6 +222,10 @@ def observe_map(
     gx = cv2.Sobel(fimg, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(fimg, cv2.CV_32F, 0, 1, ksize=3)
     sel = (np.abs(gx) + np.abs(gy)) > 0.05
+    if sel.sum() > 30000:  # plenty: a regular subsample keeps the histogram
+        idx = np.flatnonzero(sel)
+        sel = np.zeros(sel.shape, bool)
+        sel.flat[idx[:: int(math.ceil(len(idx) / 30000))]] = True
     angles = _dominant_angles(np.column_stack([gx[sel], gy[sel]]).astype(np.float64)) if sel.any() else [0.0]
 
     mom = cv2.moments(footprint.astype(np.uint8), binaryImage=True)
@@ -963,7 +967,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     hyps.sort(key=lambda h: -h.key)
     if hyps[0].coarse_iou < opts["search_below_iou"]:
         # the map holds area the plan lacks (or the reverse): the moment fit is off; search
-        _local_search(pm, obs, hyps[: opts["refine_k"]], opts)
+        _local_search(pm, obs, hyps[:2], opts)
         hyps.sort(key=lambda h: -h.key)
     t_coarse = time.perf_counter()
 
