@@ -327,3 +327,65 @@ def test_cli_register_bad_map_path(plan, tmp_path, capsys):
     assert code == 2
     assert "missing.yaml" in capsys.readouterr().err
     assert not (tmp_path / "o" / "report.json").exists()
+
+
+# ------------------------------------------------------------------------ open plans and angles
+def open_plan(plan: FloorPlan) -> FloorPlan:
+    """The synthetic plan with wall segments on every room edge except living | bath (x = 6 m,
+    y 2.5..4 m): an open-plan boundary, no door."""
+    segs = []
+    for r in plan.rooms:
+        xy = np.asarray(r.polygon.exterior.coords)
+        for a, b in zip(xy[:-1], xy[1:], strict=True):
+            segs.append([*a, *b])
+    segs = np.array(segs)
+    vertical_at_6 = np.isclose(segs[:, 0], 6 * U) & np.isclose(segs[:, 2], 6 * U)
+    keep = ~(vertical_at_6 & (np.maximum(segs[:, 1], segs[:, 3]) > 2.5 * U))
+    # the living room's east edge runs 0..4 m: keep its lower part (kitchen side) as a wall
+    walls = np.vstack([segs[keep], [[6 * U, 0.0, 6 * U, 2.5 * U]]])
+    return FloorPlan(plan.rooms, plan.doors, walls=walls, units="px", name="open")
+
+
+def test_open_plan_boundary_links_rooms_and_is_not_a_wall(plan):
+    from frslam_graph.registration.mfr import prepare_plan
+
+    pm = prepare_plan(open_plan(plan))
+    i = pm.ids.index
+    assert int(pm.adjacency[i("living")]) & (1 << i("bath"))
+    # no wall samples on the open stretch (x = 6 m, 2.7 < y < 3.8 m)
+    on_open = (
+        np.isclose(pm.samples[:, 0], 6 * U, atol=1.0)
+        & (pm.samples[:, 1] > 2.7 * U)
+        & (pm.samples[:, 1] < 3.8 * U)
+    )
+    assert not on_open.any()
+    # the outer walls and the walled part of the same boundary stay
+    assert (np.isclose(pm.samples[:, 0], 6 * U, atol=1.0) & (pm.samples[:, 1] < 2.3 * U)).any()
+    plain = prepare_plan(plan)
+    assert not int(plain.adjacency[i("living")]) & (1 << i("bath"))
+
+
+def test_registers_open_plan_house(plan):
+    from frslam_graph.datasets.simulator import Distortion, House, partial_map
+
+    op = open_plan(plan)
+    dist = Distortion(0.025, (1.1, 0.93), False, math.radians(-71.0), (1.0, 4.0))
+    house = House.from_plan(op, dist)
+    grid, explored = partial_map(house, 0.5, np.random.default_rng(5), start_room="living")
+    reg = register(op, grid)
+    assert reg.ok, reg.reason
+    assert not reg.flipped and rot_error_deg(reg, dist.matrix) < 0.3
+    assert iou_a(op, reg.matrix, dist.matrix) > 0.97
+
+
+def test_dominant_angles_ignore_a_few_diagonal_walls():
+    from frslam_graph.registration.mfr import _dominant_angles
+
+    rng = np.random.default_rng(0)
+    main = np.radians(20.0) + rng.normal(0, 0.01, 400) + rng.integers(0, 4, 400) * np.pi / 2
+    diag = np.radians(65.0) + rng.normal(0, 0.01, 60)
+    ang = np.concatenate([main, diag])
+    vec = np.column_stack([np.cos(ang), np.sin(ang)])
+    found = _dominant_angles(vec)
+    assert math.degrees(found[0]) == pytest.approx(20.0, abs=0.3)
+    assert len(found) == 1  # the diagonal family is too weak to be a second direction
