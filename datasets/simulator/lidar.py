@@ -7,7 +7,7 @@ segment it meets (``inf`` when none within ``max_range``).
 
 Three interchangeable casters give the same exact (float64) answer up to float rounding:
 
-- ``"sweep"`` (numpy, default when open3d is missing): per pose, each segment is clipped to the
+- ``"sweep"`` (numpy, the default): per pose, each segment is clipped to the
   beams whose angles it subtends (plus one beam of margin), so only (beam, segment) pairs that
   can intersect are tested; segments farther than ``max_range`` are pruned first.
 - ``"open3d"``: walls extruded to vertical quads in an ``open3d.t.geometry.RaycastingScene``
@@ -95,11 +95,13 @@ def cast_sweep(
     poses: np.ndarray,
     angles: np.ndarray,
     max_range: float,
-    chunk_pairs: int = 1_500_000,
+    chunk_rays: int = 8_000,
 ) -> np.ndarray:
     """Exact caster testing each beam only against the segments whose angular span covers it.
 
-    ``angles`` must be evenly spaced and increasing (a LaserScan's beams).
+    ``angles`` must be evenly spaced and increasing (a LaserScan's beams). Poses are processed
+    in chunks of about ``chunk_rays`` beams, which keeps the working arrays in the CPU cache
+    (measured fastest around 8,000 on this machine: about 2x faster than one big batch).
     """
     seg = _as_segments(segments)
     poses = _as_poses(poses)
@@ -114,8 +116,7 @@ def cast_sweep(
         raise ConfigError("beam angles must be evenly spaced", where="angles")
     cos_b, sin_b = np.cos(angles - a0), np.sin(angles - a0)  # directions relative to the first beam
     two_pi = 2.0 * math.pi
-    # Pose chunks so that the (pose, segment) arrays stay moderate.
-    chunk = max(1, int(chunk_pairs // (len(seg) * 8)))
+    chunk = max(1, int(chunk_rays // n_beams))
     for i0 in range(0, len(poses), chunk):
         p = poses[i0 : i0 + chunk]
         base = p[:, 2] + a0  # angle of beam 0 in the map frame
@@ -171,7 +172,9 @@ def cast_sweep(
 class RayCaster:
     """Exact ray casting against a fixed set of segments; build once, cast many poses.
 
-    ``method="auto"`` uses open3d (Embree) when it imports, else the numpy sweep.
+    ``method="auto"`` is the numpy sweep: measured fastest here (``tools/bench_simulator.py``:
+    about 4,500 scans/s of 720 beams against 3,200 for open3d on a loaded 2-core machine), exact
+    in float64, single-threaded and free of open3d's import time.
     """
 
     def __init__(self, segments: np.ndarray, method: Method = "auto") -> None:
@@ -181,14 +184,13 @@ class RayCaster:
             )
         self.segments = _as_segments(segments)
         self._scene = None
-        if method in ("auto", "open3d"):
+        if method == "auto":
+            method = "sweep"
+        if method == "open3d":
             try:
                 self._scene = _build_scene(self.segments)
-                method = "open3d"
-            except (ImportError, OSError):  # OSError: a system library open3d needs is missing
-                if method == "open3d":
-                    raise ConfigError("open3d is not installed", where="lidar.method") from None
-                method = "sweep"
+            except (ImportError, OSError) as exc:  # OSError: a system library open3d needs is missing
+                raise ConfigError(f"open3d is not usable ({exc})", where="lidar.method") from None
         self.method: str = method
 
     def cast(self, poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
@@ -197,7 +199,14 @@ class RayCaster:
             return cast_naive(self.segments, poses, angles, max_range)
         if self.method == "sweep":
             return cast_sweep(self.segments, poses, angles, max_range)
-        return self._cast_open3d(_as_poses(poses), np.asarray(angles, dtype=np.float64), max_range)
+        poses = _as_poses(poses)
+        angles = np.asarray(angles, dtype=np.float64)
+        chunk = max(1, 50_000 // max(1, len(angles)))  # cache-sized batches (measured faster)
+        if len(poses) <= chunk:
+            return self._cast_open3d(poses, angles, max_range)
+        return np.vstack(
+            [self._cast_open3d(poses[i : i + chunk], angles, max_range) for i in range(0, len(poses), chunk)]
+        )
 
     def _cast_open3d(self, poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
         import open3d as o3d
