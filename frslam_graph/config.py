@@ -106,7 +106,7 @@ class GraphConfig(_Section):
     prior_sigma_floor_xy: float = Field(0.02, gt=0.0)
     prior_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
     relinearize_threshold: float = Field(0.01, gt=0.0)
-    relinearize_skip: int = Field(1, ge=1)
+    relinearize_skip: int = Field(10, ge=1)  # streaming; settle() after priors forces it
     factorization: Literal["QR", "CHOLESKY"] = "QR"
     batch_max_iterations: int = Field(100, ge=1)
     batch_relative_tolerance: float = Field(1e-6, gt=0.0)

@@ -203,12 +203,13 @@ class PoseGraph:
         """Extra iSAM2 steps (relinearising) until no pose moves more than ``tol``; returns the count.
 
         One iSAM2 update is a single Gauss-Newton step; after a prior or a removal moves the
-        trajectory far, a few more are needed to converge.
+        trajectory far, a few more are needed to converge. These force relinearisation (the
+        streaming updates relinearise only every ``relinearize_skip`` steps).
         """
         prev = self.estimates()
         it = -1
         for it in range(max_iterations):  # noqa: B007
-            self._isam.update()
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
             self._estimate_cache = None
             cur = self.estimates()
             moved = float(np.abs(cur - prev).max()) if len(cur) else 0.0
