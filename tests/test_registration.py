@@ -242,6 +242,14 @@ def test_fails_on_tiny_map(plan):
     assert not reg.ok and "too small" in reg.reason
 
 
+def test_fails_on_map_without_walls_or_too_coarse(plan):
+    reg = register(plan, OccupancyGrid(np.zeros((80, 80), np.int8), 0.05))
+    assert not reg.ok and "no walls" in reg.reason
+    grid = ring_map(plan, truth_matrix(False, 0.0), EXPLORED)
+    reg = register(plan, OccupancyGrid(grid.data, 5.0))
+    assert not reg.ok and "too coarse" in reg.reason
+
+
 def test_fails_on_one_room_plan(plan):
     one = plan.subset(["living"])
     grid = ring_map(plan, truth_matrix(False, 0.0), ["living"])

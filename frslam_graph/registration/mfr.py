@@ -169,11 +169,14 @@ def observe_map(
     max_edge_points: int = 400,
     min_exit_m: float = 0.4,
     max_exit_m: float = 2.5,
+    max_resolution: float = 0.5,
 ) -> MapObservation | str:
     """Prepare ``grid`` (an OccupancyGrid); returns a failure reason string when unusable."""
     known_all = ~grid.unknown_mask()
     if not known_all.any():
         return "map has no observed cells (all unknown)"
+    if grid.resolution > max_resolution:
+        return f"map resolution {grid.resolution:g} m per cell is too coarse (at most {max_resolution:g} m)"
     g = grid.crop_to_known(margin_cells=4)
     res = g.resolution
     free = g.free_mask()
@@ -205,6 +208,8 @@ def observe_map(
     edge = free & cv2.dilate(walls_in, cross).astype(bool)
     edge_dt = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3) * np.float32(res)
     er, ec = np.nonzero(edge)
+    if len(er) < 10:
+        return "map shows no walls next to free space: nothing to match"
     stride = max(1, len(er) // max_edge_points)
     edge_points = (np.column_stack([ec[::stride], er[::stride]]).astype(np.float64) + 0.5) * res
     # exits: where free space runs out of the observed area (open doorways, open-plan boundaries)
@@ -609,6 +614,8 @@ def _lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, or
     """Nearest-cell values of ``img`` (row 0 = lowest y; uint8 or float32) at metric points
     (x, y arrays of one shape, at most 32767 wide); ``fill`` outside (cv2.remap)."""
     shape = x.shape
+    if x.size == 0:
+        return np.full(shape, fill, dtype=img.dtype)
     x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
     y2 = y.reshape(x2.shape)
     inv = np.float32(1.0 / resolution)
