@@ -356,6 +356,21 @@ def test_partial_map_completeness_and_frame(house, completeness):
     assert free_area == pytest.approx(expected, rel=0.06)
 
 
+def test_partial_map_sees_through_open_doors(house):
+    clean, rooms = partial_map(house, 0.3, np.random.default_rng(1), noise=False, start_room="kitchen")
+    seen, rooms2 = partial_map(
+        house, 0.3, np.random.default_rng(1), noise=False, start_room="kitchen", see_through_doors=True
+    )
+    assert rooms == rooms2 == ["kitchen"]
+    extra = seen.free_mask().sum() - clean.free_mask().sum()
+    assert extra > 200  # the living room is partly visible through door d0
+    xy = seen.cell_to_world(np.argwhere(seen.free_mask())[:, ::-1] + 0.5)
+    inside = house.room_at(xy)
+    assert set(inside) - {None} == {"kitchen", "living"}
+    living = np.array([r == "living" for r in inside])
+    assert 0 < living.sum() < 0.9 * house.room_free["living"].area / seen.resolution**2
+
+
 def test_partial_map_noise_and_errors(house):
     clean, rooms = partial_map(house, 0.5, np.random.default_rng(4), noise=False, start_room="living")
     noisy, rooms2 = partial_map(house, 0.5, np.random.default_rng(4), noise=True, start_room="living")

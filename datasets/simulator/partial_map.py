@@ -21,6 +21,7 @@ import math
 
 import cv2
 import numpy as np
+import shapely
 from frslam_graph.datasets.simulator.house import House
 from scipy import ndimage
 
@@ -117,9 +118,13 @@ def partial_map(
     start_room: str | None = None,
     noise: bool = True,
     crop: bool = True,
+    see_through_doors: bool = False,
 ) -> tuple[OccupancyGrid, list[str]]:
     """(grid, explored room ids): see the module docstring. ``crop`` trims the grid to its known
-    cells (plus a margin); the origin keeps it in the house frame either way."""
+    cells (plus a margin); the origin keeps it in the house frame either way.
+    ``see_through_doors`` also marks free what a 360° scan taken 0.8 m inside each explored room
+    in front of an open door to an unexplored room sees of that room (the explored fraction
+    still counts explored rooms only)."""
     if not (isinstance(completeness, int | float) and 0.0 < completeness <= 1.0):
         raise ConfigError(f"must be in (0, 1], got {completeness!r}", where="partial_map.completeness")
     if not (isinstance(resolution, int | float) and math.isfinite(resolution) and 0.005 <= resolution <= 1.0):
@@ -130,6 +135,8 @@ def partial_map(
     lut = np.zeros(len(index) + 1, bool)
     lut[[index[r] for r in rooms]] = True
     free = lut[hr.labels]
+    if see_through_doors:
+        free |= _seen_through_doors(house, rooms, hr, index)
     near = cv2.dilate(free.view(np.uint8), _KERNEL).astype(bool)
     occ = near & hr.solid & ~free
     if noise:
@@ -142,6 +149,48 @@ def partial_map(
     if crop:
         grid = grid.crop_to_known(margin_cells=3)
     return grid, rooms
+
+
+def _seen_through_doors(
+    house: House, rooms: list[str], hr: _HouseRaster, index: dict[str, int]
+) -> np.ndarray:
+    """Free cells of unexplored rooms visible through open doors from just inside explored rooms."""
+    from frslam_graph.datasets.simulator.lidar import RayCaster
+
+    if "caster" not in house._cache:
+        house._cache["caster"] = RayCaster(house.segments, method="sweep")
+    caster = house._cache["caster"]
+    angles = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    seen = np.zeros(hr.labels.shape, bool)
+    explored = set(rooms)
+    opened = set(house.open_doors)
+    views, targets = [], []
+    for d in house.plan.doors:
+        if d.id not in opened or len(set(d.rooms)) != 2:
+            continue
+        a, b = d.rooms
+        if (a in explored) == (b in explored):
+            continue
+        inside, outside = (a, b) if a in explored else (b, a)
+        mid = np.asarray(d.midpoint)
+        u = np.asarray(d.b) - np.asarray(d.a)
+        n = np.array([-u[1], u[0]]) / max(float(np.hypot(*u)), 1e-12)
+        region = house.room_free[inside]
+        for off in (0.8, -0.8, 0.4, -0.4):
+            p = mid + off * n
+            if region.contains(shapely.Point(p)):
+                views.append(p)
+                targets.append(index[outside])
+                break
+    if not views:
+        return seen
+    poses = np.column_stack((np.asarray(views), np.zeros(len(views))))
+    ranges = np.minimum(caster.cast(poses, angles, 30.0), 30.0)
+    for p, r, lab in zip(poses, ranges, targets, strict=True):
+        ends = p[:2] + r[:, None] * np.column_stack((np.cos(angles), np.sin(angles)))
+        poly = shapely.Polygon(ends).buffer(0)
+        seen |= rasterise_polygons([poly], hr.frame).astype(bool) & (hr.labels == lab)
+    return seen
 
 
 def _add_noise(

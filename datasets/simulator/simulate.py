@@ -91,6 +91,7 @@ class SimulationOptions(BaseModel):
     map_completeness: float = Field(0.5, gt=0.0, le=1.0)
     map_resolution: float = Field(0.05, ge=0.005, le=1.0)
     map_noise: bool = True
+    map_see_through_doors: bool = False
     # clock
     start_time: float = Field(1_700_000_000.0, ge=1.0, le=4e9)
 
@@ -320,6 +321,7 @@ def simulate_run(
         resolution=options.map_resolution,
         start_room=start_room,
         noise=options.map_noise,
+        see_through_doors=options.map_see_through_doors,
     )
     report("map", 1.0)
     return SimulatedRun(

@@ -56,6 +56,9 @@ def simulate_cmd(
     completeness: float = typer.Option(
         0.5, "--map-completeness", help="Share of the rooms' area in the partial map (0..1]."
     ),
+    see_through_doors: bool = typer.Option(
+        False, "--see-through-doors", help="The partial map also holds what is seen through open doors."
+    ),
     caster: str = typer.Option("auto", "--caster", help="Ray caster: auto, open3d, sweep or naive."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a previous simulation in --out."),
 ) -> None:
@@ -86,6 +89,7 @@ def simulate_cmd(
         odom_heading_noise_deg=odom_heading_drift,
         max_speed=speed,
         map_completeness=completeness,
+        map_see_through_doors=see_through_doors,
         caster=caster,
     )
     options = SimulationOptions(**values)
