@@ -23,9 +23,11 @@ from frslam_graph.datasets.simulator import (
     House,
     Lidar,
     RayCaster,
+    SimulationOptions,
     five_room_plan,
     partial_map,
     plan_route,
+    simulate_run,
 )
 
 from frslam_graph.floorplan import FloorPlan
@@ -127,6 +129,16 @@ def main() -> None:
         mis = "" if m == "naive" else str(mismatches[m])
         print(f"| {m} | {r:,.0f} | {r / base:.1f} | {err} | {mis} |")
     print(f"\nPartial map (completeness 0.5, 0.05 m): median {statistics.median(map_ms):.2f} ms per map")
+    # End to end: a whole in-memory run (house, route, scans, odometry, partial map).
+    plan = five_room_plan()
+    opts = SimulationOptions(length=100.0, beams=args.beams, fov_deg=args.fov, scan_rate=10.0)
+    t0 = time.perf_counter()
+    run = simulate_run(plan, seed=args.seed, options=opts)
+    dt = time.perf_counter() - t0
+    print(
+        f"simulate_run (five-room plan, {run.route.length:.0f} m route, {len(run)} scans of {args.beams} "
+        f"beams): {dt:.2f} s, {len(run) / dt:,.0f} scans/s, {run.route.duration / dt:,.0f}x real time"
+    )
 
 
 if __name__ == "__main__":
