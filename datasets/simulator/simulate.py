@@ -24,7 +24,7 @@ import json
 import math
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -255,16 +255,11 @@ def simulate_run(
     if any(len(set(d.rooms)) < 2 for d in plan.doors):
         scale = max(distortion.sx, distortion.sy)
         linked = plan.link_doors(tol=max(0.3, 2.0 * options.wall_thickness) / scale)
-        base = type(plan)(
-            rooms=plan.rooms,
+        base = replace(
+            plan,
             doors=[
                 d if len(set(d.rooms)) == 2 else ld for d, ld in zip(plan.doors, linked.doors, strict=True)
             ],
-            walls=plan.walls,
-            units=plan.units,
-            metres_per_unit=plan.metres_per_unit,
-            name=plan.name,
-            source=plan.source,
         )
     closed = list(options.closed_door_ids) + _close_random_doors(
         _without(base, options.closed_door_ids), options.closed_doors, rng
@@ -354,15 +349,7 @@ def _without(plan: FloorPlan, door_ids: list[str]) -> FloorPlan:
             f"unknown door ids {bad} (the plan has {sorted(known)})", where="simulation.closed_door_ids"
         )
     drop = set(door_ids)
-    return type(plan)(
-        rooms=plan.rooms,
-        doors=[d for d in plan.doors if d.id not in drop],
-        walls=plan.walls,
-        units=plan.units,
-        metres_per_unit=plan.metres_per_unit,
-        name=plan.name,
-        source=plan.source,
-    )
+    return replace(plan, doors=[d for d in plan.doors if d.id not in drop])
 
 
 @dataclass
