@@ -555,6 +555,36 @@ class LoopCloser:
             out.append(dijkstra(g, indices=i, directed=True))
         return out[0], out[1]
 
+    def _eligible(self, i: int) -> np.ndarray:
+        """Mask over keyframes 0..i-min_keyframe_gap far enough back (travel or turn)."""
+        cfg = self.config
+        n = i - cfg.min_keyframe_gap + 1
+        if n <= 0:
+            return np.zeros(0, bool)
+        trav, turn = np.asarray(self._travel), np.asarray(self._turn)
+        gap_t, gap_r = trav[i] - trav[:n], turn[i] - turn[:n]
+        return (gap_t >= cfg.min_travel_gap) | (gap_r >= np.deg2rad(cfg.min_rotation_gap_deg))
+
+    def _hypothesis(self, est: np.ndarray, i: int) -> tuple[int, float, float, np.ndarray] | None:
+        """Where the latest pending closure says keyframe i is in the old map: (the old keyframe
+        nearest to that place, window xy, window theta, predicted pose relative to it)."""
+        cfg = self.config
+        if not self._pending:
+            return None
+        p = self._pending[-1]
+        if p.query == i or i - p.query > cfg.pending_keyframes:
+            return None
+        ok = self._eligible(i)
+        if not ok.any():
+            return None
+        pred = compose(compose(est[p.reference], p.relative), between(est[p.query], est[i]))
+        d = np.hypot(*(est[: len(ok), :2] - pred[:2]).T)
+        d[~ok] = np.inf
+        c = int(np.argmin(d))
+        if d[c] > cfg.search_window_xy:
+            return None
+        return c, cfg.hypothesis_window_xy, np.deg2rad(cfg.hypothesis_window_theta_deg), between(est[c], pred)
+
     def _candidates(self, est: np.ndarray, i: int) -> list[tuple[int, float, float]]:
         """(keyframe, search radius, heading window) of the candidates to try now."""
         cfg = self.config
@@ -646,15 +676,22 @@ class LoopCloser:
     def _attempt(self, slam: FRSlam, i: int) -> list[LoopClosure]:
         cfg = self.config
         est = slam.graph.estimates()
-        cands = self._candidates(est, i)
+        cands: list[tuple[int, float, float, np.ndarray | None]] = [
+            (c, r, w, None) for c, r, w in self._candidates(est, i)
+        ]
+        hyp = self._hypothesis(est, i)
+        if hyp is not None:
+            cands = [hyp, *cands[: cfg.max_candidates - 1]]
         if not cands:
             return []
         query, _ = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
         added: list[LoopClosure] = []
-        for c, radius, window_th in cands:
+        for c, radius, window_th, predicted in cands:
             self.stats.attempts += 1
             guess = between(est[c], est[i])
-            if radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
+            if predicted is not None:  # check a pending closure's prediction, narrowly
+                centre, win = predicted, radius
+            elif radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
                 centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))
             else:  # the prediction is too uncertain: is the robot back at the candidate itself?
                 centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
