@@ -250,8 +250,8 @@ class ScanOdometry:
         seeds = [u]
         if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
             seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
-        if wheel is not None:
-            self._prev_wheel = wheel
+        # a scan without wheel odometry breaks the chain: the next increment must not span it
+        self._prev_wheel = wheel
 
         prev_rel = self._ekf.x
         degenerate, fallback, axis, icp_rejected = False, False, None, False

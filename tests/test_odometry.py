@@ -219,3 +219,15 @@ def test_icp_failure_gate(room, mode):
     else:
         assert o.stats.icp_rejections == 0
         assert err > 0.2  # the wrong ICP result went into the odometry
+
+
+def test_intermittent_wheel_odometry(room):
+    """Wheel poses missing on some scans: increments never span a gap (no double counting)."""
+    truth, points, odom = room
+    sparse = [None if i % 3 == 1 else odom[i] for i in range(len(truth))]
+    o = ScanOdometry(CFG)
+    poses = np.array(
+        [o.process(row[0], pts, w).pose for row, pts, w in zip(truth, points, sparse, strict=True)]
+    )
+    assert end_error(truth, poses) / path_length(truth) < 0.02
+    assert o.stats.odom_jumps == 0
