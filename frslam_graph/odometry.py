@@ -269,9 +269,17 @@ class ScanOdometry:
             z = between(self._kf_icp, icp_pose)
             geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
             R_body, degenerate, fallback, axis = self._icp_covariance(geo)
+            if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
+                icp_rejected, z = True, np.zeros(3)
             R = vector_cov(z, R_body)
             self._ekf.predict(u, cov_u)
-            if cfg.icp_gate == "reject" and used_wheel and not fallback and not degenerate:
+            if (
+                not icp_rejected
+                and cfg.icp_gate == "reject"
+                and used_wheel
+                and not fallback
+                and not degenerate
+            ):
                 y, m2 = self._ekf.innovation(z, R)
                 # ICP far from a plausible wheel increment (which agreed with constant velocity,
                 # or the two-seed test would have flagged a jump): ICP fell into a wrong minimum

@@ -231,3 +231,24 @@ def test_intermittent_wheel_odometry(room):
     )
     assert end_error(truth, poses) / path_length(truth) < 0.02
     assert o.stats.odom_jumps == 0
+
+
+def test_non_finite_icp_result_is_rejected(room):
+    truth, points, odom = room
+    o = ScanOdometry(CFG)
+    real_align = o._align
+
+    def align(pts, seeds):
+        best, pose, guess, frame = real_align(pts, seeds)
+        return (
+            (best, np.full((4, 4), np.nan), guess, frame)
+            if o.stats.scans == 51
+            else (best, pose, guess, frame)
+        )
+
+    o._align = align
+    poses = np.array(
+        [o.process(row[0], pts, odom[i]).pose for i, (row, pts) in enumerate(zip(truth[:120], points, strict=False))]
+    )
+    assert np.all(np.isfinite(poses)) and o.stats.icp_rejections == 1
+    assert end_error(truth[:120], poses) < 0.05
