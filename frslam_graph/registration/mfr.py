@@ -95,6 +95,8 @@ def _dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35)
     length: peaks of a circular histogram (smoothed, σ = 3°), the strongest first, each refined by
     the weighted circular mean within ±10°; a second peak counts when it is at least ``rel`` of
     the first and 20° away. Robust to a few diagonal walls, unlike one overall mean."""
+    if len(vectors) > 6000:  # a regular subsample keeps the histogram
+        vectors = vectors[:: int(math.ceil(len(vectors) / 6000))]
     mag = np.hypot(vectors[:, 0], vectors[:, 1])
     ok = mag > 0
     if not ok.any():
@@ -875,8 +877,8 @@ def _refine_from(
 DEFAULTS: dict[str, Any] = {
     "adjacency": "doors",  # room graph for subsets: doors | touch | both
     "max_aspect": 1.6,  # bound on sy/sx (plan aspect errors up to about ±30 %)
-    "pool_k": 512,  # hypotheses (subset, dihedral case) kept by shape features, scored coarsely
-    "first_pass_points": 100,  # points of each kind in that first, cheap coarse pass
+    "pool_k": 384,  # hypotheses (subset, dihedral case) kept by shape features, scored coarsely
+    "first_pass_points": 80,  # points of each kind in that first, cheap coarse pass
     "top_k": 64,  # hypotheses scored on the coarse grid with all points
     "refine_k": 3,  # distinct hypotheses refined
     "search_below_iou": 0.85,  # search scales and shifts when the best coarse IoU is below this

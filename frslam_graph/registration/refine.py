@@ -43,8 +43,9 @@ class DistanceField:
     def from_masks(cls, free: np.ndarray, resolution: float, origin) -> DistanceField:
         """Signed distance to the edge of ``free`` (bool), and ``free`` as a float field."""
         f = free.astype(np.uint8)
-        d_in = cv2.distanceTransform(f, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        d_out = cv2.distanceTransform(1 - f, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        # 3x3-mask distances: both sides alike, so the zero crossing stays on the pixel edges
+        d_in = cv2.distanceTransform(f, cv2.DIST_L2, cv2.DIST_MASK_3)
+        d_out = cv2.distanceTransform(1 - f, cv2.DIST_L2, cv2.DIST_MASK_3)
         sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32) * np.float32(resolution)
         kn = free.astype(np.float32)
         return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])))
