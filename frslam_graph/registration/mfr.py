@@ -869,6 +869,8 @@ def _refine_from(
         iterations=iterations,
         # the wall offset trades against the scales under wide robust scales: hold it there
         fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+        # one independent wall error per 0.5 m of wall
+        correlation=0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9),
     )
     r.pre = pre
     return r

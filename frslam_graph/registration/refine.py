@@ -124,6 +124,7 @@ def refine(
     delta: float = 0.0,
     delta_sigma: float = 0.1,
     delta_bounds: tuple[float, float] = (-0.1, 0.25),
+    correlation: float = 1.0,
     fixed_delta_stages: int = 1,
     scales: tuple[float, ...] = (0.4, 0.15, 0.05),
     iterations: int = 8,
@@ -134,7 +135,8 @@ def refine(
     ``scales``: Cauchy scales (metres) of successive stages, coarse to fine (the last is floored
     at two pixels). ``delta`` starts at the given value with a Gaussian prior of ``delta_sigma``;
     it is held fixed in the first ``fixed_delta_stages`` stages (wide robust scales would trade it
-    against the scales).
+    against the scales). ``correlation``: how many neighbouring points share one independent error
+    (inflates the covariance).
     """
     p = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -211,8 +213,9 @@ def refine(
     if jtj is not None and n_known > 6:
         try:
             sigma2 = float((w_all * r * r).sum() / max(wsum - 6.0, 1.0))
-            # points are correlated along a wall (spacing ~1.5 px); inflate accordingly
-            covf = np.linalg.inv(jtj) * sigma2 * 2.0
+            # residuals of neighbouring points on a wall are correlated (the map's cells along a
+            # wall err together): count one independent residual per ``correlation`` points
+            covf = np.linalg.inv(jtj) * sigma2 * max(1.0, correlation)
             idx = [1, 2, 0]
             cov3 = covf[np.ix_(idx, idx)]
         except np.linalg.LinAlgError:
