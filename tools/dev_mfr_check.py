@@ -37,6 +37,7 @@ def _init() -> None:
 def run_plan(args: tuple) -> list[dict]:
     path, index, rotsets, comps, seed, method, options = args
     from frslam_graph.datasets.simulator import Distortion, House, partial_map
+
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.registration import register
     from frslam_graph.registration.evaluation import iou_a
@@ -101,7 +102,9 @@ def main() -> int:
     ap.add_argument("--max-rooms", type=int, default=0, help="skip plans with more rooms (0: no limit)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--csv", type=Path)
-    ap.add_argument("--option", action="append", default=[], help="KEY=VALUE passed to register (python literal)")
+    ap.add_argument(
+        "--option", action="append", default=[], help="KEY=VALUE passed to register (python literal)"
+    )
     args = ap.parse_args()
     import ast
 
@@ -132,8 +135,12 @@ def main() -> int:
     groups = defaultdict(list)
     for r in rows:
         groups[(r["rotset"], r["comp"])].append(r)
-    print(f"plans: {len(picked)} ({len(skipped)} skipped), cases: {len(rows)}, method: {args.method} {options}\n")
-    print("| rotation | completeness | n | flip | rotation | IoU_a mean | IoU_a median | failed | median ms (wall / cpu) |")
+    print(
+        f"plans: {len(picked)} ({len(skipped)} skipped), cases: {len(rows)}, method: {args.method} {options}\n"
+    )
+    print(
+        "| rotation | completeness | n | flip | rotation | IoU_a mean | IoU_a median | failed | median ms (wall / cpu) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for (rs, comp), g in sorted(groups.items()):
         flip = np.mean([r["flip_ok"] for r in g]) * 100
@@ -153,8 +160,10 @@ def main() -> int:
     if wrong:
         flagged = np.mean([r["ambiguity"] >= 0.9 for r in wrong]) * 100
         right = [r for r in rows if r["ok"] and r["flip_ok"] and r["rot_ok"]]
-        print(f"\nwrong matches: {len(wrong)}, flagged ambiguous (>= 0.9): {flagged:.0f} %; "
-              f"right ones flagged: {np.mean([r['ambiguity'] >= 0.9 for r in right]) * 100:.0f} %")
+        print(
+            f"\nwrong matches: {len(wrong)}, flagged ambiguous (>= 0.9): {flagged:.0f} %; "
+            f"right ones flagged: {np.mean([r['ambiguity'] >= 0.9 for r in right]) * 100:.0f} %"
+        )
     if args.csv:
         keys = sorted({k for r in rows for k in r})
         with open(args.csv, "w", newline="") as fh:
