@@ -52,6 +52,9 @@ class OdometryConfig(_Section):
     min_points: int = Field(20, ge=3)  # fewer valid beams -> no ICP, motion-model fallback
     keyframe_distance: float = Field(0.3, gt=0.0)
     keyframe_angle_deg: float = Field(10.0, gt=0.0, le=180.0)
+    # a keyframe at least this often (s) even when standing still, so the per-keyframe hooks (loop
+    # closure, floor-plan update strategy) still run when progress is obstructed; None = never
+    keyframe_max_interval_s: float | None = Field(5.0, gt=0.0)
     # ICP noise model: point-to-line residual sigma (m) -> covariance from the scan's Hessian,
     # inflated by ``icp_cov_inflation`` and floored by the sigma floors below.
     icp_sigma: float = Field(0.03, gt=0.0)

@@ -145,20 +145,22 @@ def constant_velocity_noise(dt: float, sigma_xy_per_s: float, sigma_theta_per_s:
 
 def _log(p: Pose) -> np.ndarray:
     th = float(p[2])
-    if abs(th) < 1e-9:
-        return np.array([p[0], p[1], th])
     half = 0.5 * th
-    a = half * np.sin(th) / (1.0 - np.cos(th))
+    # a = (θ/2) sin θ / (1 - cos θ); its series avoids 0/0 for tiny θ
+    t2 = th * th
+    a = 1.0 - t2 / 12.0 - t2 * t2 / 720.0 if abs(th) < 1e-3 else half * np.sin(th) / (1.0 - np.cos(th))
     vinv = np.array([[a, half], [-half, a]])
     return np.array([*(vinv @ np.asarray(p[:2])), th])
 
 
 def _exp(v: np.ndarray) -> np.ndarray:
     th = float(v[2])
-    if abs(th) < 1e-9:
-        return np.array([v[0], v[1], th])
-    s, c = np.sin(th), np.cos(th)
-    vm = np.array([[s, -(1.0 - c)], [1.0 - c, s]]) / th
+    if abs(th) < 1e-3:  # series of sin θ / θ and (1 - cos θ) / θ
+        t2 = th * th
+        sa, ca = 1.0 - t2 / 6.0 + t2 * t2 / 120.0, th * (0.5 - t2 / 24.0)
+    else:
+        sa, ca = np.sin(th) / th, (1.0 - np.cos(th)) / th
+    vm = np.array([[sa, -ca], [ca, sa]])
     return np.array([*(vm @ np.asarray(v[:2])), wrap(th)])
 
 

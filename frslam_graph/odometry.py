@@ -192,6 +192,7 @@ class ScanOdometry:
         self._prev_wheel: np.ndarray | None = None
         self._prev_rel = np.zeros(3)  # fused pose relative to keyframe at the previous scan
         self._kf_index = -1
+        self._kf_stamp = float("-inf")
         self._kf_pose = np.zeros(3)  # keyframe pose in odom (fused chain)
         self._kf_icp = np.zeros(3)  # keyframe pose in KISS-ICP's frame
 
@@ -309,6 +310,8 @@ class ScanOdometry:
         self._last_increment = between(prev_rel, rel)
         self._last_dt = dt
         is_kf = np.hypot(rel[0], rel[1]) >= self._kf_dist or abs(rel[2]) >= self._kf_angle
+        if cfg.keyframe_max_interval_s is not None and stamp - self._kf_stamp >= cfg.keyframe_max_interval_s:
+            is_kf = True
         if is_kf:
             return self._new_keyframe(
                 stamp, rel, R_body, degenerate, axis, fallback, jump, dropped, len(pts), icp_rejected
@@ -345,6 +348,7 @@ class ScanOdometry:
             self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
         self._kf_icp = from_matrix(self._icp.last_pose)
         self._kf_index = 0
+        self._kf_stamp = stamp
         self.stats.keyframes += 1
         self._ekf.reset()
         return OdometryResult(
@@ -456,6 +460,7 @@ class ScanOdometry:
             compose(self._kf_icp, rel) if (fallback or degenerate) else from_matrix(self._icp.last_pose)
         )
         self._kf_index += 1
+        self._kf_stamp = stamp
         self.stats.keyframes += 1
         self._ekf.reset()
         return OdometryResult(

@@ -105,3 +105,12 @@ def test_tangent_covariance_matches_gtsam_convention():
     samples = rng.multivariate_normal(mean, cov, 20000)
     xi = np.array([gtsam.Pose2.Logmap(gtsam.Pose2(*mean).between(gtsam.Pose2(*s))) for s in samples])
     np.testing.assert_allclose(np.cov(xi.T), tangent_cov(mean, cov), rtol=0.08, atol=2e-6)
+
+
+def test_log_exp_match_gtsam_near_zero_rotation():
+    from frslam_graph.motion_model import _exp, _log
+
+    for th in (0.0, 1e-12, 1e-8, 1e-5, 2e-4, 0.3, 3.0):
+        p = np.array([0.3, -0.1, th])
+        np.testing.assert_allclose(_log(p), gtsam.Pose2.Logmap(gtsam.Pose2(*p)), atol=1e-12)
+        np.testing.assert_allclose(_exp(_log(p)), p, atol=1e-12)

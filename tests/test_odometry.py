@@ -248,7 +248,22 @@ def test_non_finite_icp_result_is_rejected(room):
 
     o._align = align
     poses = np.array(
-        [o.process(row[0], pts, odom[i]).pose for i, (row, pts) in enumerate(zip(truth[:120], points, strict=False))]
+        [
+            o.process(row[0], pts, odom[i]).pose
+            for i, (row, pts) in enumerate(zip(truth[:120], points, strict=False))
+        ]
     )
     assert np.all(np.isfinite(poses)) and o.stats.icp_rejections == 1
     assert end_error(truth[:120], poses) < 0.05
+
+
+def test_standing_still_makes_time_keyframes(room):
+    """Obstructed robot: a keyframe every keyframe_max_interval_s keeps the per-keyframe hooks alive."""
+    truth, points, odom = room
+    o = ScanOdometry(CFG)
+    results = [o.process(0.1 * k, points[0], odom[0]) for k in range(121)]  # 12 s without motion
+    kfs = [r for r in results if r.is_keyframe]
+    assert [r.stamp for r in kfs] == pytest.approx([0.0, 5.0, 10.0])
+    assert all(np.abs(r.between).max() < 0.01 for r in kfs[1:])
+    off = ScanOdometry(CFG.model_copy(update={"keyframe_max_interval_s": None}))
+    assert sum(off.process(0.1 * k, points[0], odom[0]).is_keyframe for k in range(121)) == 1
