@@ -333,7 +333,7 @@ def prepare_plan(
     plan,
     *,
     adjacency: str = "doors",
-    samples: int = 1500,
+    samples: int = 1000,
     dt_px: int = 240,
     inner_points: int = 1200,
     coarse_samples: int = 500,
