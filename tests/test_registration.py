@@ -14,6 +14,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+import shapely
 from shapely.geometry import box
 
 from frslam_graph.errors import ConfigError
@@ -132,6 +133,22 @@ def test_connected_subsets_of_a_path():
     with_seed = connected_subsets(adj, seeds=np.array([0]))
     assert all(int(m) & 1 for m in with_seed) and len(with_seed) == 4
     assert mask_ids(np.uint64(0b0101), ["a", "b", "c", "d"]) == ("a", "c")
+
+
+def test_room_moments_match_shapely():
+    from shapely.geometry import Polygon
+
+    from frslam_graph.registration.refine import ring_edges
+    from frslam_graph.registration.subsets import polygon_moments, rings_moments
+
+    poly = Polygon([(0, 0), (7, 0), (7, 3), (4, 3), (4, 5), (0, 5)], [[(1, 1), (2, 1), (2, 2), (1, 2)]])
+    m = polygon_moments(poly)
+    assert m[0] == pytest.approx(poly.area)
+    assert (m[1] / m[0], m[2] / m[0]) == pytest.approx(poly.centroid.coords[0])
+    oriented = shapely.orient_polygons(poly)
+    rings = [np.asarray(oriented.exterior.coords)[:-1], np.asarray(oriented.interiors[0].coords)[:-1]]
+    a, b, _ = ring_edges(rings)
+    assert np.allclose(rings_moments(a, b, np.zeros(len(a), int), 1)[0], m)
 
 
 def test_door_adjacency(plan):

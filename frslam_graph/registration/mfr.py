@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -322,11 +322,9 @@ class PlanModel:
     plan_frame: RasterFrame
     inner: np.ndarray  # (P, 2) grid points inside rooms
     inner_onehot: np.ndarray  # (P, n) their room
-    inner_cell: float  # plan area per grid point
     door_width: float  # median door width (plan units), 0 without doors
     coarse_samples: np.ndarray  # (M', 2) a subsample of ``samples``
     coarse_onehot: np.ndarray  # (M', n) their room
-    extras: dict[str, Any] = field(default_factory=dict)
 
 
 def prepare_plan(
@@ -464,7 +462,6 @@ def prepare_plan(
         plan_frame=pframe,
         inner=inner,
         inner_onehot=eye[inner_room].astype(np.float32),
-        inner_cell=cell * cell,
         door_width=float(np.median(np.hypot(doors[:, 2] - doors[:, 0], doors[:, 3] - doors[:, 1])))
         if len(doors)
         else 0.0,
