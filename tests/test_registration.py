@@ -135,6 +135,30 @@ def test_connected_subsets_of_a_path():
     assert mask_ids(np.uint64(0b0101), ["a", "b", "c", "d"]) == ("a", "c")
 
 
+def test_connected_subsets_match_brute_force():
+    rng = np.random.default_rng(4)
+    n = 10
+    edges = [(i, j) for i in range(n) for j in range(i + 1, n) if rng.random() < 0.3]
+    adj = np.zeros(n, np.uint64)
+    for i, j in edges:
+        adj[i] |= np.uint64(1 << j)
+        adj[j] |= np.uint64(1 << i)
+
+    def connected(mask: int) -> bool:
+        members = [i for i in range(n) if mask >> i & 1]
+        seen, todo = {members[0]}, [members[0]]
+        while todo:
+            k = todo.pop()
+            for j in range(n):
+                if int(adj[k]) >> j & 1 and mask >> j & 1 and j not in seen:
+                    seen.add(j)
+                    todo.append(j)
+        return len(seen) == len(members)
+
+    brute = {m for m in range(1, 1 << n) if connected(m)}
+    assert {int(m) for m in connected_subsets(adj)} == brute
+
+
 def test_room_moments_match_shapely():
     from shapely.geometry import Polygon
 

@@ -137,11 +137,25 @@ def link_doors(rooms: list, doors: list, tol: float) -> list[tuple[int, ...]]:
     return out
 
 
-def _neighbours(masks: np.ndarray, adj: np.ndarray) -> np.ndarray:
+def _byte_tables(adj: np.ndarray) -> np.ndarray:
+    """(B, 256) uint64: for byte position b and byte value v, the OR of the neighbours of the
+    rooms whose bits are set in v (rooms 8b .. 8b+7)."""
+    n = len(adj)
+    nbytes = (n + 7) // 8
+    tables = np.zeros((nbytes, 256), np.uint64)
+    values = np.arange(256)
+    for b in range(nbytes):
+        for k in range(8):
+            i = 8 * b + k
+            if i < n:
+                tables[b] |= np.where((values >> k) & 1, adj[i], np.uint64(0))
+    return tables
+
+
+def _neighbours(masks: np.ndarray, tables: np.ndarray) -> np.ndarray:
     nb = np.zeros_like(masks)
-    for i, a in enumerate(adj):
-        bit = np.uint64(1) << np.uint64(i)
-        nb |= np.where((masks & bit) != 0, a, np.uint64(0))
+    for b in range(len(tables)):
+        nb |= tables[b][((masks >> np.uint64(8 * b)) & np.uint64(255)).astype(np.intp)]
     return nb & ~masks
 
 
@@ -169,17 +183,14 @@ def connected_subsets(
     level = np.unique((np.uint64(1) << np.asarray(seeds, dtype=np.uint64)).astype(np.uint64))
     out = [level]
     max_size = n if max_size is None else min(n, max_size)
+    tables = _byte_tables(adj)
+    bits = np.uint64(1) << np.arange(n, dtype=np.uint64)
     for _ in range(1, max_size):
-        nb = _neighbours(level, adj)
-        grown = []
-        for i in range(n):
-            bit = np.uint64(1) << np.uint64(i)
-            sel = (nb & bit) != 0
-            if sel.any():
-                grown.append(level[sel] | bit)
-        if not grown:
+        nb = _neighbours(level, tables)
+        rows, cols = np.nonzero(mask_matrix(nb, n))
+        if len(rows) == 0:
             break
-        level = np.unique(np.concatenate(grown))
+        level = np.unique(level[rows] | bits[cols])
         if len(level) > max_per_level:
             if cost is not None:
                 keep = np.argsort(cost(level), kind="stable")[:max_per_level]
