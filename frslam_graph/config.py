@@ -54,7 +54,7 @@ class OdometryConfig(_Section):
     keyframe_angle_deg: float = Field(10.0, gt=0.0, le=180.0)
     # a keyframe at least this often (s) even when standing still, so the per-keyframe hooks (loop
     # closure, floor-plan update strategy) still run when progress is obstructed; None = never
-    keyframe_max_interval_s: float | None = Field(5.0, gt=0.0)
+    keyframe_max_interval_s: float | None = Field(None, gt=0.0)
     # ICP noise model: point-to-line residual sigma (m) -> covariance from the scan's Hessian,
     # inflated by ``icp_cov_inflation`` and floored by the sigma floors below.
     icp_sigma: float = Field(0.03, gt=0.0)
