@@ -493,7 +493,7 @@ def test_r2v_plan_simulates_and_reads_back(shared_data, tmp_path):
     plan = FloorPlan.load(path)
     res = simulate(plan, tmp_path / "r2v", seed=1, options=SimulationOptions(**FAST), keep_run=True)
     run = res.run
-    assert run.route.min_clearance(run.house) >= 0.2
+    assert run.route.min_clearance(run.house) >= run.route.params.robot_radius
     rec = open_recording(tmp_path / "r2v")
     assert len(rec) == len(run)
     gt = rec.ground_truth()
@@ -555,3 +555,14 @@ def test_plan_scale_is_kept_when_known(plan):
     diag = math.hypot(maxx - minx, maxy - miny)
     run = simulate_run(plan, seed=2, options=SimulationOptions(house_diagonal=(12.0, 12.0), **FAST))
     assert run.distortion.metres_per_unit * diag == pytest.approx(12.0)
+
+
+def test_room_segmentation_plan_doors_pass_thick_walls(shared_data):
+    """Plans from real maps have thick walls between rooms: doors still connect the rooms."""
+    prb = shared_data / "prbonn"
+    plan = FloorPlan.from_room_segmentation(prb / "FMapRoomSeg.png", prb / "FMap.yaml")
+    house = House.from_plan(plan, Distortion(1.0))
+    assert len(house.open_doors) == len(plan.doors)
+    route = plan_route(house, np.random.default_rng(0), start_room="room_11")
+    assert len(set(route.rooms)) >= 10
+    assert route.min_clearance(house) >= route.params.robot_radius

@@ -179,7 +179,9 @@ class House:
         openings += [o.intersection(envelope) for o in bare_openings]
         # The outer wall (half a wall either side of the house's outline) is never cut: exterior
         # doors are closed, and a misplaced door or open boundary along the outline leaks rays.
-        outer = envelope.difference(_erode(rooms_union, half))
+        # The outline closes gaps up to 1 m between rooms (plans from maps have thick walls).
+        outline = _erode(rooms_union.buffer(0.5, join_style="mitre", mitre_limit=3.0), 0.5)
+        outer = outline.buffer(half, join_style="mitre", mitre_limit=3.0).difference(_erode(outline, half))
         openings = [o.difference(outer) for o in openings]
         rooms_free = shapely.union_all(list(eroded.values()))
         open_space = shapely.union_all([rooms_free, *openings])

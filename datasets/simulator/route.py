@@ -37,8 +37,8 @@ class RouteParams:
     max_turn_rate: float = 1.0
     max_accel: float = 0.5
     max_angular_accel: float = 2.0
-    robot_radius: float = 0.2
-    clearance: float = 0.3  # planned path keeps at least this far from walls and obstacles
+    robot_radius: float = 0.18
+    clearance: float = 0.24  # planned path keeps at least this far from walls and obstacles
     resolution: float = 0.05
     lookahead: float = 0.25
     smoothing: float = 0.4  # moving-average window along the path, metres
