@@ -190,7 +190,7 @@ class LoopClosureConfig(_Section):
     candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
     attempt_every: int = Field(2, ge=1)  # keyframes between attempts
     max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
-    retry_keyframes: int = Field(10, ge=0)  # a region is not retried within this many keyframes
+    retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
     # Submaps (points in the keyframe's frame).
     submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
     query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe

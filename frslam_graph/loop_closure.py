@@ -131,7 +131,11 @@ class ReferenceSubmap:
             ij = np.floor((pts - lo) / res).astype(int)
             free[ij[:, 1], ij[:, 0]] = 0
             owner[ij[:, 1] * w + ij[:, 0]] = np.arange(len(pts), dtype=np.int32)
-        dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
+        # distances (5×5 mask, within about 2 %) and the nearest occupied cell of every cell
+        dist, labels = cv2.distanceTransformWithLabels(
+            free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        dist *= res
         self.field = np.exp(-0.5 * (dist / sigma) ** 2).astype(np.float32)
         # free space seen by the reference scans (sensor -> end points polygons), away from any
         # end point: a query point there contradicts the reference (another place)
@@ -147,9 +151,6 @@ class ReferenceSubmap:
             self.free = ((seen > 0) & (dist > free_margin)).ravel()
         # nearest reference point of every cell (labels number the zero cells in raster order)
         if len(pts):
-            _, labels = cv2.distanceTransformWithLabels(
-                free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
-            )
             zeros = np.flatnonzero(free.ravel() == 0)
             self.nearest = owner[zeros[np.clip(labels.ravel() - 1, 0, len(zeros) - 1)]]
         else:
@@ -453,7 +454,7 @@ def match_scan(
 
 
 # ----------------------------------------------------------------------------- loop closer
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class LoopClosure:
     """An accepted (or pending) closure: x_reference⁻¹ ⊕ x_query = relative."""
 
@@ -746,7 +747,7 @@ class LoopCloser:
                     **data,
                 )
                 continue
-            self._pending.remove(partner)
+            self._pending = [q for q in self._pending if q is not partner]
             self._add(slam, [partner, lc], settle=True)
             added.extend([partner, lc])
             est = slam.graph.estimates()
