@@ -335,7 +335,7 @@ def _drive(path: np.ndarray, prm: RouteParams) -> np.ndarray:
     max_steps = int(10 * (n * spacing / prm.max_speed + 60.0) / dt)
     for _ in range(max_steps):
         # progress: nearest path point ahead within a small window
-        j_end = min(n, i + 40)
+        j_end = min(n, i + 8)  # the robot advances at most one 2 cm point per step
         best, bi = float("inf"), i
         for j in range(i, j_end):
             d2 = (px[j] - x) ** 2 + (py[j] - y) ** 2
