@@ -199,3 +199,19 @@ def test_transform_points_matches_compose():
     for p, o in zip(pts, out, strict=True):
         np.testing.assert_allclose(compose(pose, np.array([*p, 0.0]))[:2], o)
     assert key(3) == gtsam.symbol("x", 3)
+
+
+def test_pending_closure_predicts_where_to_look_next():
+    closer = LoopCloser()
+    # 40 keyframes along x, 0.5 m apart; keyframe 39 (at 19.5 m) matched old keyframe 2 at a
+    # 10 m correction: keyframe 40 should be looked for near old keyframe 3 (1 m further on)
+    n = 41
+    for k in range(n):
+        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
+    est = np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
+    closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    c, win_xy, win_th, centre = closer._hypothesis(est, 40)
+    assert c == 3 and win_xy <= 1.0 and win_th <= np.deg2rad(10.0)
+    np.testing.assert_allclose(centre, [0.0, 0.0, 0.0], atol=1e-9)
+    # too old a pending closure predicts nothing
+    assert closer._hypothesis(est, 40 + closer.config.pending_keyframes + 2) is None
