@@ -674,13 +674,17 @@ def _coarse_scores(
     masks: np.ndarray,
     door_width_m=None,
     points: int | None = None,
+    tol: float | None = None,
+    matched_cover: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
     IoU from the plan's interior grid points landing on the coarse footprint; precision from the
     boundary samples landing near a wall-side free cell; recall from the map's wall-side free
     cells landing near a plan boundary (all at tolerance 1.5 coarse cells). ``points`` caps the
-    points of each kind (a cheaper first pass).
+    points of each kind (a cheaper first pass); ``tol`` overrides the tolerance (metres);
+    ``matched_cover`` scores the rooms placed on the footprint (at least that share of their
+    area) instead of each hypothesis's subset.
     """
     n = len(pm.ids)
 
@@ -691,12 +695,14 @@ def _coarse_scores(
     det = np.abs(np.linalg.det(a))
     member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
     cf = obs.coarse_frame
-    tol = 1.5 * cf.resolution
+    tol = 1.5 * cf.resolution if tol is None else tol
     # IoU
     inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
     x, y = _apply(a, t, inner)
     on = _lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
     frac = (on.astype(np.float32) @ inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
+        member = (frac >= matched_cover).astype(np.float64)
     inter = (frac * member) @ pm.room_areas * det
     area_s = member @ pm.room_areas * det
     iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
@@ -921,19 +927,6 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
         )
 
 
-def _placement_prior(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, tol: float, opts: dict) -> float:
-    """Exit agreement × door-width plausibility of one placement (see :func:`_exit_factor`)."""
-    a, t = matrix[None, :2, :2], matrix[None, :2, 2]
-    if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(a[0])) <= 0:
-        return 0.0
-    ainv = np.linalg.inv(a)
-    tinv = -np.einsum("hij,hj->hi", ainv, t)
-    scale = np.sqrt(np.abs(np.linalg.det(a)))
-    return float(
-        _exit_factor(pm, obs, ainv, tinv, scale, tol)[0] * _door_prior(pm, scale, opts["door_width_m"])[0]
-    )
-
-
 def _register(plan, grid, opts: dict, t0: float) -> Registration:
     def fail(reason: str, **details: Any) -> Registration:
         return Registration.failure(reason, METHOD, time.perf_counter() - t0, **details)
@@ -1003,9 +996,21 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             max_points=opts["quick_points"],
             iterations=opts["quick_iterations"],
         )
-        iou, _ = _score(pm, obs.coarse_frame, obs.coarse_footprint, h.refined.matrix, opts["min_cover"])
-        prec, rec = _structure(pm, obs, h.refined.matrix, tol_f)
-        h.quick = iou * prec * rec * _placement_prior(pm, obs, h.refined.matrix, tol_f, opts)
+    mats = np.stack([h.refined.matrix for h in chosen])
+    bad = ~np.all(np.isfinite(mats), axis=(1, 2))
+    bad |= ~(np.abs(np.linalg.det(np.where(bad[:, None, None], np.eye(3), mats)[:, :2, :2])) > 1e-12)
+    mats[bad] = np.stack([h.matrix for h in chosen])[bad]
+    _, quick = _coarse_scores(  # all screened placements at once, at the fine tolerance
+        pm,
+        obs,
+        mats,
+        np.array([h.mask for h in chosen], dtype=np.uint64),
+        opts["door_width_m"],
+        tol=tol_f,
+        matched_cover=opts["min_cover"],
+    )
+    for h, q, b in zip(chosen, quick, bad, strict=True):
+        h.quick = 0.0 if b or not np.isfinite(q) else float(q)
     chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
     r0 = best.refined
