@@ -223,8 +223,8 @@ class LoopClosureConfig(_Section):
     consistency_theta_deg: float = Field(3.0, gt=0.0)
     pending_keyframes: int = Field(30, ge=1)
     # each attempt first checks where the latest pending closure predicts the robot to be
-    hypothesis_window_xy: float = Field(0.5, gt=0.0)
-    hypothesis_window_theta_deg: float = Field(5.0, gt=0.0)
+    hypothesis_window_xy: float = Field(2.0, gt=0.0)  # as wide as a search: ambiguity still tested
+    hypothesis_window_theta_deg: float = Field(10.0, gt=0.0)
     # Factor noise: point-to-line sigma, inflation, floors; robust kernel (whitened units).
     icp_sigma: float = Field(0.05, gt=0.0)
     covariance_inflation: float = Field(10.0, ge=1.0)

@@ -690,7 +690,7 @@ class LoopCloser:
         for c, radius, window_th, predicted in cands:
             self.stats.attempts += 1
             guess = between(est[c], est[i])
-            if predicted is not None:  # check a pending closure's prediction, narrowly
+            if predicted is not None:  # check a pending closure's prediction
                 centre, win = predicted, radius
             elif radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
                 centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))

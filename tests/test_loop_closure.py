@@ -211,7 +211,9 @@ def test_pending_closure_predicts_where_to_look_next():
     est = np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
     closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
     c, win_xy, win_th, centre = closer._hypothesis(est, 40)
-    assert c == 3 and win_xy <= 1.0 and win_th <= np.deg2rad(10.0)
+    cfg = closer.config
+    assert c == 3 and win_xy == cfg.hypothesis_window_xy
+    assert win_th == pytest.approx(np.deg2rad(cfg.hypothesis_window_theta_deg))
     np.testing.assert_allclose(centre, [0.0, 0.0, 0.0], atol=1e-9)
     # too old a pending closure predicts nothing
     assert closer._hypothesis(est, 40 + closer.config.pending_keyframes + 2) is None
