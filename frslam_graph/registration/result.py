@@ -74,7 +74,9 @@ class Registration:
     ``ok`` is False for a failed or meaningless match (then ``reason`` says why and the matrix is
     the identity). ``score`` is the IoU of the match on the map's observed area, ``ambiguity`` the
     best score of a *different* hypothesis divided by ``score`` (in [0, 1]; near 1 = ambiguous),
-    ``covariance`` the 3×3 covariance of the pose part (x, y in metres, theta in radians) or None.
+    ``covariance`` the 3×3 covariance of the pose part (x, y in metres, theta in radians) or None:
+    x, y are the matrix's translation (where the plan's origin lands in the map), theta its
+    rotation; the scales are marginalised.
     """
 
     ok: bool
