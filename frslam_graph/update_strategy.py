@@ -272,7 +272,7 @@ class FloorPlanUpdater:
             self.timings["register"] += time.perf_counter() - t0
             return
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
-        verdict = self._judge(slam, keyframe, reg, grid, nums)
+        verdict = self._judge(slam, keyframe, reg, grid, nums, reason)
         self.timings["register"] += time.perf_counter() - t0
         if verdict is None:
             return
@@ -332,13 +332,13 @@ class FloorPlanUpdater:
             )
         return handles
 
-    def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float]):
+    def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float], trigger: str = ""):
         """Accept / reject a registration; returns (accepted, relocaliser, relocalisation) or None."""
         cfg = self.config
         stamp, i = float(keyframe.stamp), keyframe.index
 
         def reject(why: str) -> None:
-            self._event(slam, stamp, "register", why, i, False, **nums)
+            self._event(slam, stamp, "register", f"{trigger}; {why}" if trigger else why, i, False, **nums)
 
         if not reg.ok:
             return reject(f"registration failed: {reg.reason or 'no match'}")
