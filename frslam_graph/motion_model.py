@@ -13,15 +13,20 @@ convention (right perturbation: x_true = x ⊕ Exp(ξ)) for a ``BetweenFactorPos
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 Pose = np.ndarray  # (3,) x, y, theta
+_TWO_PI = 2.0 * math.pi
 
 
 def wrap(theta: float | np.ndarray) -> float | np.ndarray:
     """Angle(s) wrapped to [-pi, pi)."""
-    out = (np.asarray(theta, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    if isinstance(theta, float | int | np.floating):  # scalar fast path (hot in compose/between)
+        return (float(theta) + math.pi) % _TWO_PI - math.pi
+    out = (np.asarray(theta, dtype=np.float64) + np.pi) % _TWO_PI - np.pi
     return float(out) if out.ndim == 0 else out
 
 

@@ -105,31 +105,33 @@ def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) ->
     k = int(neighbours)
     if len(pts) < 2 * k + 3:
         return ScanGeometry(np.zeros((3, 3)), 0, 0.0, np.array([1.0, 0.0]))
-    prev, nxt, mid = pts[: -2 * k], pts[2 * k :], pts[k:-k]
-    t = nxt - prev
-    tl = np.hypot(t[:, 0], t[:, 1])
+    x, y = pts[:, 0], pts[:, 1]
+    mx, my = x[k:-k], y[k:-k]
+    ax, ay = mx - x[: -2 * k], my - y[: -2 * k]  # mid - prev
+    bx, by = x[2 * k :] - mx, y[2 * k :] - my  # next - mid
+    tx, ty = ax + bx, ay + by  # next - prev
+    tl2 = tx * tx + ty * ty
     # continuity: both neighbours close to the point (scaled with range for grazing walls)
-    rng = np.hypot(mid[:, 0], mid[:, 1])
-    max_gap = np.maximum(4.0 * voxel_size, 0.05 * rng) * k
-    d1 = np.hypot(*(mid - prev).T)
-    d2 = np.hypot(*(nxt - mid).T)
-    ok = (tl > 1e-6) & (d1 < max_gap) & (d2 < max_gap)
-    # collinearity: the middle point lies near the chord
-    n = np.column_stack((-t[:, 1], t[:, 0])) / np.maximum(tl, 1e-12)[:, None]
-    off = np.abs(np.einsum("ij,ij->i", mid - prev, n))
-    ok &= off < np.maximum(0.5 * voxel_size, 0.01 * rng)
+    rng = np.sqrt(mx * mx + my * my)
+    gap = np.maximum(4.0 * voxel_size, 0.05 * rng) * k
+    gap2 = gap * gap
+    ok = (tl2 > 1e-12) & (ax * ax + ay * ay < gap2) & (bx * bx + by * by < gap2)
+    # collinearity: the middle point lies near the chord (|a × t| / |t|)
+    tl = np.sqrt(np.maximum(tl2, 1e-24))
+    ok &= np.abs(ax * ty - ay * tx) < np.maximum(0.5 * voxel_size, 0.01 * rng) * tl
     if not np.any(ok):
         return ScanGeometry(np.zeros((3, 3)), 0, 0.0, np.array([1.0, 0.0]))
-    p, n = mid[ok], n[ok]
+    px, py, nx, ny = mx[ok], my[ok], -ty[ok] / tl[ok], tx[ok] / tl[ok]
     # one point per voxel
-    cells = np.floor(p / voxel_size).astype(np.int64)
-    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
-    p, n = p[first], n[first]
-    J = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]))
+    cx = np.floor(px / voxel_size).astype(np.int64)
+    cy = np.floor(py / voxel_size).astype(np.int64)
+    _, first = np.unique(cx * 2_000_003 + cy, return_index=True)
+    px, py, nx, ny = px[first], py[first], nx[first], ny[first]
+    J = np.column_stack((nx, ny, ny * px - nx * py))
     H = J.T @ J
     w, v = np.linalg.eigh(H[:2, :2])
     ratio = float(w[0] / w[1]) if w[1] > 1e-12 else 0.0
-    return ScanGeometry(H, len(p), max(ratio, 0.0), v[:, 0])
+    return ScanGeometry(H, len(px), max(ratio, 0.0), v[:, 0])
 
 
 class ScanOdometry:

@@ -115,7 +115,7 @@ class FRSlam:
         self._scan_rel: list[np.ndarray] = []
         self._scan_odom: list[np.ndarray] = []
         self._was_degenerate = False
-        self._angles_cache: tuple[float, float, int, np.ndarray] | None = None
+        self._angles_cache: tuple[float, float, int, tuple[np.ndarray, np.ndarray]] | None = None
         self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
         # loop closure (frslam_graph.loop_closure), run on each keyframe before the update strategy
         from frslam_graph.loop_closure import LoopCloser
@@ -148,11 +148,12 @@ class FRSlam:
                 f"{angle_min!r}, {angle_increment!r}",
                 where="angle_increment",
             )
-        ang = self._angles(float(angle_min), float(angle_increment), len(r))
+        cos_a, sin_a = self._angles(float(angle_min), float(angle_increment), len(r))
         rmax = self.config.odometry.max_range if range_max is None else float(range_max)
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(r) & (r > 0.0) & (r < rmax)
-        pts = np.column_stack((r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])))
+        rv = r[ok]
+        pts = np.column_stack((rv * cos_a[ok], rv * sin_a[ok]))
         return self.add_points(stamp, pts, odom, sensor_offset)
 
     def add(self, scan: Any) -> tuple[float, float, float]:
@@ -181,10 +182,12 @@ class FRSlam:
         return self.pose()
 
     # ------------------------------------------------------------ internals
-    def _angles(self, angle_min: float, inc: float, n: int) -> np.ndarray:
+    def _angles(self, angle_min: float, inc: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """cos and sin of the beam angles (cached: the layout rarely changes)."""
         c = self._angles_cache
         if c is None or c[0] != angle_min or c[1] != inc or c[2] != n:
-            self._angles_cache = c = (angle_min, inc, n, angle_min + inc * np.arange(n))
+            ang = angle_min + inc * np.arange(n)
+            self._angles_cache = c = (angle_min, inc, n, (np.cos(ang), np.sin(ang)))
         return c[3]
 
     def _record(self, res: OdometryResult, pts: np.ndarray, off: np.ndarray) -> None:
