@@ -253,6 +253,9 @@ class PoseGraph:
             raise FrslamError("the graph is empty", where="estimate")
         if i is None or i == self._n - 1:
             return self._latest.copy()
+        if not -self._n <= i < self._n:
+            raise FrslamError(f"no keyframe {i} (graph has {self._n})", where="keyframe")
+        i = i % self._n
         if self._estimate_cache is not None:
             return self._estimate_cache[i].copy()
         return _vec(self._isam.calculateEstimatePose2(key(i)))
@@ -267,6 +270,8 @@ class PoseGraph:
     def marginal_covariance(self, i: int | None = None) -> np.ndarray:
         """3×3 marginal covariance (tangent, body frame) of keyframe i (default: latest)."""
         i = self._n - 1 if i is None else i
+        if not 0 <= i < self._n:
+            raise FrslamError(f"no keyframe {i} (graph has {self._n})", where="keyframe")
         return np.asarray(self._isam.marginalCovariance(key(i)))
 
     def prior_residual(self, handle: PriorHandle) -> PriorResidual:

@@ -162,3 +162,7 @@ def test_factor_helpers_and_bad_input():
     g.add_first()
     with pytest.raises(FrslamError, match="keyframe"):
         g.add_prior(5, [0.0, 0.0, 0.0], PRIOR_COV)
+    with pytest.raises(FrslamError, match="keyframe"):
+        g.estimate(3)
+    with pytest.raises(FrslamError, match="keyframe"):
+        g.marginal_covariance(3)
