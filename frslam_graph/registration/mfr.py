@@ -1025,7 +1025,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         max_points=opts["max_points"],
         iterations=opts["iterations"],
     )
+    if not _plausible(best.refined, opts):  # a degenerate final fit: keep the screened one
+        best.refined = r0
     r = best.refined
+    if not _plausible(r, opts):
+        return fail("degenerate fit (scales collapsed or exploded)")
     best.score, best.rooms = _score(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
     prec, rec = _structure(pm, obs, r.matrix, tol_f, 1000)
     quality = best.score * prec * rec
@@ -1089,6 +1093,15 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         )
     reg.time_s = time.perf_counter() - t0
     return reg
+
+
+def _plausible(r: RefineResult, opts: dict) -> bool:
+    """Finite, non-degenerate, and the aspect within the bound."""
+    m = r.matrix
+    if not np.all(np.isfinite(m)) or not (r.sx > 0 and r.sy > 0):
+        return False
+    ratio = r.sy / r.sx
+    return 1.0 / opts["max_aspect"] ** 2 <= ratio <= opts["max_aspect"] ** 2
 
 
 def _mask_rooms(mask: int, n: int) -> list[int]:
