@@ -195,7 +195,7 @@ class LoopClosureConfig(_Section):
     submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
     query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe
     submap_keyframes: int = Field(30, ge=1)  # at most this many keyframes per side
-    max_point_range: float = Field(20.0, gt=0.0)
+    max_point_range: float = Field(15.0, gt=0.0)
     # Matcher.
     resolution: float = Field(0.05, gt=0.0)
     coarse_step_xy: float = Field(0.3, gt=0.0)
