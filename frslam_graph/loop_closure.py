@@ -3,8 +3,12 @@
 On each new keyframe q, :class:`LoopCloser` looks for earlier keyframes c (not recent ones: at
 least ``min_keyframe_gap`` keyframes and ``min_travel_gap`` metres of travel or
 ``min_rotation_gap_deg`` of turning back) near the current estimate. The search radius and the
-heading window grow with the motion since the last accepted closure (or since the candidate,
-whichever is shorter), so a long excursion is searched widely and a freshly corrected one narrowly.
+heading window grow with the travel / turning between the two along the shortest path of the
+graph (accepted closures count as zero length), so a long excursion is searched widely and a
+freshly corrected one narrowly. One candidate per ``candidate_spacing`` cell; per attempt the
+nearest cell not tried recently plus round-robin over the others (a wide area is covered over a
+few keyframes). When the prediction is too uncertain the search is centred on the candidate
+itself ("is the robot back there?") instead of on the prediction.
 
 Each candidate is verified by :func:`match_scan`: the *query* submap (the points of the last
 ``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
@@ -13,8 +17,10 @@ scores every pose at once (vectorised over poses × points) on a likelihood fiel
 (``cv2.distanceTransform``), max-filtered so the coarse grid cannot step over the peak; the best
 distinct peaks are refined by point-to-line ICP on the reference points. A match is accepted when
 its inlier fraction is high and it is unambiguous (the best *distinct* second peak scores clearly
-lower); it becomes ``gtsam.BetweenFactorPose2(x_c, x_q, z)`` with the ICP covariance under a
-Cauchy kernel, so a wrong closure that slips through cannot bend the map.
+lower) and the query does not put points where the reference saw free space (another place that
+looks alike: same walls, different furniture); it becomes ``gtsam.BetweenFactorPose2(x_c, x_q,
+z)`` with the ICP covariance (inflated, floored) under a Cauchy kernel, so a wrong closure that
+slips through cannot bend the map.
 
 A robust kernel also refuses a *true* closure that disagrees with the current estimate by many
 sigmas (after a long excursion). So a closure that would move the graph by more than
@@ -22,7 +28,12 @@ sigmas (after a long excursion). So a closure that would move the graph by more 
 with it geometrically (pairwise consistency, as in PCM); then both enter the graph as plain
 Gaussians (the graph converges to them with iSAM2, or an LM batch when the correction is large).
 The bounded pull of a robust kernel could not hold such a correction against the stiff odometry
-chain; the pairwise check takes its place as the guard against wrong closures.
+chain; the pairwise check takes its place as the guard against wrong closures. While a closure is
+pending, each attempt first searches where it predicts the robot to be (same window and
+ambiguity test as any candidate), which is what confirms the large corrections on ACES.
+
+Decisions go to ``slam.log`` as ``loop_closure`` / ``loop_pending`` / ``loop_rejected`` (with the
+reason: ``no_overlap``, ``low_score``, ``low_inliers``, ``ambiguous``, ``free_space``).
 """
 
 from __future__ import annotations
