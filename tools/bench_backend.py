@@ -198,9 +198,10 @@ def latency_section(laps: int, runs: int, loop_closure: bool) -> tuple[str, list
     xrt = d["offline process() x real time"]
     lines += [
         "",
-        f"Targets: median <= 5 ms: wall {w_med:.2f} ms / CPU {c_med:.2f} ms -> "
-        f"{_met(min(w_med, c_med) <= 5.0)}; p99 <= 20 ms: wall {w_p99:.2f} ms / CPU {c_p99:.2f} ms -> "
-        f"{_met(min(w_p99, c_p99) <= 20.0)}; offline >= 50x real time: {xrt:.1f}x -> {_met(xrt >= 50.0)}.",
+        f"Targets: median <= 5 ms: wall {w_med:.2f} ms {_met(w_med <= 5.0)}, CPU {c_med:.2f} ms "
+        f"{_met(c_med <= 5.0)}; p99 <= 20 ms: wall {w_p99:.2f} ms {_met(w_p99 <= 20.0)}, CPU {c_p99:.2f} ms "
+        f"{_met(c_p99 <= 20.0)}; offline >= 50x real time (wall): {xrt:.1f}x {_met(xrt >= 50.0)}. "
+        "(Wall clock is inflated on a shared, loaded machine; CPU time is the process's own.)",
         "",
     ]
     return "\n".join(lines), med
@@ -302,8 +303,21 @@ def house_task(task: dict) -> dict:
     return out
 
 
-def run_houses(n: int, workers: int, regimes: list[str], length: float, speed: float, modes: list[str]):
-    """Run ``n`` routable houses (skipping and counting the others); returns (rows, skipped)."""
+def run_houses(
+    n: int,
+    workers: int,
+    regimes: list[str],
+    length: float,
+    speed: float,
+    modes: list[str],
+    budget_s: float | None = None,
+):
+    """Run ``n`` routable houses (skipping and counting the others); returns (rows, skipped, cut).
+
+    With ``budget_s``, houses not yet started when the budget is spent are cancelled (``cut``).
+    """
+    t0 = time.perf_counter()
+    cut = 0
     cands = candidate_plans()
     rows: list[dict] = []
     skipped: list[tuple[str, str]] = []
@@ -327,12 +341,18 @@ def run_houses(n: int, workers: int, regimes: list[str], length: float, speed: f
             pending.add(pool.submit(house_task, make(nxt)))
             nxt += 1
         while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            finished, pending = wait(pending, timeout=10.0, return_when=FIRST_COMPLETED)
+            if budget_s is not None and time.perf_counter() - t0 > budget_s and not cut:
+                cancelled = {f for f in pending if f.cancel()}
+                cut = len(cancelled) + max(0, min(n, len(cands)) - nxt)
+                nxt = len(cands)  # submit nothing more
+                pending -= cancelled
+                print(f"  time budget spent: {cut} houses cancelled", file=sys.stderr, flush=True)
             for fut in finished:
                 res = fut.result()
                 if res["skip"] is not None:
                     skipped.append((res["plan"], res["skip"]))
-                    if nxt < len(cands):  # replace the skipped plan by the next one in the order
+                    if nxt < len(cands) and not cut:  # replace the skipped plan by the next one in the order
                         pending.add(pool.submit(house_task, make(nxt)))
                         nxt += 1
                     print(f"  skipped {res['plan']}: {res['skip']}", file=sys.stderr, flush=True)
@@ -340,10 +360,10 @@ def run_houses(n: int, workers: int, regimes: list[str], length: float, speed: f
                 done_houses += 1
                 rows.extend(res["rows"])
                 print(f"  house {done_houses}/{n} done: {res['plan']}", file=sys.stderr, flush=True)
-    return rows, skipped
+    return rows, skipped, cut
 
 
-def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args) -> str:
+def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: int = 0) -> str:
     lines = [
         "## 2. Floor-plan priors on simulated houses (shared R2V plans)",
         "",
@@ -355,6 +375,12 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args) -> st
         "Priors: added / rejected / removed.",
         "",
     ]
+    if cut:
+        lines += [
+            f"**Time budget (--time-budget {args.time_budget:.0f} s) spent: {cut} of the {args.houses} "
+            "requested houses were not run.**",
+            "",
+        ]
     if skipped:
         lines += ["Skipped: " + "; ".join(f"{p} ({why})" for p, why in skipped), ""]
     for regime in args.regimes:
@@ -484,6 +510,9 @@ def main() -> None:
     ap.add_argument("--regimes", nargs="+", default=list(REGIMES), choices=list(REGIMES))
     ap.add_argument("--no-faults", action="store_true", help="section 2: skip 'other' and 'wrong'")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--time-budget", type=float, default=None, help="section 2: start no house after this many seconds"
+    )
     ap.add_argument("--aces", action="store_true", help="section 3: run ACES (a few minutes)")
     ap.add_argument("--quick", action="store_true", help="2 laps x 1 run, 2 houses")
     ap.add_argument("--skip", nargs="*", default=[], choices=["latency", "priors"], help="sections to skip")
@@ -502,8 +531,10 @@ def main() -> None:
         parts.append(text)
         csv_rows += [["latency", "", "", name, f"{v:.6g}"] for name, v in med]
     if "priors" not in args.skip:
-        rows, skipped = run_houses(args.houses, args.workers, args.regimes, args.length, args.speed, modes)
-        text = priors_section(rows, skipped, args)
+        rows, skipped, cut = run_houses(
+            args.houses, args.workers, args.regimes, args.length, args.speed, modes, args.time_budget
+        )
+        text = priors_section(rows, skipped, args, cut)
         print(text, flush=True)
         parts.append(text)
         for r in rows:
