@@ -201,6 +201,10 @@ def _print_metrics(runs: dict[str, dict]) -> None:
         ),
     )
     row(
+        "loop closures accepted / rejected",
+        lambda m: f"{m['decisions'].get('loop_closure', 0)} / {m['decisions'].get('loop_rejected', 0)}",
+    )
+    row(
         "latency median / p99 \\[ms]",
         lambda m: f"{m['latency_ms']['median']:.2f} / {m['latency_ms']['p99']:.2f}",
     )
