@@ -270,6 +270,20 @@ def test_route_never_collides_and_respects_limits(house):
     np.testing.assert_allclose(mid, route.poses[[10, 11]], atol=1e-12)
 
 
+def test_driver_follows_a_path_that_turns_back():
+    """A path that goes out and comes back the same way (a U-turn) is driven to its end."""
+    from frslam_graph.datasets.simulator.route import _drive, _resample
+
+    # the start of a real route (R2V plan 5, seed 1) on which the robot once froze in place
+    path = _resample(
+        np.array([[0.1559, 0.9085], [0.2711, 0.7462], [-0.1686, 1.1309], [-1.6175, 1.6784]]), 0.02
+    )
+    params = RouteParams()
+    poses = _drive(path, params)
+    assert np.hypot(*(poses[-1, :2] - path[-1])) < 0.03
+    assert len(poses) * params.dt < 30.0  # about 2 m of driving, not stuck turning in place
+
+
 def test_route_given_rooms_and_errors(house):
     route = plan_route(house, np.random.default_rng(0), rooms=["kitchen", "living", "bathroom"])
     assert route.rooms == ["kitchen", "living", "bathroom"]

@@ -250,7 +250,7 @@ def plan_route(
     goal = length * 1.03
     todo = list(rooms[1:]) if rooms is not None else [r for r in reachable if r != start_room]
     recent: list[str] = [start_room]
-    stalled = 0
+    stalled = replans = 0
     while True:
         while True:
             dist, pred = planner.shortest(current)
@@ -287,7 +287,8 @@ def plan_route(
         path = _smooth(xy, params.smoothing, spacing=0.02)
         poses = _drive(path, params)
         driven = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
-        if rooms is not None or driven >= length or stalled >= 20:
+        replans += 1
+        if rooms is not None or driven >= length or stalled >= 20 or replans >= 5:
             break
         goal = planned + 1.2 * (length - driven) + 1.0  # the driver cut corners: plan a little more
     stamps = np.arange(len(poses)) * params.dt
@@ -345,8 +346,17 @@ def _drive(path: np.ndarray, prm: RouteParams) -> np.ndarray:
         if i >= n - 1 and best < 0.02**2:
             break
         t = min(n - 1, i + look)
+        # never aim at (or next to) the robot itself, e.g. past a U-turn of the path
+        near2 = (0.5 * prm.lookahead) ** 2
+        while t < n - 1 and (px[t] - x) ** 2 + (py[t] - y) ** 2 < near2:
+            t += 1
+        i = max(i, t - look)
         err = math.atan2(py[t] - y, px[t] - x) - th
         err = math.atan2(math.sin(err), math.cos(err))
+        if abs(err) > 2.8 and w != 0.0:
+            # target (almost) straight behind: keep turning the way we already turn, or the sign
+            # of the error flips every step and the acceleration limit freezes the robot
+            err = math.copysign(abs(err), w)
         remaining = (n - 1 - i) * spacing + math.sqrt(best)
         w_cmd = max(-prm.max_turn_rate, min(prm.max_turn_rate, 2.5 * err))
         if abs(err) > 0.6:
