@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from frslam_graph.datasets.recording import interpolate_poses
 from frslam_graph.errors import TrajectoryError
 
 
@@ -165,16 +166,7 @@ def interpolate_trajectory(
         ok = inside & ((t[hi] - t[lo] <= max_gap) | (stamps == t[lo]) | (stamps == t[hi]))
     else:
         ok = inside
-    theta = np.unwrap(traj[:, 3])
-    out = np.column_stack(
-        [
-            stamps,
-            np.interp(stamps, t, traj[:, 1]),
-            np.interp(stamps, t, traj[:, 2]),
-            np.interp(stamps, t, theta),
-        ]
-    )
-    out[:, 3] = np.arctan2(np.sin(out[:, 3]), np.cos(out[:, 3]))
+    out = np.column_stack((stamps, interpolate_poses(t, traj[:, 1:4], stamps)))
     return out, ok
 
 

@@ -23,6 +23,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from frslam_graph.datasets.recording import interpolate_poses
 
 from frslam_graph.errors import ConfigError
 
@@ -78,16 +79,7 @@ class OdometryTrack:
     def sample(self, stamps: np.ndarray) -> np.ndarray:
         """Poses linearly interpolated at ``stamps`` (theta unwrapped, then wrapped)."""
         t = np.asarray(stamps, dtype=np.float64)
-        th = np.unwrap(self.poses[:, 2])
-        out = np.column_stack(
-            [
-                np.interp(t, self.stamps, self.poses[:, 0]),
-                np.interp(t, self.stamps, self.poses[:, 1]),
-                np.interp(t, self.stamps, th),
-            ]
-        )
-        out[:, 2] = np.arctan2(np.sin(out[:, 2]), np.cos(out[:, 2]))
-        return out
+        return interpolate_poses(self.stamps, self.poses, t)
 
     def velocities(self) -> np.ndarray:
         """(N, 3) body-frame velocities (vx, vy, wz) by backward differences (first row zero)."""

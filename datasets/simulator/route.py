@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 import shapely
+from frslam_graph.datasets.recording import interpolate_poses
 from frslam_graph.datasets.simulator.house import House
 from scipy import sparse
 from scipy.sparse.csgraph import dijkstra
@@ -87,16 +88,7 @@ class Route:
         t = np.asarray(stamps, dtype=np.float64)
         if len(t) and (t.min() < self.stamps[0] - 1e-9 or t.max() > self.stamps[-1] + 1e-9):
             raise ConfigError("stamps outside the route's time span", where="route.sample")
-        th = np.unwrap(self.poses[:, 2])
-        out = np.column_stack(
-            [
-                np.interp(t, self.stamps, self.poses[:, 0]),
-                np.interp(t, self.stamps, self.poses[:, 1]),
-                np.interp(t, self.stamps, th),
-            ]
-        )
-        out[:, 2] = np.arctan2(np.sin(out[:, 2]), np.cos(out[:, 2]))
-        return out
+        return interpolate_poses(self.stamps, self.poses, t)
 
     def speeds(self) -> tuple[np.ndarray, np.ndarray]:
         """Linear (m/s) and angular (rad/s) speeds between consecutive poses."""
