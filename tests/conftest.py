@@ -20,7 +20,9 @@ TEST_DATA = REPO / "tests" / "data"
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared data not found at {SHARED_DATA} (set FRSLAM_SHARED_DATA or clone next to ../shared)")
+        pytest.skip(
+            f"shared data not found at {SHARED_DATA} (set FRSLAM_SHARED_DATA or clone next to ../shared)"
+        )
     return SHARED_DATA
 
 

@@ -43,8 +43,10 @@ def _write_carmen(path, truth, odom, ranges):
     for row, o, r in zip(truth, odom, ranges, strict=True):
         beams = np.nan_to_num(r[90:270], nan=81.9)  # CARMEN: 180 beams, -90..+89 deg; 81.9 = no return
         vals = " ".join(f"{v:.3f}" for v in beams)
-        lines.append(f"FLASER 180 {vals} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} "
-                     f"{row[0] + 1000:.6f} host {row[0] + 1000:.6f}")
+        lines.append(
+            f"FLASER 180 {vals} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} "
+            f"{row[0] + 1000:.6f} host {row[0] + 1000:.6f}"
+        )
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -69,8 +71,15 @@ def test_run_writes_every_output(small_log, tmp_path, capsys):
     log, gt = small_log
     out = tmp_path / "run"
     assert main(["run", str(log), "--ground-truth", str(gt), "--out", str(out)]) == 0
-    for name in ("trajectory.tum", "odometry.tum", "map.yaml", "map.pgm", "metrics.json", "log.jsonl",
-                 "trajectory.png"):
+    for name in (
+        "trajectory.tum",
+        "odometry.tum",
+        "map.yaml",
+        "map.pgm",
+        "metrics.json",
+        "log.jsonl",
+        "trajectory.png",
+    ):
         assert (out / name).exists(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["scans"] > 100
@@ -82,10 +91,14 @@ def test_compare_with_unusable_plan_still_reports_both(small_log, tmp_path, caps
     """A one-room plan cannot be registered: no priors, both runs reported, nothing lost."""
     log, gt = small_log
     plan = tmp_path / "one_room.json"
-    plan.write_text(json.dumps({"rooms": [{"id": "r", "type": "office",
-                                           "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]}))
+    plan.write_text(
+        json.dumps({"rooms": [{"id": "r", "type": "office", "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]})
+    )
     out = tmp_path / "cmp"
-    assert main(["compare", str(log), "--floor-plan", str(plan), "--ground-truth", str(gt), "--out", str(out)]) == 0
+    assert (
+        main(["compare", str(log), "--floor-plan", str(plan), "--ground-truth", str(gt), "--out", str(out)])
+        == 0
+    )
     summary = json.loads((out / "compare.json").read_text())
     assert set(summary) == {"without priors", "with priors"}
     assert summary["with priors"]["ate"]["rmse"] < 0.2

@@ -54,8 +54,14 @@ def test_link_doors_from_geometry():
 
 @pytest.mark.parametrize(
     ("label", "expected"),
-    [("Living Room", "living_room"), ("WC", "restroom"), ("hallway", "corridor"), ("xyz", "unknown"),
-     ("washing_room", "washing_room"), ("Bedroom", "bedroom")],
+    [
+        ("Living Room", "living_room"),
+        ("WC", "restroom"),
+        ("hallway", "corridor"),
+        ("xyz", "unknown"),
+        ("washing_room", "washing_room"),
+        ("Bedroom", "bedroom"),
+    ],
 )
 def test_normalise_room_type(label, expected):
     assert normalise_room_type(label) == expected
@@ -93,9 +99,15 @@ def plans(draw):
         w, h = draw(st.floats(0.1, 100)), draw(st.floats(0.1, 100))
         rtype = draw(st.sampled_from(["bedroom", "kitchen", "corridor", "unknown"]))
         rooms.append(Room(f"r{i}", rtype, box(x, y, x + w, y + h)))
-    doors = [Door(f"d{j}", (draw(coord), draw(coord)), (draw(coord), draw(coord)),
-                  tuple(draw(st.lists(st.sampled_from([r.id for r in rooms]), max_size=2, unique=True))))
-             for j in range(draw(st.integers(0, 3)))]
+    doors = [
+        Door(
+            f"d{j}",
+            (draw(coord), draw(coord)),
+            (draw(coord), draw(coord)),
+            tuple(draw(st.lists(st.sampled_from([r.id for r in rooms]), max_size=2, unique=True))),
+        )
+        for j in range(draw(st.integers(0, 3)))
+    ]
     mpu = draw(st.one_of(st.none(), st.floats(1e-3, 10)))
     return FloorPlan(rooms, doors, None, "px", mpu, "h")
 
@@ -135,8 +147,16 @@ def _mutate(path, value):
         (_mutate(["rooms"], []), "rooms", "at least one room"),
         (_mutate(["rooms", 0, "polygon"], KeyError), "rooms[0].polygon", "missing"),
         (_mutate(["rooms", 0, "polygon"], [[0, 0], [1, 1]]), "rooms[0].polygon", "at least 3"),
-        (_mutate(["rooms", 0, "polygon"], [[0, 0], [2, 2], [2, 0], [0, 2]]), "rooms[0].polygon", "Self-intersection"),
-        (_mutate(["rooms", 1, "polygon"], [[0, 0], [1e9, 0], [1e9, 1], [0, 1]]), "rooms[1].polygon", "absurd"),
+        (
+            _mutate(["rooms", 0, "polygon"], [[0, 0], [2, 2], [2, 0], [0, 2]]),
+            "rooms[0].polygon",
+            "Self-intersection",
+        ),
+        (
+            _mutate(["rooms", 1, "polygon"], [[0, 0], [1e9, 0], [1e9, 1], [0, 1]]),
+            "rooms[1].polygon",
+            "absurd",
+        ),
         (_mutate(["rooms", 1, "polygon"], [[0, 0], ["a", 0], [1, 1]]), "rooms[1].polygon", "number pairs"),
         (_mutate(["rooms", 1, "id"], "a"), "rooms[1].id", "duplicate"),
         (_mutate(["doors", 0, "rooms"], ["a", "zz"]), "doors[0].rooms", "unknown room"),

@@ -35,8 +35,14 @@ def _write_map(tmp_path, img: np.ndarray, **meta) -> object:
     import cv2
 
     cv2.imwrite(str(tmp_path / "m.pgm"), img)
-    fields = {"image": "m.pgm", "resolution": 0.1, "origin": [1.0, 2.0, 0.0], "negate": 0,
-              "occupied_thresh": 0.65, "free_thresh": 0.196} | meta
+    fields = {
+        "image": "m.pgm",
+        "resolution": 0.1,
+        "origin": [1.0, 2.0, 0.0],
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+    } | meta
     lines = [f"{k}: {v}" for k, v in fields.items() if v is not None]
     (tmp_path / "m.yaml").write_text("\n".join(lines) + "\n")
     return tmp_path / "m.yaml"

@@ -64,7 +64,9 @@ def test_matches_brute_force_centre_test_with_holes_flip_and_multipolygons():
     shapes = [ring, MultiPolygon([box(-0.5, -1.5, 0.7, 0.2), box(3.3, -1.9, 4.1, -0.6)])]
     for _ in range(5):
         a = rng.uniform(-0.3, 0.3)
-        t = np.array([[np.cos(a), -np.sin(a), rng.uniform(-0.3, 0.3)], [np.sin(a), np.cos(a), 0.1], [0, 0, 1]])
+        t = np.array(
+            [[np.cos(a), -np.sin(a), rng.uniform(-0.3, 0.3)], [np.sin(a), np.cos(a), 0.1], [0, 0, 1]]
+        )
         t[:, 0] *= rng.choice([-1, 1])  # sometimes a reflection
         t[:2, 2] += [2.0, 0.0] if t[0, 0] < 0 else 0.0
         got = rasterise_polygons(shapes, f, transform=t).astype(bool)
