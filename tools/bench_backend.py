@@ -318,6 +318,7 @@ def run_houses(
     """
     t0 = time.perf_counter()
     cut = 0
+    spent = False
     cands = candidate_plans()
     rows: list[dict] = []
     skipped: list[tuple[str, str]] = []
@@ -342,7 +343,8 @@ def run_houses(
             nxt += 1
         while pending:
             finished, pending = wait(pending, timeout=10.0, return_when=FIRST_COMPLETED)
-            if budget_s is not None and time.perf_counter() - t0 > budget_s and not cut:
+            if budget_s is not None and time.perf_counter() - t0 > budget_s and not spent:
+                spent = True
                 cancelled = {f for f in pending if f.cancel()}
                 cut = len(cancelled) + max(0, min(n, len(cands)) - nxt)
                 nxt = len(cands)  # submit nothing more
@@ -352,7 +354,9 @@ def run_houses(
                 res = fut.result()
                 if res["skip"] is not None:
                     skipped.append((res["plan"], res["skip"]))
-                    if nxt < len(cands) and not cut:  # replace the skipped plan by the next one in the order
+                    if (
+                        nxt < len(cands) and not spent
+                    ):  # replace the skipped plan by the next one in the order
                         pending.add(pool.submit(house_task, make(nxt)))
                         nxt += 1
                     print(f"  skipped {res['plan']}: {res['skip']}", file=sys.stderr, flush=True)
