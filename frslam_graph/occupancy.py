@@ -24,6 +24,7 @@ import yaml
 
 from frslam_graph.errors import MapError
 from frslam_graph.raster import RasterFrame
+from frslam_graph.textfile import read_yaml
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
 
@@ -152,20 +153,7 @@ class OccupancyGrid:
         """Read a map_server YAML and its image."""
         yaml_path = Path(yaml_path)
         src = str(yaml_path)
-        if not yaml_path.is_file():
-            raise MapError("map YAML not found" if not yaml_path.exists() else "expected a file", src)
-        try:
-            text = yaml_path.read_text()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise MapError(f"cannot read as text ({exc})", src) from None
-        if not text.strip():
-            raise MapError("file is empty (expected a map_server YAML with image, resolution, origin)", src)
-        try:
-            meta = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f"line {mark.line + 1}" if mark is not None else None
-            raise MapError(f"malformed YAML ({getattr(exc, 'problem', exc)})", src, where) from None
+        meta = read_yaml(yaml_path, MapError, "a map_server YAML with image, resolution, origin")
         if not isinstance(meta, dict):
             raise MapError("expected a YAML mapping with image, resolution, origin", src)
         for key in ("image", "resolution", "origin"):

@@ -10,7 +10,6 @@ are no doors. Coordinates are kept as in the file (x, y in metres); ``units = "m
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from shapely.geometry import Polygon, box
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import largest_polygon
 from frslam_graph.floorplan.model import MAX_ABS_COORD, FloorPlan, Room, normalise_room_type
+from frslam_graph.textfile import read_json
 
 # HouseExpo (SUNCG) room names that the generic synonyms do not cover
 _HOUSEEXPO_TYPES = {
@@ -57,20 +57,7 @@ def _read(
         return path_or_dict, (str(source) if source is not None else None)
     path = Path(path_or_dict)
     src = str(source) if source is not None else str(path)
-    if not path.exists():
-        raise FloorPlanError("file not found", source=src)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FloorPlanError(f"cannot read as UTF-8 text ({exc})", source=src) from None
-    if not text.strip():
-        raise FloorPlanError("file is empty (expected HouseExpo JSON)", source=src)
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise FloorPlanError(
-            f"malformed JSON: {exc.msg}", source=src, where=f"line {exc.lineno} column {exc.colno}"
-        ) from None
+    data = read_json(path, FloorPlanError, "HouseExpo JSON")
     if not isinstance(data, Mapping):
         raise FloorPlanError(f"expected a JSON object, got {type(data).__name__}", source=src)
     return data, src

@@ -30,6 +30,7 @@ from shapely.geometry import LineString, Polygon
 from shapely.validation import explain_validity
 
 from frslam_graph.errors import FloorPlanError
+from frslam_graph.textfile import read_json
 
 FORMAT_NAME = "frslam-floorplan"
 FORMAT_VERSION = 1
@@ -464,18 +465,7 @@ class FloorPlan:
             raise _fail("expected a floor-plan file, got a directory", str(path))
         suffix = path.suffix.lower()
         if suffix == ".json":
-            try:
-                text = path.read_text()
-            except (OSError, UnicodeDecodeError) as exc:
-                raise _fail(f"cannot read as UTF-8 text ({exc})", str(path)) from None
-            if not text.strip():
-                raise _fail("file is empty (expected a JSON floor plan)", str(path))
-            try:
-                data = json.loads(text)
-            except json.JSONDecodeError as exc:
-                raise _fail(
-                    f"malformed JSON: {exc.msg}", str(path), f"line {exc.lineno} column {exc.colno}"
-                ) from None
+            data = read_json(path, FloorPlanError, "a JSON floor plan")
             if isinstance(data, Mapping) and "verts" in data and "rooms" not in data:
                 from frslam_graph.floorplan.houseexpo import load_houseexpo
 

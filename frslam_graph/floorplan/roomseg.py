@@ -18,12 +18,12 @@ from typing import Any
 import cv2
 import numpy as np
 import shapely
-import yaml as pyyaml
 from shapely.geometry import LineString, Polygon
 
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
+from frslam_graph.textfile import read_yaml
 
 
 def read_label_image(png: str | Path) -> np.ndarray:
@@ -63,24 +63,7 @@ def read_map_yaml(yaml_path: str | Path) -> tuple[float, tuple[float, float, flo
     error here (the caller checks the shape when it exists)."""
     path = Path(yaml_path)
     src = str(path)
-    if not path.exists():
-        raise FloorPlanError("file not found (expected a map_server YAML)", source=src)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FloorPlanError(f"cannot read as text ({exc})", source=src) from None
-    if not text.strip():
-        raise FloorPlanError(
-            "file is empty (expected a map_server YAML with resolution and origin)", source=src
-        )
-    try:
-        meta = pyyaml.safe_load(text)
-    except pyyaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else None
-        raise FloorPlanError(
-            f"malformed YAML ({getattr(exc, 'problem', None) or exc})", source=src, where=where
-        ) from None
+    meta = read_yaml(path, FloorPlanError, "a map_server YAML with resolution and origin")
     if not isinstance(meta, dict):
         raise FloorPlanError("expected a YAML mapping with resolution and origin", source=src)
     if "resolution" not in meta:
