@@ -90,8 +90,7 @@ def write_outputs(
     save_tum(files["odometry"], res.odometry)
     if len(res.keyframes):
         files["map"] = run.slam.occupancy_grid(0.05).save(out / "map.yaml")
-    plan_in_map = getattr(run.slam, "registered_plan", None)
-    plan_in_map = plan_in_map() if callable(plan_in_map) else plan_in_map
+    plan_in_map = run.slam.registered_plan()
     if plan_in_map is not None:
         files["registered_plan"] = plan_in_map.save(out / "registered_plan.json")
     files["log"] = out / "log.jsonl"

@@ -95,15 +95,10 @@ def run(
         {"estimate": result.result.trajectory},
         gt,
         grid=result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None,
-        plan=_registered(result),
+        plan=result.slam.registered_plan(),
     )
     _print_metrics({"run": result.metrics})
     console.print(f"outputs in {out}: " + ", ".join(sorted(p.name for p in result.files.values())))
-
-
-def _registered(run):
-    reg = getattr(run.slam, "registered_plan", None)
-    return reg() if callable(reg) else reg
 
 
 @app.command()
@@ -133,7 +128,7 @@ def compare(
         {"without priors": without.result.trajectory, "with priors": with_.result.trajectory},
         gt,
         grid=with_.slam.occupancy_grid(0.05) if len(with_.result.keyframes) else None,
-        plan=_registered(with_),
+        plan=with_.slam.registered_plan(),
     )
     summary = {"without priors": without.metrics, "with priors": with_.metrics}
     (out / "compare.json").write_text(json.dumps({k: _summary(v) for k, v in summary.items()}, indent=1))
