@@ -140,8 +140,21 @@ class UpdatesConfig(_Section):
     # registration triggers and acceptance
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
+    register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
     max_walls_in_free_space: float = Field(0.06, ge=0.0, le=1.0)  # observed interior plan walls in free space
+    # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
+    # free space" farther than free_space_margin from any occupied cell, both growing by
+    # check_growth_per_m per metre travelled since the last accepted prior (odometry drift not
+    # yet corrected) up to their maxima.
+    map_fit_distance: float = Field(0.1, gt=0.0)
+    map_fit_distance_max: float = Field(0.25, gt=0.0)
+    free_space_margin: float = Field(0.2, ge=0.0)
+    free_space_margin_max: float = Field(0.4, ge=0.0)
+    check_growth_per_m: float = Field(0.01, ge=0.0)
+    # the accepted registration is retracted when the grown map shows this share of its walls in
+    # free space (above the acceptance threshold: the map keeps drifting where priors are sparse)
+    retract_walls_in_free_space: float = Field(0.12, ge=0.0, le=1.0)
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
     max_registrations: int = Field(40, ge=1)
@@ -233,6 +246,18 @@ class LoopClosureConfig(_Section):
     kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
     kernel_param: float = Field(4.0, gt=0.0)
     batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
+    # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (when
+    # the previous ones are done); every scan then runs a few *steps* of that work: a submap
+    # build, a chunk of the correlative search (at most max_lookups_per_step field look-ups),
+    # the reference's ICP data, one ICP refinement, one relinearising iSAM2 iteration after a
+    # closure (an LM batch after a large correction is one step too). Deterministic: the
+    # result does not depend on the machine's speed. finish() runs what is left.
+    steps_per_scan: int = Field(1, ge=1)  # steps per add_scan (keyframe or not)
+    max_lookups_per_step: int = Field(300_000, ge=10_000)
+    # Optional wall-clock budget per add_scan (ms): after the first step, the next of the
+    # steps_per_scan steps starts only while less than this was spent. None: steps only
+    # (deterministic). With a budget, how the work is spread depends on the machine's speed.
+    budget_ms: float | None = Field(None, gt=0.0)
 
 
 class FRSlamConfig(_Section):

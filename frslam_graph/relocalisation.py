@@ -4,7 +4,8 @@ The plan (a :class:`~frslam_graph.floorplan.FloorPlan` already in map metres, e.
 ``registration.apply(plan)``) is turned into a **signed distance field** of its walls: free
 space is every room eroded by ``wall_offset`` (half the wall thickness; two rooms sharing a
 boundary get a wall band of ``2 * wall_offset`` between them) plus an opening at every door
-joining two rooms; the field is positive in free space, negative in walls and outside, zero on
+joining two rooms and along every shared boundary no plan wall runs along (open-plan areas);
+the field is positive in free space, negative in walls and outside, zero on
 the wall surfaces, rasterised with :mod:`frslam_graph.raster` and ``cv2.distanceTransform``.
 A :class:`Relocaliser` builds it once per plan (the cache) and then, for a scan given as points
 in ``base_link`` (N, 2) and a prior pose of ``base_link`` in ``map``:
@@ -36,6 +37,7 @@ import shapely
 from shapely.geometry import LineString, Polygon
 
 from frslam_graph.errors import FloorPlanError, FrslamError
+from frslam_graph.floorplan.openings import open_boundaries
 from frslam_graph.raster import RasterFrame, rasterise_polygons
 
 _CHI2_3_99 = 11.345
@@ -128,7 +130,9 @@ class PlanField:
 
 
 def free_space_polygons(plan, wall_offset: float) -> list[Polygon]:
-    """Rooms eroded by ``wall_offset`` plus an opening at every door joining two rooms (metres)."""
+    """Rooms eroded by ``wall_offset`` plus an opening at every door joining two rooms and along
+    every shared room boundary no plan wall runs along (metres; see
+    :func:`~frslam_graph.floorplan.openings.open_boundaries`)."""
     polys: list = []
     for r in plan.rooms:
         g = r.polygon.buffer(-wall_offset, join_style="mitre", mitre_limit=3.0)
@@ -154,6 +158,13 @@ def free_space_polygons(plan, wall_offset: float) -> list[Polygon]:
         opening = Polygon([a - n, b - n, b + n, a + n]).intersection(envelope)
         if not opening.is_empty:
             polys.append(opening)
+    # boundaries between rooms that no plan wall runs along (an open living-dining-kitchen)
+    bare, _ = open_boundaries(plan, 2.0 * wall_offset)
+    if bare:
+        envelope = shapely.union_all([r.polygon for r in plan.rooms]).buffer(
+            wall_offset, join_style="mitre", mitre_limit=3.0
+        )
+        polys += [g for g in (o.intersection(envelope) for o in bare) if not g.is_empty]
     return polys
 
 
@@ -303,13 +314,15 @@ class Relocaliser:
         r = self.field.lookup(self._transform(pts, np.asarray(pose, float)), outside=-p.truncation)[:, 0]
         return float(np.mean(np.abs(r) < p.inlier_distance)), _soft(r, p.truncation)
 
-    def fit_points(self, xy_map: np.ndarray) -> float:
-        """Fraction of map points (N, 2) within ``inlier_distance`` of a plan wall."""
+    def fit_points(self, xy_map: np.ndarray, distance: float | None = None) -> float:
+        """Fraction of map points (N, 2) within ``distance`` (default ``inlier_distance``,
+        metres) of a plan wall."""
         xy_map = np.asarray(xy_map, dtype=np.float64).reshape(-1, 2)
         if not len(xy_map):
             return 0.0
-        r = self.field.lookup(xy_map, outside=-self.params.truncation)[:, 0]
-        return float(np.mean(np.abs(r) < self.params.inlier_distance))
+        tol = self.params.inlier_distance if distance is None else float(distance)
+        r = self.field.lookup(xy_map, outside=-max(self.params.truncation, tol + 1.0))[:, 0]
+        return float(np.mean(np.abs(r) < tol))
 
     # ------------------------------------------------------------------ internals
     def _fail(self, reason: str, prior: np.ndarray, n: int, t0: float) -> Relocalisation:

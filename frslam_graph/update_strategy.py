@@ -12,7 +12,9 @@ geometry, which corrects the drift accumulated along the way.
 - it keeps a coarse coverage of the mapped area (cells seen by the keyframe beams);
 - it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
   first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
-  ``register_growth_frac`` since the last attempt, and when progress is obstructed (no progress
+  ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
+  no registration is accepted (the map changes as it is re-estimated), and when progress is
+  obstructed (no progress
   for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
 - a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
   walls explain ``min_map_fit`` of the map's occupied cells, and the current scan relocalises
@@ -110,6 +112,7 @@ class FloorPlanUpdater:
         self._dist = 0.0  # metres travelled (odometry)
         self._last_odom: np.ndarray | None = None
         self._area_at_attempt = 0.0
+        self._dist_at_attempt = 0.0
         self._attempts = 0
         self._dist_at_reloc = 0.0
         self._turn = 0.0  # radians turned (odometry)
@@ -178,6 +181,11 @@ class FloorPlanUpdater:
                     reason = f"mapped area grew by {grown:.1f} m² to {area:.1f} m²"
                 elif obstructed and grown >= 1.0:
                     reason = "progress obstructed"
+                elif (
+                    self.accepted is None
+                    and self._dist - self._dist_at_attempt >= cfg.register_retry_distance
+                ):
+                    reason = f"no registration accepted yet; retry after {self._dist - self._dist_at_attempt:.0f} m"
                 elif self._inconsistent_run >= 5:
                     reason = (
                         f"{self._inconsistent_run} relocalisations in a row inconsistent with the estimate"
@@ -261,6 +269,7 @@ class FloorPlanUpdater:
         self._attempts += 1
         area = self.mapped_area
         self._area_at_attempt = area
+        self._dist_at_attempt = self._dist
         stamp, i = float(keyframe.stamp), keyframe.index
         grid = slam.occupancy_grid(cfg.map_resolution)
         if self.accepted is not None:
@@ -295,12 +304,12 @@ class FloorPlanUpdater:
         judged as a first one."""
         cfg = self.config
         acc = self.accepted
-        crossing = _walls_through_free_space(acc.relocaliser, grid)
-        if crossing <= cfg.max_walls_in_free_space:
+        crossing = _walls_through_free_space(acc.relocaliser, grid, self._tolerances()[1])
+        if crossing <= cfg.retract_walls_in_free_space:
             return
         why = (
             f"registration {acc.id} contradicted by the map: {crossing:.0%} of its observed walls "
-            f"cross free space > {cfg.max_walls_in_free_space:.0%}"
+            f"cross free space > {cfg.retract_walls_in_free_space:.0%}"
         )
         self._event(
             slam,
@@ -314,6 +323,15 @@ class FloorPlanUpdater:
         self.accepted = None
         self._remove_priors_of(slam, acc, why)
         self._dist_at_prior = 0.0  # the trajectory is back on odometry: gate loosely
+
+    def _tolerances(self) -> tuple[float, float]:
+        """(map-fit distance, free-space margin) in metres, grown with the distance travelled
+        since the last accepted prior: how far the map may have drifted from the plan."""
+        cfg = self.config
+        grow = cfg.check_growth_per_m * max(self._dist - self._dist_at_prior, 0.0)
+        fit = min(cfg.map_fit_distance + grow, max(cfg.map_fit_distance_max, cfg.map_fit_distance))
+        margin = min(cfg.free_space_margin + grow, max(cfg.free_space_margin_max, cfg.free_space_margin))
+        return fit, margin
 
     def _remove_priors_of(self, slam, acc: _Accepted, why: str) -> list:
         tag = f"reloc:reg{acc.id}"
@@ -352,11 +370,12 @@ class FloorPlanUpdater:
         except (FrslamError, ValueError) as exc:
             return reject(f"registered plan unusable: {exc}")
         occ = _occupied_points(grid)
-        fit = relocaliser.fit_points(occ)
+        fit_tol, margin = self._tolerances()
+        fit = relocaliser.fit_points(occ, fit_tol)
         nums["map_fit"] = fit
         if fit < cfg.min_map_fit:
             return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
-        crossing = _walls_through_free_space(relocaliser, grid)
+        crossing = _walls_through_free_space(relocaliser, grid, margin)
         nums["walls_in_free_space"] = crossing
         if crossing > cfg.max_walls_in_free_space:
             return reject(
@@ -365,7 +384,7 @@ class FloorPlanUpdater:
             )
         if self.accepted is not None:
             disp = _matrix_disagreement(self.plan, self.accepted.registration.matrix, reg.matrix)
-            old_fit = self.accepted.relocaliser.fit_points(occ)
+            old_fit = self.accepted.relocaliser.fit_points(occ, fit_tol)
             nums.update(disagreement=disp, accepted_map_fit=old_fit)
             if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
                 return reject(f"agrees with registration {self.accepted.id} (RMS {disp:.2f} m); kept")

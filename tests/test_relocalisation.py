@@ -62,6 +62,35 @@ def test_field_signs_and_door_opening():
     assert d[5] == -1.0  # off the raster
 
 
+def _open_plan(walls_between: bool) -> FloorPlan:
+    """Living (0..6) and kitchen (6..10) sharing the boundary x = 6; the plan's walls run around
+    the outline, and along x = 6 only when ``walls_between``."""
+    walls = [[0, 0, 10, 0], [10, 0, 10, 4], [10, 4, 0, 4], [0, 4, 0, 0]]
+    if walls_between:
+        walls.append([6, 0, 6, 4])
+    return FloorPlan(
+        rooms=[Room("a", "living_room", sbox(0, 0, 6, 4)), Room("b", "kitchen", sbox(6, 0, 10, 4))],
+        doors=[],
+        walls=np.array(walls, float),
+        units="m",
+    )
+
+
+def test_field_leaves_boundaries_without_a_plan_wall_open():
+    """An open-plan boundary (no plan wall along it) is free space in the field, as in the real
+    building; with a wall along it, the field has a wall band there. Plans without walls keep
+    every room boundary as a wall."""
+    probe = np.array([[6.0, 2.0], [6.0, 0.7], [6.0, 3.3], [6.0, 0.02]])
+    open_ = PlanField.from_plan(_open_plan(False), resolution=0.02, wall_offset=H).lookup(probe)[:, 0]
+    assert np.all(open_[:3] > 0.5)  # across the open boundary, far from any wall
+    assert open_[3] < 0.0  # the outer wall is never opened
+    walled = PlanField.from_plan(_open_plan(True), resolution=0.02, wall_offset=H).lookup(probe)[:, 0]
+    assert np.all(walled[:3] < 0.0)
+    no_walls = _open_plan(False)
+    no_walls = FloorPlan(rooms=no_walls.rooms, doors=[], units="m")
+    assert np.all(PlanField.from_plan(no_walls, resolution=0.02, wall_offset=H).lookup(probe)[:3, 0] < 0.0)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_recovers_known_offset(seed):
     plan, world = two_rooms()

@@ -249,3 +249,57 @@ def test_disabled_or_no_plan_does_nothing(sim):
     for s in scans:
         slam.add(s)
     assert not upd.log and not src.calls and not slam.graph.priors()
+
+
+@pytest.mark.parametrize("drift", [(0.25, 0.0), (0.0, -0.25), (0.18, 0.18)])
+def test_acceptance_checks_tolerate_map_drift(sim, drift):
+    """The map is built at drifting estimates: after travelling without priors (tolerances grown
+    to their maxima) the right plan must still explain it and not look contradicted when the map
+    is off by 0.25 m, while wrong
+    registrations (a quarter turn, a 1.5 m shift, 0.2 rad) are still caught by the free-space
+    check."""
+    from dataclasses import replace
+
+    from frslam_graph.relocalisation import Relocaliser
+    from frslam_graph.update_strategy import _occupied_points, _walls_through_free_space
+
+    plan, run, _ = sim
+    cfg = CFG.updates
+    grid = run.grid  # partial map in the house frame
+    ox, oy, yaw = grid.origin
+    drifted = replace(grid, origin=(ox + drift[0], oy + drift[1], yaw))
+    right = Relocaliser(plan.transformed(run.house.distortion.matrix, units="m"))
+    occ = _occupied_points(drifted)
+    upd = FloorPlanUpdater(plan, cfg)
+    assert upd._tolerances() == (cfg.map_fit_distance, cfg.free_space_margin)  # nothing travelled
+    upd._dist = 100.0  # metres without a prior
+    fit_tol, margin = upd._tolerances()
+    assert (fit_tol, margin) == (cfg.map_fit_distance_max, cfg.free_space_margin_max)
+    assert right.fit_points(occ, fit_tol) >= cfg.min_map_fit
+    assert right.fit_points(occ) < right.fit_points(occ, fit_tol) - 0.1  # tight: drift hurts
+    crossing = _walls_through_free_space(right, drifted, margin)
+    assert crossing <= cfg.max_walls_in_free_space
+    for kw in ({"angle": np.pi / 2}, {"shift": (1.5, 0.0)}, {"angle": 0.2}):
+        wrong = Relocaliser(
+            plan.transformed(rotated_about_centre(plan, run.house.distortion.matrix, **kw), units="m")
+        )
+        assert (
+            _walls_through_free_space(wrong, drifted, cfg.free_space_margin) > cfg.retract_walls_in_free_space
+        )
+
+
+def test_registration_is_retried_while_none_is_accepted(sim):
+    """While no registration is accepted the plan is registered again every
+    ``register_retry_distance`` metres, even when the mapped area no longer grows; once one is
+    accepted the retries stop."""
+    plan, run, m = sim
+    cfg = CFG.updates.model_copy(update={"register_retry_distance": 2.0})
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(wrong))
+    run_slam(run, upd)
+    retries = [e for e in upd.log if e.kind == "register" and "retry" in e.reason]
+    assert len(retries) >= 3 and not any(e.accepted for e in upd.log if e.kind == "register")
+    upd_ok = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(m))
+    run_slam(run, upd_ok)
+    assert upd_ok.accepted is not None
+    assert not [e for e in upd_ok.log if e.kind == "register" and "retry" in e.reason]

@@ -30,6 +30,7 @@ from shapely.geometry import MultiPolygon, Polygon, box, mapping, shape
 
 from frslam_graph.errors import ConfigError, FloorPlanError
 from frslam_graph.floorplan import FloorPlan
+from frslam_graph.floorplan.openings import open_boundaries
 
 FORMAT_NAME = "frslam-sim-house"
 FORMAT_VERSION = 1
@@ -175,7 +176,7 @@ class House:
                 continue
             openings.append(opening)
             open_ids.append(d.id)
-        bare_openings, open_bounds = _bare_boundaries(hplan, wall_thickness, min_opening)
+        bare_openings, open_bounds = open_boundaries(hplan, wall_thickness, min_opening)
         openings += [o.intersection(envelope) for o in bare_openings]
         # The outer wall (half a wall either side of the house's outline) is never cut: exterior
         # doors are closed, and a misplaced door or open boundary along the outline leaks rays.
@@ -320,49 +321,6 @@ class House:
         except (OSError, json.JSONDecodeError) as exc:
             raise FloorPlanError(f"cannot read house JSON ({exc})", path) from None
         return cls.from_dict(data, source=path)
-
-
-def _bare_boundaries(
-    plan: FloorPlan, wall_thickness: float, min_opening: float
-) -> tuple[list[Polygon], list[tuple[str, str]]]:
-    """Openings where two rooms share a boundary that no plan wall (or door) runs along.
-
-    Plans with wall segments (R2V) sometimes split one open space into rooms without a wall
-    between them (a living-dining-kitchen); building a wall there would invent one. Stretches
-    of shared boundary at least ``min_opening`` metres long and farther than a tolerance (1 %
-    of the house diagonal, at least 0.1 m) from every wall and door segment are left open.
-    Plans without walls keep every boundary as a wall. Returns (opening polygons, room pairs).
-    """
-    if plan.walls is None or len(plan.walls) == 0 or len(plan.rooms) < 2:
-        return [], []
-    lines = [shapely.LineString([w[:2], w[2:]]) for w in plan.walls if np.hypot(*(w[2:] - w[:2])) > 0]
-    lines += [shapely.LineString([d.a, d.b]) for d in plan.doors if d.width > 0]
-    minx, miny, maxx, maxy = plan.bounds
-    tol = max(0.1, 0.01 * math.hypot(maxx - minx, maxy - miny))
-    supported = shapely.union_all(lines).buffer(tol)
-    polys = [r.polygon for r in plan.rooms]
-    inner = shapely.union_all(polys).buffer(-tol / 2.0)
-    tree = shapely.STRtree(polys)
-    openings, pairs = [], []
-    for i, a in enumerate(plan.rooms):
-        for j in tree.query(a.polygon, predicate="dwithin", distance=tol):
-            if j <= i:
-                continue
-            b = plan.rooms[int(j)]
-            shared = a.polygon.boundary.intersection(b.polygon.buffer(tol / 2.0))
-            if shared.is_empty or shared.length < min_opening:
-                continue
-            # Only interior boundaries: never open an outer wall where two rooms' edges coincide.
-            bare = shared.difference(supported).intersection(inner)
-            if bare.is_empty:
-                continue
-            merged = shapely.line_merge(bare) if bare.geom_type == "MultiLineString" else bare
-            pieces = [g for g in shapely.get_parts(merged) if g.length >= min_opening]
-            if not pieces:
-                continue
-            openings += [g.buffer(wall_thickness / 2.0 + 0.05, cap_style="flat") for g in pieces]
-            pairs.append((a.id, b.id))
-    return openings, pairs
 
 
 def _place_clutter(
