@@ -246,18 +246,20 @@ class LoopClosureConfig(_Section):
     kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
     kernel_param: float = Field(4.0, gt=0.0)
     batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
-    # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (when
-    # the previous ones are done); every scan then runs a few *steps* of that work: a submap
-    # build, a chunk of the correlative search (at most max_lookups_per_step field look-ups),
-    # the reference's ICP data, one ICP refinement, one relinearising iSAM2 iteration after a
-    # closure (an LM batch after a large correction is one step too). Deterministic: the
-    # result does not depend on the machine's speed. finish() runs what is left.
-    steps_per_scan: int = Field(1, ge=1)  # steps per add_scan (keyframe or not)
+    # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (every
+    # attempt_every keyframes); every scan then runs *steps* of the queued work (a submap build,
+    # a chunk of the correlative search of at most max_lookups_per_step field look-ups, the ICP
+    # data, one ICP refinement, one relinearising iSAM2 update after a closure; an LM batch after
+    # a large correction is one step) while their estimated cost fits in budget_ms. The estimate
+    # comes from the sizes involved (look-ups, grid cells, points, keyframes), not from a clock,
+    # so results do not depend on the machine's speed. A step estimated above the budget runs
+    # alone. FRSlam.finish() runs what is left.
+    budget_ms: float = Field(8.0, gt=0.0)
     max_lookups_per_step: int = Field(300_000, ge=10_000)
-    # Optional wall-clock budget per add_scan (ms): after the first step, the next of the
-    # steps_per_scan steps starts only while less than this was spent. None: steps only
-    # (deterministic). With a budget, how the work is spread depends on the machine's speed.
-    budget_ms: float | None = Field(None, gt=0.0)
+    # Optional wall-clock cap per add_scan (ms): after the first step, another starts only while
+    # less than this was spent. None: the cost model alone (deterministic). With a cap, how the
+    # work is spread (hence which closures are found when) depends on the machine's load.
+    wall_budget_ms: float | None = Field(None, gt=0.0)
 
 
 class FRSlamConfig(_Section):

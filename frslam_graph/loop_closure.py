@@ -39,9 +39,10 @@ reason: ``no_overlap``, ``low_score``, ``low_inliers``, ``ambiguous``, ``free_sp
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import cv2
 import gtsam
@@ -58,6 +59,30 @@ from frslam_graph.motion_model import between, compose
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.pipeline import FRSlam, KeyframeInfo
+
+T = TypeVar("T")
+# A piece of work split into steps: each ``next()`` runs one bounded step; the generator's return
+# value (``StopIteration.value``) is the result. Anytime: the caller decides how many steps to run
+# per call, the result does not depend on it. Each yield gives the estimated cost (ms) of the
+# step that follows it, from the sizes involved (the cost model below), so the caller can pack
+# steps into a per-scan budget deterministically; the code between yields outside these steps is
+# light glue (well under a millisecond).
+Steps = Generator[float, None, T]
+
+# Cost model: milliseconds on one core of the development machine (x86, 2020s); only needs to be
+# right within a factor of about two. Measured on ACES (tools/bench_aces.py).
+_MS_PER_LOOKUP = 3e-6  # correlative search: one likelihood-field look-up (gather + mean)
+_MS_PER_CELL_FIELD = 1.4e-5  # reference submap: distance transform with labels + field, per cell
+_MS_PER_CELL_DILATE = 2e-6  # max filter of the field (first use of a step size)
+_MS_PER_CELL_NEAREST = 5e-6  # nearest-point map for ICP, per cell
+_MS_PER_CELL_FREE = 3e-6  # free-space mask, per cell
+_MS_PER_POINT_NORMALS = 1.5e-3  # k-d tree and PCA normals, per reference point
+_MS_ICP = 0.6  # one ICP refinement: fixed part ...
+_MS_PER_POINT_ICP = 2e-4  # ... and per query point and iteration
+_MS_PER_KEYFRAME_GATHER = 0.02  # submap points: transform one keyframe's scan
+_MS_PER_KEYFRAME_UPDATE = 0.01  # one relinearising iSAM2 update, per keyframe of the graph
+_MS_PER_KEYFRAME_BATCH = 0.04  # LM batch and iSAM2 rebuild, per keyframe of the graph
+_MS_FINE = 1.5  # finer level of the correlative search (a few hundred poses)
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -111,7 +136,12 @@ def _normals(points: np.ndarray, tree: cKDTree, k: int = 6) -> tuple[np.ndarray,
 # ----------------------------------------------------------------------------- reference submap
 class ReferenceSubmap:
     """Points of a reference submap with a likelihood field (correlative search) and a k-d tree
-    with normals (ICP). ``points`` (M, 2) in the reference keyframe's frame."""
+    with normals (ICP). ``points`` (M, 2) in the reference keyframe's frame.
+
+    The likelihood field is built on construction; what only ICP and the free-space test need
+    (nearest point per cell, normals, the free-space mask) is built on first use, so a candidate
+    rejected by the correlative search never pays for it (and the anytime matcher can build it in
+    a step of its own)."""
 
     def __init__(
         self,
@@ -125,11 +155,6 @@ class ReferenceSubmap:
         pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
         self.points = pts
         self.resolution = res = float(resolution)
-        self.tree = cKDTree(pts) if len(pts) else None
-        if len(pts) >= 3:
-            self.normals, self.quality = _normals(pts, self.tree)
-        else:
-            self.normals, self.quality = np.zeros((len(pts), 2)), np.zeros(len(pts))
         lo = (pts.min(axis=0) if len(pts) else np.zeros(2)) - margin
         hi = (pts.max(axis=0) if len(pts) else np.zeros(2)) + margin
         self.origin = lo
@@ -137,36 +162,85 @@ class ReferenceSubmap:
         w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
         self.shape = (h, w)
         free = np.full((h, w), 255, np.uint8)
-        owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
+        self._cells = np.zeros(0, np.int64)  # flat index of each point's cell
         if len(pts):
             ij = np.floor((pts - lo) / res).astype(int)
             free[ij[:, 1], ij[:, 0]] = 0
-            owner[ij[:, 1] * w + ij[:, 0]] = np.arange(len(pts), dtype=np.int32)
+            self._cells = ij[:, 1] * w + ij[:, 0]
         # distances (5×5 mask, within about 2 %) and the nearest occupied cell of every cell
-        dist, labels = cv2.distanceTransformWithLabels(
+        dist, self._labels = cv2.distanceTransformWithLabels(
             free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
         )
-        dist *= res
-        self.field = np.exp(-0.5 * (dist / sigma) ** 2).astype(np.float32)
-        # free space seen by the reference scans (sensor -> end points polygons), away from any
-        # end point: a query point there contradicts the reference (another place)
-        self.free = None
-        if scans:
+        dist *= np.float32(res)
+        self.field = np.exp(np.float32(-0.5 / sigma**2) * dist * dist)
+        self._occupied = free.ravel() == 0
+        self._scans = scans
+        # free space must be farther than free_margin from any end point
+        self._far = (dist > free_margin).ravel() if scans else None
+        self._nearest: np.ndarray | None = None
+        self._tree: cKDTree | None = None
+        self._normals: tuple[np.ndarray, np.ndarray] | None = None
+        self._free: np.ndarray | None = None
+        self._dilated: dict[int, np.ndarray] = {}
+
+    # ----- built on first use (ICP, free-space test)
+    @property
+    def nearest(self) -> np.ndarray:
+        """Index of the nearest reference point of every cell (flattened; -1 without points)."""
+        if self._nearest is None:
+            h, w = self.shape
+            owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
+            owner[self._cells] = np.arange(len(self.points), dtype=np.int32)
+            if len(self.points):
+                # labels number the zero cells in raster order
+                zeros = np.flatnonzero(self._occupied)
+                labels = self._labels.ravel()
+                self._nearest = owner[zeros[np.clip(labels - 1, 0, len(zeros) - 1)]]
+            else:
+                self._nearest = owner
+            self._labels = None
+        return self._nearest
+
+    @property
+    def tree(self) -> cKDTree | None:
+        if self._tree is None and len(self.points):
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def _normals_quality(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._normals is None:
+            n = len(self.points)
+            self._normals = _normals(self.points, self.tree) if n >= 3 else (np.zeros((n, 2)), np.zeros(n))
+        return self._normals
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._normals_quality()[0]
+
+    @property
+    def quality(self) -> np.ndarray:
+        return self._normals_quality()[1]
+
+    @property
+    def free(self) -> np.ndarray | None:
+        """Cells the reference scans saw free (sensor -> end points polygons) away from any end
+        point (flattened bool), or None without scans: a query point there contradicts the match."""
+        if self._free is None and self._scans:
+            h, w = self.shape
             seen = np.zeros((h, w), np.uint8)
             polys = [
-                np.round((np.vstack((o[None], e)) - lo) / res).astype(np.int32)
-                for o, e in scans
+                np.round((np.vstack((o[None], e)) - self.origin) / self.resolution).astype(np.int32)
+                for o, e in self._scans
                 if len(e) >= 2
             ]
             cv2.fillPoly(seen, polys, 1)
-            self.free = ((seen > 0) & (dist > free_margin)).ravel()
-        # nearest reference point of every cell (labels number the zero cells in raster order)
-        if len(pts):
-            zeros = np.flatnonzero(free.ravel() == 0)
-            self.nearest = owner[zeros[np.clip(labels.ravel() - 1, 0, len(zeros) - 1)]]
-        else:
-            self.nearest = owner
-        self._dilated: dict[int, np.ndarray] = {}
+            self._free = (seen.ravel() > 0) & self._far
+        return self._free
+
+    def prepare_icp(self) -> None:
+        """Build what ICP needs now (nearest-point map, k-d tree, normals)."""
+        self.nearest  # noqa: B018
+        self._normals_quality()
 
     def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
         """(indices into ``points`` with a reference point within max_distance, those reference
@@ -242,8 +316,12 @@ def _grid_search(
     step_xy: float,
     step_theta: float,
     reach: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Score every pose of a (thetas × offsets) grid: returns (P, 3) poses and (P,) scores."""
+    max_lookups: int = 2_000_000,
+) -> Steps[tuple[np.ndarray, np.ndarray]]:
+    """Score every pose of a (thetas × offsets) grid: returns (P, 3) poses and (P,) scores.
+
+    A generator (see :func:`match_scan_steps`): a step per chunk of headings scored with at most
+    ``max_lookups`` field look-ups (at least one heading per chunk)."""
     res = ref.resolution
     h, w = ref.shape
     n_th = int(np.ceil(window_theta / step_theta))
@@ -252,7 +330,7 @@ def _grid_search(
     n_xy = int(np.ceil(window_xy / (s * res)))
     o = s * np.arange(-n_xy, n_xy + 1)
     ox, oy = (a.ravel() for a in np.meshgrid(o, o))
-    field = ref.dilated(_dilation_cells(res, s * res, step_theta, reach))
+    cells = _dilation_cells(res, s * res, step_theta, reach)
     c, sn = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     px = c * query[None, :, 0] - sn * query[None, :, 1] + centre[0]
     py = sn * query[None, :, 0] + c * query[None, :, 1] + centre[1]
@@ -266,8 +344,11 @@ def _grid_search(
     base = (by * w + bx).astype(np.int32)  # (T, M)
     off = (oy * w + ox).astype(np.int32)  # (O,)
     scores = np.empty((len(thetas), len(off)), np.float32)
-    chunk = max(1, int(2_000_000 // max(1, len(off) * query.shape[0])))
+    chunk = max(1, int(max_lookups // max(1, len(off) * query.shape[0])))
     for a in range(0, len(thetas), chunk):
+        cost = _MS_PER_LOOKUP * len(off) * query.shape[0] * min(chunk, len(thetas) - a)
+        yield cost + (_MS_PER_CELL_DILATE * h * w if cells not in ref._dilated else 0.0)
+        field = ref.dilated(cells)
         idx = base[a : a + chunk, None, :] + off[None, :, None]  # (t, O, M) flat cells
         scores[a : a + chunk] = field[idx].mean(axis=2)
     tt = np.repeat(thetas, len(off))
@@ -302,14 +383,17 @@ def _coarse_search(
     step_theta: float,
     sep_xy: float = 1.0,
     sep_theta: float = np.deg2rad(10.0),
-) -> tuple[np.ndarray, np.ndarray]:
+    max_lookups: int = 2_000_000,
+) -> Steps[tuple[np.ndarray, np.ndarray]]:
     """Two-level correlative search: a grid at twice the steps on a wider max filter (an upper
     bound of the finer level), then the finer grid inside the best cells and the best distinct
-    cells. Returns the finer-level (P, 3) poses and (P,) scores."""
+    cells. Returns the finer-level (P, 3) poses and (P,) scores (a generator, see
+    :func:`match_scan_steps`)."""
     reach = float(np.percentile(np.hypot(*query.T), 90)) if len(query) else 0.0
-    poses1, scores1 = _grid_search(
-        ref, query, centre, window_xy, window_theta, 2.0 * step_xy, 2.0 * step_theta, reach
+    poses1, scores1 = yield from _grid_search(
+        ref, query, centre, window_xy, window_theta, 2.0 * step_xy, 2.0 * step_theta, reach, max_lookups
     )
+    yield _MS_FINE + _MS_PER_CELL_DILATE * ref.shape[0] * ref.shape[1]
     n = min(len(scores1), 16)
     top = np.argpartition(-scores1, n - 1)[:n]
     cells = np.union1d(top, _distinct_peaks(poses1, scores1, 8, sep_xy, sep_theta))
@@ -329,16 +413,20 @@ def _distinct_peaks(
     top = min(len(scores), 400)
     order = np.argpartition(-scores, top - 1)[:top]
     order = order[np.argsort(-scores[order])]
+    cand = poses[order]
+    alive = np.ones(len(order), bool)  # not within the separation of a picked peak
     picked: list[int] = []
-    for j in order:
-        p = poses[j]
-        if all(
-            np.hypot(*(p[:2] - poses[q][:2])) >= sep_xy or abs(_wrap(p[2] - poses[q][2])) >= sep_theta
-            for q in picked
-        ):
-            picked.append(int(j))
-            if len(picked) == k:
-                break
+    while len(picked) < k:
+        left = np.flatnonzero(alive)
+        if not len(left):
+            break
+        j = left[0]
+        picked.append(int(order[j]))
+        p = cand[j]
+        near = (np.hypot(cand[:, 0] - p[0], cand[:, 1] - p[1]) < sep_xy) & (
+            np.abs(_wrap(cand[:, 2] - p[2])) < sep_theta
+        )
+        alive &= ~near
     return picked
 
 
@@ -352,7 +440,7 @@ def icp_point_to_line(
     sigma: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Point-to-line ICP of ``query`` onto the reference; returns (pose, 3×3 body covariance)."""
-    if ref.tree is None or len(query) < 10:
+    if len(ref.points) == 0 or len(query) < 10:
         return None
     x = np.asarray(pose, dtype=np.float64).copy()
     h = None
@@ -403,11 +491,37 @@ def match_scan(
     """Match ``query`` points (M, 2, query frame) against ``reference`` around ``centre``
     (x, y, theta of the query frame in the reference frame) within ± window_xy (m) and
     ± window_theta (rad). None when nothing can be matched (too few points / no overlap)."""
+    return run_steps(match_scan_steps(reference, query, centre, window_xy, window_theta, config, rng))
+
+
+def run_steps(steps: Steps[T]) -> T:
+    """Run a step generator to the end; returns its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def match_scan_steps(
+    reference: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    config: LoopClosureConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> Steps[ScanMatch | None]:
+    """:func:`match_scan` as a generator that yields between bounded pieces of work (a chunk of
+    the correlative search of at most ``config.max_lookups_per_step`` look-ups, the finer level,
+    building the reference's ICP data, one ICP refinement); its return value is the match.
+    The anytime loop closer runs a few pieces per scan; the result does not depend on how the
+    pieces are spread."""
     cfg = config or LoopClosureConfig()
     q = np.asarray(query, dtype=np.float64).reshape(-1, 2)
     q = q[np.hypot(*q.T) <= cfg.max_point_range] if len(q) else q
     fine = voxel_downsample(q, 2.0 * cfg.resolution)
-    if len(fine) < 20 or reference.tree is None or len(reference.points) < 20:
+    if len(fine) < 20 or len(reference.points) < 20:
         return None
     coarse = fine
     if len(coarse) > cfg.max_query_points:
@@ -416,7 +530,7 @@ def match_scan(
     step_th = np.deg2rad(cfg.coarse_step_theta_deg)
     c0 = np.asarray(centre, dtype=np.float64)
     sep_xy, sep_th = cfg.peak_separation_xy, np.deg2rad(cfg.peak_separation_theta_deg)
-    poses, scores = _coarse_search(
+    poses, scores = yield from _coarse_search(
         reference,
         coarse,
         c0,
@@ -426,17 +540,26 @@ def match_scan(
         step_th,
         sep_xy,
         sep_th,
+        cfg.max_lookups_per_step,
     )
     peaks = _distinct_peaks(poses, scores, 3, sep_xy, sep_th)
     top = float(scores[peaks[0]])
     if top < cfg.min_coarse_score:  # not even the optimistic coarse score: no ICP
         second = float(scores[peaks[1]]) / top if len(peaks) > 1 and top > 0 else 0.0
         return ScanMatch(poses[peaks[0]], 0.0, second, np.eye(3), top, len(fine), None)
+    cells = reference.shape[0] * reference.shape[1]
+    if reference._nearest is None:
+        yield _MS_PER_CELL_NEAREST * cells
+        reference.nearest  # noqa: B018
+    if reference._normals is None:
+        yield _MS_PER_POINT_NORMALS * len(reference.points)
+        reference.prepare_icp()
     refined, unrefined = [], 0.0
     for j in peaks:
         if j != peaks[0] and scores[j] < cfg.refine_ratio * top:
             unrefined = max(unrefined, float(scores[j]) / top)  # clearly lower already
             continue
+        yield _MS_ICP + _MS_PER_POINT_ICP * len(fine) * cfg.icp_iterations
         r = icp_point_to_line(
             reference,
             fine,
@@ -452,6 +575,9 @@ def match_scan(
         refined.append((inl, r[0], r[1], float(scores[j])))
     if not refined:
         return None
+    if reference._free is None and reference._scans:
+        yield _MS_PER_CELL_FREE * cells
+        reference.free  # noqa: B018
     refined.sort(key=lambda t: -t[0])
     best = refined[0]
     second, second_pose = 0.0, None
@@ -477,6 +603,25 @@ class LoopClosure:
     correction: np.ndarray  # prediction⁻¹ ⊕ relative at the time of the match (x, y, theta)
 
 
+@dataclass(frozen=True, slots=True)
+class _Job:
+    """A candidate queued for matching: keyframe ``query`` against old keyframe ``reference``
+    within ± radius (m) and ± window_theta (rad), around ``predicted`` (pose of the query in the
+    reference's frame) when a pending closure predicts it."""
+
+    reference: int
+    query: int
+    radius: float
+    window_theta: float
+    predicted: np.ndarray | None = None
+
+
+def _moved(after: np.ndarray, before: np.ndarray) -> float:
+    """Largest xy displacement (m) of the keyframes in both arrays."""
+    n = min(len(after), len(before))
+    return float(np.max(np.hypot(*(after[:n, :2] - before[:n, :2]).T))) if n else 0.0
+
+
 @dataclass(slots=True)
 class LoopClosureStats:
     attempts: int = 0  # candidates matched
@@ -493,8 +638,12 @@ class LoopClosureStats:
 class LoopCloser:
     """Keyframe hook adding verified loop-closure factors to ``slam.graph`` (see module docs)."""
 
-    def __init__(self, config: LoopClosureConfig | None = None):
+    def __init__(
+        self, config: LoopClosureConfig | None = None, clock: Callable[[], float] = time.perf_counter
+    ):
+        """``clock`` (seconds) measures ``budget_ms``; injectable for tests."""
         self.config = config or LoopClosureConfig()
+        self.clock = clock
         self.closures: list[LoopClosure] = []
         self.stats = LoopClosureStats()
         self._travel: list[float] = []
@@ -504,7 +653,15 @@ class LoopCloser:
         self._tried: dict[tuple[int, int], int] = {}
         self._pending: list[LoopClosure] = []
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
+        self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
         self._rng = np.random.default_rng(0)
+        # anytime work: candidates planned at a keyframe, matched a few steps per scan
+        self._jobs: deque[_Job] = deque()
+        self._task: Steps[list[LoopClosure]] | None = None  # the job being worked on
+        self._last_plan = -(10**9)
+        self._next_cost = 0.0  # estimated cost (ms) of the current task's next step
+        # steps run by the latest on_keyframe / on_scan / flush and their estimated cost (ms)
+        self.steps_last_call, self.cost_last_call = 0, 0.0
 
     # ------------------------------------------------------------------ motion bookkeeping
     def _append_motion(self, pose_odom: np.ndarray) -> None:
@@ -525,22 +682,80 @@ class LoopCloser:
         for kf in slam.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
-    # ------------------------------------------------------------------ hook
+    # ------------------------------------------------------------------ hooks
     def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo) -> list[LoopClosure]:
-        """Look for closures of ``keyframe``; returns the closures added to the graph."""
+        """A new keyframe: plan its candidates when the previous ones are done (at most every
+        ``attempt_every`` keyframes), then work on the queue within the per-scan budget.
+        Returns the closures that entered the graph during this call (of this or an earlier
+        keyframe)."""
         i = keyframe.index
         self._sync(slam, i)
         self._append_motion(keyframe.pose_odom)
         self.stats.keyframes += 1
         cfg = self.config
-        if not cfg.enabled or i % cfg.attempt_every or i < cfg.min_keyframe_gap:
+        if not cfg.enabled:
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            return self._attempt(slam, i)
+            if i >= cfg.min_keyframe_gap and i % cfg.attempt_every == 0:
+                self._plan(slam, i)
+            return self._work(slam, cfg.budget_ms, cfg.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
+
+    def on_scan(self, slam: FRSlam) -> list[LoopClosure]:
+        """A scan that is not a keyframe: continue the queued work within the per-scan budget."""
+        if self.idle:
+            self.steps_last_call, self.cost_last_call = 0, 0.0
+            return []
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return self._work(slam, self.config.budget_ms, self.config.wall_budget_ms)
+        finally:
+            self.stats.seconds += time.perf_counter() - t0
+            self.stats.cpu_seconds += time.process_time() - c0
+
+    def flush(self, slam: FRSlam) -> list[LoopClosure]:
+        """Finish all queued work now (offline, before the final batch)."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return self._work(slam, None, None)
+        finally:
+            self.stats.seconds += time.perf_counter() - t0
+            self.stats.cpu_seconds += time.process_time() - c0
+
+    @property
+    def idle(self) -> bool:
+        """No candidate waiting or being matched."""
+        return self._task is None and not self._jobs
+
+    def _work(self, slam: FRSlam, budget: float | None, wall_budget_ms: float | None) -> list[LoopClosure]:
+        """Run steps of the queued jobs while their estimated costs (cost model, ms) fit in
+        ``budget`` (None: run everything) and, with ``wall_budget_ms``, while the time spent in
+        this call (``clock``) is below it. The first step always runs, so the queue advances
+        even when a single step is estimated above the budget."""
+        added: list[LoopClosure] = []
+        start = self.clock()
+        spent, steps = 0.0, 0
+        while not self.idle:
+            cost = self._next_cost
+            if steps and budget is not None and spent + cost > budget:
+                break
+            if steps and wall_budget_ms is not None and 1e3 * (self.clock() - start) >= wall_budget_ms:
+                break
+            if self._task is None:
+                self._task = self._job(slam, self._jobs.popleft())
+            try:
+                self._next_cost = float(next(self._task))
+            except StopIteration as stop:
+                added.extend(stop.value)
+                self._task = None
+                self._next_cost = 0.0
+            spent += cost
+            steps += 1
+        self.steps_last_call, self.cost_last_call = steps, spent
+        return added
 
     def _graph_distances(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Travel (m) and turn (rad) from keyframe i to every keyframe along the shortest path of
@@ -665,15 +880,20 @@ class LoopCloser:
         pts = np.vstack([q for _, q in scans]) if scans else np.zeros((0, 2))
         return pts, scans
 
-    def _reference(self, slam: FRSlam, est: np.ndarray, c: int, i: int) -> ReferenceSubmap:
+    def _reference(self, slam: FRSlam, c: int, i: int) -> Steps[ReferenceSubmap]:
+        """Reference submap of keyframe c (cached), two steps when built: points, field."""
         sub = self._submaps.get(c)
         if sub is not None:
             self._submaps.move_to_end(c)
             return sub
         cfg = self.config
-        hi = min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
-        pts, scans = self._submap(slam, est, c, c - cfg.submap_keyframes, hi, cfg.submap_travel)
+        lo, hi = c - cfg.submap_keyframes, min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
+        yield _MS_PER_KEYFRAME_GATHER * (hi - lo + 1)
+        pts, scans = self._submap(slam, slam.graph.estimates(), c, lo, hi, cfg.submap_travel)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
+        if len(pts):
+            cells = np.prod((np.ptp(pts, axis=0) + 2.0 * margin) / cfg.resolution + 1.0)
+            yield _MS_PER_CELL_FIELD * float(cells)
         sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin)
         self._submaps[c] = sub
         while len(self._submaps) > 24:
@@ -685,8 +905,13 @@ class LoopCloser:
         self.stats.reasons[reason] = self.stats.reasons.get(reason, 0) + 1
         slam.log_event("loop_rejected", f"keyframe {i} vs {c}: {reason}", keyframe=i, reference=c, **data)
 
-    def _attempt(self, slam: FRSlam, i: int) -> list[LoopClosure]:
+    def _plan(self, slam: FRSlam, i: int) -> None:
+        """Queue the candidates of keyframe i: first where a pending closure predicts the robot
+        to be, then up to ``max_candidates`` in all."""
         cfg = self.config
+        # pending closures too old when the previous plan was done
+        self._pending = [p for p in self._pending if self._last_plan - p.query <= cfg.pending_keyframes]
+        self._last_plan = i
         est = slam.graph.estimates()
         cands: list[tuple[int, float, float, np.ndarray | None]] = [
             (c, r, w, None) for c, r, w in self._candidates(est, i)
@@ -694,76 +919,89 @@ class LoopCloser:
         hyp = self._hypothesis(est, i)
         if hyp is not None:
             cands = [hyp, *cands[: cfg.max_candidates - 1]]
-        if not cands:
-            return []
+        self._jobs.extend(_Job(c, i, r, w, pred) for c, r, w, pred in cands)
+
+    def _query_points(self, slam: FRSlam, i: int) -> np.ndarray:
+        """Query submap of keyframe i (kept: shared by its candidates)."""
+        if self._query is not None and self._query[0] == i:
+            return self._query[1]
+        cfg = self.config
+        est = slam.graph.estimates()
         query, _ = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
-        added: list[LoopClosure] = []
-        for c, radius, window_th, predicted in cands:
-            self.stats.attempts += 1
-            guess = between(est[c], est[i])
-            if predicted is not None:  # check a pending closure's prediction
-                centre, win = predicted, radius
-            elif radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
-                centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))
-            else:  # the prediction is too uncertain: is the robot back at the candidate itself?
-                centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
-            ref = self._reference(slam, est, c, i)
-            m = match_scan(ref, query, centre, win, window_th, cfg, self._rng)
-            if m is None:
-                self._reject(slam, i, c, "no_overlap")
-                continue
-            data = {
-                "inliers": round(m.inlier_fraction, 3),
-                "ambiguity": round(m.ambiguity, 3),
-                "relative": m.pose.tolist(),
-                "coarse": round(m.coarse_score, 3),
-            }
-            if m.coarse_score < cfg.min_coarse_score:
-                self._reject(slam, i, c, "low_score", **data)
-                continue
-            if m.inlier_fraction < cfg.min_inlier_fraction:
-                self._reject(slam, i, c, "low_inliers", **data)
-                continue
-            if m.ambiguity > cfg.max_ambiguity:
-                self._reject(slam, i, c, "ambiguous", **data)
-                continue
-            if m.free_violation > cfg.max_free_violation:
-                self._reject(slam, i, c, "free_space", free=round(m.free_violation, 3), **data)
-                continue
-            cov = regularise_covariance(
-                m.covariance * cfg.covariance_inflation,
-                cfg.sigma_floor_xy,
-                np.deg2rad(cfg.sigma_floor_theta_deg),
+        self._query = (i, query)
+        return query
+
+    def _job(self, slam: FRSlam, job: _Job) -> Steps[list[LoopClosure]]:
+        """Match one candidate and act on the result (a step generator): query submap, reference
+        submap, correlative search + ICP (:func:`match_scan_steps`), verification, graph update
+        (:meth:`_add`)."""
+        cfg = self.config
+        c, i = job.reference, job.query
+        if self._query is None or self._query[0] != i:
+            yield _MS_PER_KEYFRAME_GATHER * (cfg.submap_keyframes + 1)
+        query = self._query_points(slam, i)
+        ref = yield from self._reference(slam, c, i)
+        est = slam.graph.estimates()
+        self.stats.attempts += 1
+        guess = between(est[c], est[i])
+        radius = job.radius
+        if job.predicted is not None:  # check a pending closure's prediction
+            centre, win = job.predicted, radius
+        elif radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
+            centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))
+        else:  # the prediction is too uncertain: is the robot back at the candidate itself?
+            centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
+        m = yield from match_scan_steps(ref, query, centre, win, job.window_theta, cfg, self._rng)
+        if m is None:
+            self._reject(slam, i, c, "no_overlap")
+            return []
+        data = {
+            "inliers": round(m.inlier_fraction, 3),
+            "ambiguity": round(m.ambiguity, 3),
+            "relative": m.pose.tolist(),
+            "coarse": round(m.coarse_score, 3),
+        }
+        if m.coarse_score < cfg.min_coarse_score:
+            self._reject(slam, i, c, "low_score", **data)
+            return []
+        if m.inlier_fraction < cfg.min_inlier_fraction:
+            self._reject(slam, i, c, "low_inliers", **data)
+            return []
+        if m.ambiguity > cfg.max_ambiguity:
+            self._reject(slam, i, c, "ambiguous", **data)
+            return []
+        if m.free_violation > cfg.max_free_violation:
+            self._reject(slam, i, c, "free_space", free=round(m.free_violation, 3), **data)
+            return []
+        cov = regularise_covariance(
+            m.covariance * cfg.covariance_inflation,
+            cfg.sigma_floor_xy,
+            np.deg2rad(cfg.sigma_floor_theta_deg),
+        )
+        corr = between(guess, m.pose)
+        lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr)
+        small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
+            cfg.confirm_theta_deg
+        )
+        if small:
+            yield from self._add(slam, [lc], settle=False)
+            return [lc]
+        partner = self._consistent_pending(lc, slam.graph.estimates())
+        if partner is None:
+            self._pending.append(lc)
+            self.stats.pending += 1
+            slam.log_event(
+                "loop_pending",
+                f"keyframe {i} vs {c}: large correction, waiting for a consistent second closure",
+                keyframe=i,
+                reference=c,
+                correction=corr.tolist(),
+                **data,
             )
-            corr = between(guess, m.pose)
-            lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr)
-            small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
-                cfg.confirm_theta_deg
-            )
-            if small:
-                self._add(slam, [lc], settle=False)
-                added.append(lc)
-                est = slam.graph.estimates()
-                continue
-            partner = self._consistent_pending(lc, est)
-            if partner is None:
-                self._pending.append(lc)
-                self.stats.pending += 1
-                slam.log_event(
-                    "loop_pending",
-                    f"keyframe {i} vs {c}: large correction, waiting for a consistent second closure",
-                    keyframe=i,
-                    reference=c,
-                    correction=corr.tolist(),
-                    **data,
-                )
-                continue
-            self._pending = [q for q in self._pending if q is not partner]
-            self._add(slam, [partner, lc], settle=True)
-            added.extend([partner, lc])
-            est = slam.graph.estimates()
-        self._pending = [p for p in self._pending if i - p.query <= cfg.pending_keyframes]
-        return added
+            return []
+        self._pending = [q for q in self._pending if q is not partner]
+        yield from self._add(slam, [partner, lc], settle=True)
+        return [partner, lc]
 
     def _consistent_pending(self, lc: LoopClosure, est: np.ndarray) -> LoopClosure | None:
         cfg = self.config
@@ -784,30 +1022,28 @@ class LoopCloser:
         noise = gauss if est is None else gtsam.noiseModel.Robust.Create(est, gauss)
         return gtsam.BetweenFactorPose2(key(lc.reference), key(lc.query), pose2(lc.relative), noise)
 
-    def _add(self, slam: FRSlam, closures: list[LoopClosure], settle: bool) -> None:
-        """Add closures to the graph. A single closure with a small correction enters under the
-        robust kernel. A confirmed pair (``settle``: two closures from different keyframes that
-        agree) enters as plain Gaussians: a bounded-influence kernel cannot pull the stiff odometry
-        chain far, not even after the graph has converged to the closure (the chain's stress
-        exceeds the kernel's maximal pull and the graph slides back); an LM batch runs when the
-        correction moved the graph far."""
+    def _add(self, slam: FRSlam, closures: list[LoopClosure], settle: bool) -> Steps[None]:
+        """Add closures to the graph (a step generator). A single closure with a small correction
+        enters under the robust kernel. A confirmed pair (``settle``: two closures from different
+        keyframes that agree) enters as plain Gaussians: a bounded-influence kernel cannot pull
+        the stiff odometry chain far, not even after the graph has converged to the closure (the
+        chain's stress exceeds the kernel's maximal pull and the graph slides back); an LM batch
+        runs when the correction moved the graph far. The relinearising iSAM2 iterations after
+        the factor (:meth:`PoseGraph.settle`) run one per step."""
         graph = slam.graph
+        yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
+        for lc in closures:
+            graph.add_factor(self._factor(lc, robust=not settle), extra_iterations=0)
         if settle:
-            plain = [self._factor(lc, robust=False) for lc in closures]
-            for f in plain:
-                graph.add_factor(f, extra_iterations=0)
-            graph.settle(10)
-            moved = float(np.max(np.hypot(*(graph.estimates()[:, :2] - before[:, :2]).T)))
+            yield from self._settle(graph, 10)
+            moved = _moved(graph.estimates(), before)
             if moved >= self.config.batch_on_correction or self._residual_large(graph, closures):
+                yield _MS_PER_KEYFRAME_BATCH * len(graph)
                 graph.optimize_batch()
                 self.stats.batches += 1
-        else:
-            for lc in closures:
-                graph.add_factor(self._factor(lc, robust=True), extra_iterations=0)
-        graph.settle(10 if settle else 3)
-        after = graph.estimates()
-        moved = float(np.max(np.hypot(*(after[:, :2] - before[:, :2]).T)))
+        yield from self._settle(graph, 10 if settle else 3)
+        moved = _moved(graph.estimates(), before)
         for lc in closures:
             self.closures.append(lc)
             self.stats.accepted += 1
@@ -827,6 +1063,21 @@ class LoopCloser:
             )
         if settle:  # neighbouring keyframes may have moved relative to each other
             self._submaps.clear()
+
+    @staticmethod
+    def _settle(graph, max_iterations: int, tol: float = 1e-4) -> Steps[None]:
+        """:meth:`PoseGraph.settle` one relinearising iteration per step (keyframes added in
+        between are fine: iSAM2 takes them in its own updates)."""
+        prev = graph.estimates()
+        for _ in range(max_iterations):
+            yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+            graph.settle(1, tol)
+            cur = graph.estimates()
+            n = min(len(cur), len(prev))
+            moved = float(np.abs(cur[:n] - prev[:n]).max()) if n else 0.0
+            prev = cur
+            if moved < tol:
+                break
 
     @staticmethod
     def _residual_large(graph, closures: list[LoopClosure]) -> bool:

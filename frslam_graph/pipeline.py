@@ -232,6 +232,8 @@ class FRSlam:
         self._scan_rel.append(res.relative)
         self._scan_odom.append(res.pose)
         if not res.is_keyframe:
+            if self.loop_closer is not None:  # queued loop-closure work, a few steps per scan
+                self.loop_closer.on_scan(self)
             return
         if res.keyframe == 0:
             self.graph.add_first(res.pose)  # map == odom at start
@@ -420,6 +422,8 @@ class FRSlam:
     # ---------------------------------------------------------------- offline
     def finish(self) -> np.ndarray:
         """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`."""
+        if self.loop_closer is not None:  # loop-closure work still queued
+            self.loop_closer.flush(self)
         if self._kfs:
             t0 = time.perf_counter()
             before = self.graph.error()
