@@ -217,3 +217,99 @@ def test_pending_closure_predicts_where_to_look_next():
     np.testing.assert_allclose(centre, [0.0, 0.0, 0.0], atol=1e-9)
     # too old a pending closure predicts nothing
     assert closer._hypothesis(est, 40 + closer.config.pending_keyframes + 2) is None
+
+
+# ------------------------------------------------------------------- bounded work per add_scan
+def _fake_job(costs: list[float], log: list[int]):
+    """A job whose steps announce ``costs`` (ms) and record their index when they run."""
+
+    def job(slam, job):
+        for k, cost in enumerate(costs):
+            yield cost
+            log.append(k)
+        return []
+
+    return job
+
+
+def _calls(closer: LoopCloser, n_calls: int, log: list[int]) -> list[list[int]]:
+    """Steps run by each of n_calls calls of the per-scan hook."""
+    out = []
+    for _ in range(n_calls):
+        before = len(log)
+        closer.on_scan(None)
+        out.append(log[before:])
+    return out
+
+
+def test_work_per_scan_is_packed_into_the_budget():
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 8.0}}).loop_closure
+    closer = LoopCloser(cfg)
+    log: list[int] = []
+    closer._job = _fake_job([3.0, 3.0, 3.0, 20.0, 1.0, 1.0, 7.0], log)
+    closer._jobs.append(None)
+    # the job's first (glue) step costs nothing; then estimated costs are added while they fit in
+    # 8 ms; the 20 ms step (e.g. an LM batch) runs alone, as the first step of a call
+    assert _calls(closer, 5, log) == [[0, 1], [2], [3], [4, 5], [6]]
+    assert closer.idle
+    assert closer.steps_last_call == 1 and closer.cost_last_call == pytest.approx(7.0)
+
+
+def test_wall_clock_cap_uses_the_injected_clock():
+    now = [0.0]
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 1000.0, "wall_budget_ms": 12.0}})
+    closer = LoopCloser(cfg.loop_closure, clock=lambda: now[0])
+    log: list[int] = []
+
+    def job(slam, job):  # every step takes 5 ms by the injected clock
+        for k in range(8):
+            yield 0.5
+            now[0] += 0.005
+            log.append(k)
+        return []
+
+    closer._job = job
+    closer._jobs.append(None)
+    # a step starts while less than 12 ms have passed in the call: at 0, 5 and 10 ms -> three
+    # steps per call, whatever their estimated cost
+    assert _calls(closer, 3, log) == [[0, 1, 2], [3, 4, 5], [6, 7]]
+
+
+def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monkeypatch):
+    """With a tight budget no add_scan builds more than one reference submap or refines more than
+    one ICP pose (before: all candidates of a keyframe in its add_scan), and the loop still
+    closes."""
+    import frslam_graph.loop_closure as lc_module
+
+    counts = {"icp": 0, "submaps": 0}
+    icp, submap_init = lc_module.icp_point_to_line, ReferenceSubmap.__init__
+
+    def counting_icp(*a, **k):
+        counts["icp"] += 1
+        return icp(*a, **k)
+
+    def counting_init(self, *a, **k):
+        counts["submaps"] += 1
+        submap_init(self, *a, **k)
+
+    monkeypatch.setattr(lc_module, "icp_point_to_line", counting_icp)
+    monkeypatch.setattr(ReferenceSubmap, "__init__", counting_init)
+    truth, ranges, amin, inc = two_laps
+    slam = FRSlam(dict(CFG, loop_closure={"budget_ms": 2.0}))
+    _inject_drift(slam, np.deg2rad(0.5), 0.02)
+    per_scan = []
+    for i in range(len(truth)):
+        before = dict(counts)
+        slam.add_scan(truth[i, 0], ranges[i], amin, inc, None)
+        per_scan.append((counts["icp"] - before["icp"], counts["submaps"] - before["submaps"]))
+        closer = slam.loop_closer
+        assert closer.steps_last_call <= 1 or closer.cost_last_call <= 2.0
+    per_scan = np.array(per_scan)
+    assert per_scan.sum(axis=0).min() > 0  # matching did happen
+    assert per_scan[:, 0].max() <= 1 and per_scan[:, 1].max() <= 1
+    assert not (per_scan[:, 0] & per_scan[:, 1]).any()  # never a submap build and an ICP together
+    slam.finish()
+    assert slam.loop_closer.idle  # finish() runs the queued work
+    err = _errors(slam, truth)
+    assert slam.loop_closer.stats.accepted > 0
+    assert np.sqrt(np.mean(err**2)) < 0.25

@@ -10,9 +10,14 @@ closure (the default config) and without (the baseline: odometry + graph only). 
   robust to a machine shared with other jobs), loop closures accepted / candidates matched and
   the loop closer's CPU time per keyframe.
 
+Loop-closure work is spread over the scans within ``loop_closure.budget_ms`` (estimated ms per
+``add``; ``--budget-ms`` overrides it). ``--synchronous`` adds a run doing all of a keyframe's
+loop-closure work inside its own ``add`` (the behaviour before the anytime scheduler).
+
 Intel and FR079 have no relations in the shared data: they are timed only.
 
     /work/venv/bin/python tools/bench_aces.py [--logs aces intel fr079] [--no-baseline]
+        [--budget-ms 8] [--synchronous]
 """
 
 from __future__ import annotations
@@ -40,8 +45,11 @@ PUBLISHED = {
 }
 
 
-def run(scans: list, loop_closure: bool) -> dict:
-    cfg = FRSlamConfig().with_updates(loop_closure={"enabled": loop_closure})
+def run(scans: list, loop_closure: bool, budget_ms: float | None = None) -> dict:
+    lc_cfg: dict = {"enabled": loop_closure}
+    if budget_ms is not None:
+        lc_cfg["budget_ms"] = budget_ms
+    cfg = FRSlamConfig().with_updates(loop_closure=lc_cfg)
     slam = FRSlam(cfg)
     n = len(scans)
     lat, cpu = np.empty(n), np.empty(n)
@@ -82,6 +90,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--logs", nargs="+", default=list(LOGS), choices=list(LOGS))
     ap.add_argument("--no-baseline", action="store_true", help="skip the run without loop closure")
+    ap.add_argument("--budget-ms", type=float, default=None, help="loop_closure.budget_ms (default: config)")
+    ap.add_argument(
+        "--synchronous",
+        action="store_true",
+        help="add a run with all loop-closure work inside the keyframe's add (unbounded budget)",
+    )
     args = ap.parse_args()
 
     rows = []
@@ -92,9 +106,14 @@ def main() -> None:
             continue
         scans = list(open_recording(path))
         relations = DATA / f"{name}.relations"
-        variants = [("loop closure", True)] + ([] if args.no_baseline else [("no loop closure", False)])
-        for label, on in variants:
-            res = run(scans, on)
+        budget = FRSlamConfig().loop_closure.budget_ms if args.budget_ms is None else args.budget_ms
+        variants = [(f"loop closure, budget {budget:g} ms", True, budget)]
+        if args.synchronous:
+            variants.append(("loop closure, synchronous", True, 1e9))
+        if not args.no_baseline:
+            variants.append(("no loop closure", False, None))
+        for label, on, budget_ms in variants:
+            res = run(scans, on, budget_ms)
             trans = rot = "—"
             if relations.exists():
                 trans, rot = fmt_rel(res["trajectory"], relations)
