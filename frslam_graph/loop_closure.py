@@ -1,7 +1,7 @@
 """Loop closure for the keyframe pose graph (``map`` frame; metres, radians).
 
-On each new keyframe q, :class:`LoopCloser` looks for earlier keyframes c (not recent ones: at
-least ``min_keyframe_gap`` keyframes and ``min_travel_gap`` metres of travel or
+Every ``attempt_every`` keyframes q, :class:`LoopCloser` looks for earlier keyframes c (not
+recent ones: at least ``min_keyframe_gap`` keyframes and ``min_travel_gap`` metres of travel or
 ``min_rotation_gap_deg`` of turning back) near the current estimate. The search radius and the
 heading window grow with the travel / turning between the two along the shortest path of the
 graph (accepted closures count as zero length), so a long excursion is searched widely and a
@@ -31,6 +31,17 @@ The bounded pull of a robust kernel could not hold such a correction against the
 chain; the pairwise check takes its place as the guard against wrong closures. While a closure is
 pending, each attempt first searches where it predicts the robot to be (same window and
 ambiguity test as any candidate), which is what confirms the large corrections on ACES.
+
+Bounded latency (anytime): a keyframe only *plans* (candidates into a queue, about 1 ms); the
+work (query and reference submaps, the correlative search in chunks of at most
+``max_lookups_per_step`` look-ups, the reference's ICP data, each ICP refinement, the iSAM2 update
+and each relinearising iteration after a closure, an LM batch) is a chain of steps run by every
+``add_scan`` (keyframe or not) while their estimated cost fits ``budget_ms``. Each step announces
+its cost from the sizes involved (a fixed cost model: look-ups, grid cells, points, keyframes),
+never from a clock, so the run is deterministic and the same on any machine; a step estimated
+above the budget runs alone. ``wall_budget_ms`` optionally caps each call by the clock as well
+(then the spread depends on the load). ``FRSlam.finish()`` runs what is left (:meth:`flush`).
+With an unbounded budget the result is exactly that of doing everything in the keyframe's call.
 
 Decisions go to ``slam.log`` as ``loop_closure`` / ``loop_pending`` / ``loop_rejected`` (with the
 reason: ``no_overlap``, ``low_score``, ``low_inliers``, ``ambiguous``, ``free_space``).
