@@ -50,6 +50,9 @@ class OdometryConfig(_Section):
     convergence_criterion: float = Field(1e-4, gt=0.0)
     num_threads: int = Field(1, ge=0)  # 0 = all cores; the first KissICP fixes it process-wide
     min_points: int = Field(20, ge=3)  # fewer valid beams -> no ICP, motion-model fallback
+    # False: wheel odometry alone drives the motion model (no KISS-ICP); scans are still mapped
+    # and used by loop closure and floor-plan priors. Ignored for scans without wheel odometry.
+    scan_matching: bool = True
     keyframe_distance: float = Field(0.3, gt=0.0)
     keyframe_angle_deg: float = Field(10.0, gt=0.0, le=180.0)
     # a keyframe at least this often (s) even when standing still, so the per-keyframe hooks (loop
@@ -157,6 +160,9 @@ class UpdatesConfig(_Section):
     retract_walls_in_free_space: float = Field(0.12, ge=0.0, le=1.0)
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
+    # an agreeing registration (within agree_tol) that explains the grown map at least as well
+    # refines the accepted one for the relocalisations that follow
+    refine_on_agreement: bool = False
     max_registrations: int = Field(40, ge=1)
     # relocalisation against the registered plan
     reloc_window_xy: float = Field(0.75, gt=0.0)

@@ -11,7 +11,10 @@ Per scan: the wheel increment u_t (or a constant-velocity guess) seeds KISS-ICP 
 Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by a residual sigma;
 when the normals span only one direction (a featureless corridor) the scan is *degenerate*: the
 covariance is inflated along the corridor axis so the motion model carries that direction.
-Scans without enough valid points (all-NaN) fall back to the motion model. Wheel increments that
+Scans without enough valid points (all-NaN) fall back to the motion model. With
+``scan_matching=False`` the wheel odometry alone drives the motion model (the scans are still
+mapped and used by loop closure and the floor-plan priors); scans without wheel odometry are
+then still matched. Wheel increments that
 are physically impossible, or that the scan rejects in favour of constant velocity (when the two
 disagree both seeds are aligned and the better map fit wins), are *odometry jumps*: ICP is
 trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
@@ -258,9 +261,11 @@ class ScanOdometry:
 
         prev_rel = self._ekf.x
         degenerate, fallback, axis, icp_rejected = False, False, None, False
-        if len(pts) < cfg.min_points:
-            self.stats.empty_scans += 1
-            fallback = True
+        wheel_only = not cfg.scan_matching and used_wheel and len(pts) >= cfg.min_points
+        if len(pts) < cfg.min_points or wheel_only:
+            if not wheel_only:
+                self.stats.empty_scans += 1
+            fallback = not wheel_only
             self._ekf.predict(u, cov_u)
             self._resync_icp(u)
             R_body = None

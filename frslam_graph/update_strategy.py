@@ -387,6 +387,21 @@ class FloorPlanUpdater:
             old_fit = self.accepted.relocaliser.fit_points(occ, fit_tol)
             nums.update(disagreement=disp, accepted_map_fit=old_fit)
             if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
+                if cfg.refine_on_agreement and fit >= old_fit:
+                    # the same placement fitted to a larger map: later relocalisations use it
+                    # (earlier priors stay: they agree within agree_tol)
+                    self._event(
+                        slam,
+                        stamp,
+                        "register",
+                        f"{trigger}; agrees with registration {self.accepted.id} (RMS {disp:.2f} m) "
+                        f"and explains the map as well or better ({fit:.0%} vs {old_fit:.0%}); refined",
+                        i,
+                        False,
+                        **nums,
+                    )
+                    self.accepted = _Accepted(self.accepted.id, reg, plan_map, relocaliser, fit)
+                    return None
                 return reject(f"agrees with registration {self.accepted.id} (RMS {disp:.2f} m); kept")
             if fit < old_fit + cfg.switch_margin:
                 return reject(

@@ -86,6 +86,21 @@ def test_wheel_odometry_fusion_beats_drifting_wheels(room):
     assert fused / path_length(truth) < 0.02
 
 
+def test_scan_matching_off_follows_the_wheels(room):
+    """scan_matching=False: the wheel odometry alone drives the motion model (its drift stays),
+    keyframes and their points still come out, nothing is reported as a fallback; a scan
+    without wheel odometry is still matched."""
+    truth, points, odom = room
+    cfg = OdometryConfig(max_range=10.0, scan_matching=False)
+    o, poses, results = run(points, truth, odom, cfg=cfg)
+    rel_w, rel_e = between(odom[0], odom[-1]), between(poses[0], poses[-1])
+    assert np.allclose(rel_e, rel_w, atol=1e-6)  # exactly the wheels
+    assert end_error(truth, poses) > 0.3
+    assert o.stats.fallbacks == 0 and o.stats.empty_scans == 0 and o.stats.keyframes > 50
+    o2, poses2, _ = run(points, truth, None, cfg=cfg)  # no wheels: ICP as usual
+    assert end_error(truth, poses2) / path_length(truth) < 0.02
+
+
 def test_corridor_is_flagged_degenerate_and_wheel_odometry_carries_the_axis(corridor):
     truth, points = corridor
     odom = drifting_odometry(truth, scale=0.02, heading_per_m=0.0)
