@@ -83,7 +83,8 @@ Steps = Generator[float, None, T]
 # Cost model: milliseconds on one core of the development machine (x86, 2020s); only needs to be
 # right within a factor of about two. Measured on ACES (tools/bench_aces.py).
 _MS_PER_LOOKUP = 3e-6  # correlative search: one likelihood-field look-up (gather + mean)
-_MS_PER_CELL_FIELD = 1.4e-5  # reference submap: distance transform with labels + field, per cell
+_MS_PER_CELL_FIELD = 1.4e-5  # reference submap: distance transform with labels + field, per inner cell
+_MS_PER_CELL_FILL = 1e-6  # zero padding of the whole grid
 _MS_PER_CELL_DILATE = 2e-6  # max filter of the field (first use of a step size)
 _MS_PER_CELL_NEAREST = 5e-6  # nearest-point map for ICP, per cell
 _MS_PER_CELL_FREE = 3e-6  # free-space mask, per cell
@@ -172,22 +173,35 @@ class ReferenceSubmap:
         self.margin_cells = int(np.ceil(margin / res))
         w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
         self.shape = (h, w)
-        free = np.full((h, w), 255, np.uint8)
-        self._cells = np.zeros(0, np.int64)  # flat index of each point's cell
+        # Distances are computed on an inner grid only (the points' box + max(16 sigma, 2 m)):
+        # farther out the float32 likelihood is exactly 0 (it underflows beyond 14.4 sigma), no
+        # nearest point is within 2 m and every cell is far from the end points. The outer
+        # margin (for the correlative search's clamped look-ups) is zero padding.
+        pad = max(0, int(np.floor((margin - max(16.0 * sigma, 2.0)) / res)))
+        pad = min(pad, (h - 1) // 2, (w - 1) // 2)
+        hi_, wi = h - 2 * pad, w - 2 * pad
+        self._inner = (pad, hi_, wi)
+        free = np.full((hi_, wi), 255, np.uint8)
+        self._cells = np.zeros(0, np.int64)  # flat index of each point's cell (full grid)
         if len(pts):
             ij = np.floor((pts - lo) / res).astype(int)
-            free[ij[:, 1], ij[:, 0]] = 0
+            free[ij[:, 1] - pad, ij[:, 0] - pad] = 0
             self._cells = ij[:, 1] * w + ij[:, 0]
         # distances (5×5 mask, within about 2 %) and the nearest occupied cell of every cell
         dist, self._labels = cv2.distanceTransformWithLabels(
             free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
         )
-        dist *= np.float32(res)
-        self.field = np.exp(np.float32(-0.5 / sigma**2) * dist * dist)
-        self._occupied = free.ravel() == 0
+        dist *= res
+        self.field = np.zeros((h, w), np.float32)
+        self.field[pad : pad + hi_, pad : pad + wi] = np.exp(-0.5 * (dist / sigma) ** 2)
+        self._occupied = free.ravel() == 0  # inner grid
         self._scans = scans
         # free space must be farther than free_margin from any end point
-        self._far = (dist > free_margin).ravel() if scans else None
+        self._far = None
+        if scans:
+            far = np.ones((h, w), bool)
+            far[pad : pad + hi_, pad : pad + wi] = dist > free_margin
+            self._far = far.ravel()
         self._nearest: np.ndarray | None = None
         self._tree: cKDTree | None = None
         self._normals: tuple[np.ndarray, np.ndarray] | None = None
@@ -200,15 +214,18 @@ class ReferenceSubmap:
         """Index of the nearest reference point of every cell (flattened; -1 without points)."""
         if self._nearest is None:
             h, w = self.shape
-            owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
-            owner[self._cells] = np.arange(len(self.points), dtype=np.int32)
+            pad, hi_, wi = self._inner
+            nearest = np.full((h, w), -1, np.int32)
             if len(self.points):
-                # labels number the zero cells in raster order
+                owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
+                owner[self._cells] = np.arange(len(self.points), dtype=np.int32)
+                owner = owner.reshape(h, w)[pad : pad + hi_, pad : pad + wi].ravel()
+                # labels number the (inner grid's) zero cells in raster order
                 zeros = np.flatnonzero(self._occupied)
                 labels = self._labels.ravel()
-                self._nearest = owner[zeros[np.clip(labels - 1, 0, len(zeros) - 1)]]
-            else:
-                self._nearest = owner
+                inner = owner[zeros[np.clip(labels - 1, 0, len(zeros) - 1)]]
+                nearest[pad : pad + hi_, pad : pad + wi] = inner.reshape(hi_, wi)
+            self._nearest = nearest.ravel()
             self._labels = None
         return self._nearest
 
@@ -903,8 +920,10 @@ class LoopCloser:
         pts, scans = self._submap(slam, slam.graph.estimates(), c, lo, hi, cfg.submap_travel)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
+            inner = min(margin, max(16.0 * cfg.likelihood_sigma, 2.0))  # see ReferenceSubmap
             cells = np.prod((np.ptp(pts, axis=0) + 2.0 * margin) / cfg.resolution + 1.0)
-            yield _MS_PER_CELL_FIELD * float(cells)
+            cells_inner = np.prod((np.ptp(pts, axis=0) + 2.0 * inner) / cfg.resolution + 1.0)
+            yield _MS_PER_CELL_FIELD * float(cells_inner) + _MS_PER_CELL_FILL * float(cells)
         sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin)
         self._submaps[c] = sub
         while len(self._submaps) > 24:
@@ -929,8 +948,10 @@ class LoopCloser:
         ]
         hyp = self._hypothesis(est, i)
         if hyp is not None:
-            cands = [hyp, *cands[: cfg.max_candidates - 1]]
+            cands = cands[: cfg.max_candidates - 1]
         self._jobs.extend(_Job(c, i, r, w, pred) for c, r, w, pred in cands)
+        if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
+            self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3]))
 
     def _query_points(self, slam: FRSlam, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
