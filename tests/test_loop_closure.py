@@ -313,3 +313,51 @@ def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monke
     err = _errors(slam, truth)
     assert slam.loop_closer.stats.accepted > 0
     assert np.sqrt(np.mean(err**2)) < 0.25
+
+
+def test_padded_reference_equals_the_unpadded_one():
+    """The distance transform runs on an inner grid; the wide search margin is zero padding: the
+    likelihood, free-space and nearest-point maps match a submap built without padding."""
+    world = room_world()
+    # binary-exact coordinates and resolution: both grids put every point in the same cell
+    res = 1.0 / 16.0
+    pts = np.round(_points(world, np.array([4.0, 3.0, 0.2]), 1) * 128.0) / 128.0
+    scans = [(np.zeros(2), pts)]
+    cfg = FRSlamConfig().with_updates(loop_closure={"resolution": res}).loop_closure
+    wide = ReferenceSubmap(pts, res, cfg.likelihood_sigma, 6.0, scans)
+    tight = ReferenceSubmap(pts, res, cfg.likelihood_sigma, 2.0, scans)
+    assert wide._inner[0] > 0 and tight._inner[0] == 0  # the wide one is padded
+    k = int(round((tight.origin[0] - wide.origin[0]) / res))  # wide cells before the tight grid
+    h, w = tight.shape
+    f_wide = wide.field.reshape(wide.shape)
+    np.testing.assert_array_equal(f_wide[k : k + h, k : k + w], tight.field)
+    assert f_wide.sum() == pytest.approx(tight.field.sum())  # nothing outside
+    free_wide = wide.free.reshape(wide.shape)[k : k + h, k : k + w]
+    np.testing.assert_array_equal(free_wide, tight.free.reshape(h, w))
+    near_wide = wide.nearest.reshape(wide.shape)[k : k + h, k : k + w]
+    np.testing.assert_array_equal(near_wide, tight.nearest.reshape(h, w))
+    # and the matcher finds the same pose on both
+    q = _points(world, np.array([4.3, 3.2, 0.25]), 2)
+    a = match_scan(wide, q, np.zeros(3), 1.0, np.deg2rad(10.0), cfg)
+    b = match_scan(tight, q, np.zeros(3), 1.0, np.deg2rad(10.0), cfg)
+    np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
+
+
+def test_pending_closure_check_goes_ahead_of_queued_candidates():
+    from types import SimpleNamespace
+
+    from frslam_graph.loop_closure import _Job
+
+    closer = LoopCloser()
+    n = 41
+    for k in range(n):
+        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
+    est = np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
+    closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    older = [_Job(5, 36, 2.0, 0.2), _Job(6, 38, 2.0, 0.2)]  # not matched yet
+    closer._jobs.extend(older)
+    closer._last_plan = 38
+    closer._plan(SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy())), 40)
+    first = closer._jobs[0]
+    assert (first.reference, first.query) == (3, 40) and first.predicted is not None
+    assert list(closer._jobs)[1:3] == older
