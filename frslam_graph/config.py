@@ -145,7 +145,7 @@ class UpdatesConfig(_Section):
     register_growth_frac: float = Field(0.2, ge=0.0)
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
-    max_walls_in_free_space: float = Field(0.06, ge=0.0, le=1.0)  # observed interior plan walls in free space
+    max_walls_in_free_space: float = Field(0.1, ge=0.0, le=1.0)  # observed interior plan walls in free space
     # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
     # free space" farther than free_space_margin from any occupied cell, both growing by
     # check_growth_per_m per metre travelled since the last accepted prior (odometry drift not
@@ -157,7 +157,7 @@ class UpdatesConfig(_Section):
     check_growth_per_m: float = Field(0.01, ge=0.0)
     # the accepted registration is retracted when the grown map shows this share of its walls in
     # free space (above the acceptance threshold: the map keeps drifting where priors are sparse)
-    retract_walls_in_free_space: float = Field(0.12, ge=0.0, le=1.0)
+    retract_walls_in_free_space: float = Field(0.2, ge=0.0, le=1.0)
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
     # an agreeing registration (within agree_tol) that explains the grown map at least as well

@@ -251,11 +251,12 @@ def test_disabled_or_no_plan_does_nothing(sim):
     assert not upd.log and not src.calls and not slam.graph.priors()
 
 
-@pytest.mark.parametrize("drift", [(0.25, 0.0), (0.0, -0.25), (0.18, 0.18)])
+@pytest.mark.parametrize("drift", [(0.2, 0.0), (-0.2, 0.0), (0.0, -0.25), (0.15, 0.15)])
 def test_acceptance_checks_tolerate_map_drift(sim, drift):
     """The map is built at drifting estimates: after travelling without priors (tolerances grown
     to their maxima) the right plan must still explain it and not look contradicted when the map
-    is off by 0.25 m, while wrong
+    is off by 0.2-0.25 m (a shift along a wall moves its door openings: that much is seen through),
+    while wrong
     registrations (a quarter turn, a 1.5 m shift, 0.2 rad) are still caught by the free-space
     check."""
     from dataclasses import replace
