@@ -460,9 +460,9 @@ class Relocaliser:
         p = self.params
         pose = np.asarray(start, dtype=np.float64).copy()
         lam = 1e-3
+        r, jac = self._residuals(pts, pose)
         for it in range(p.lm_iterations):
             tau = p.truncation if it < 3 else 0.5 * p.truncation
-            r, jac = self._residuals(pts, pose)
             w = _tukey(r, tau)
             if w.sum() < 3:
                 break
@@ -474,19 +474,22 @@ class Relocaliser:
             step[:2] *= min(1.0, 0.2 / max(np.hypot(*step[:2]), 1e-12))
             step[2] = np.clip(step[2], -0.05, 0.05)
             cand = pose + step
-            r2, _ = self._residuals(pts, cand)
+            r2, jac2 = self._residuals(pts, cand)
             cost1 = float(np.sum(w * r2 * r2))
             if cost1 <= cost0:
-                pose = cand
+                pose, r, jac = cand, r2, jac2
                 lam = max(lam * 0.3, 1e-6)
-                if np.hypot(*step[:2]) < 1e-4 and abs(step[2]) < 1e-5:
+                # converged: the step is far below the sensor noise, or the cost stalls
+                # (kernel width changes after iteration 3, so never stop before it)
+                small = np.hypot(*step[:2]) < 2e-3 and abs(step[2]) < 3e-4
+                if it >= 3 and (small or cost0 - cost1 <= 1e-4 * cost0):
                     break
             else:
                 lam *= 10.0
                 if lam > 1e4:
                     break
-        pose[2] = _wrap(pose[2])
-        r, _ = self._residuals(pts, pose)
+        if abs(pose[2]) > np.pi:  # wrapping changes nothing but the angle's representation
+            pose[2] = _wrap(pose[2])
         return pose, _soft(r, p.truncation)
 
     def _covariance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:

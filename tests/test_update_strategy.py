@@ -304,3 +304,24 @@ def test_registration_is_retried_while_none_is_accepted(sim):
     run_slam(run, upd_ok)
     assert upd_ok.accepted is not None
     assert not [e for e in upd_ok.log if e.kind == "register" and "retry" in e.reason]
+
+
+def test_agreeing_registration_refines_the_accepted_one(sim):
+    """With refine_on_agreement, a later registration within agree_tol that explains the map at
+    least as well replaces the accepted matrix (same registration id: its priors stay); without
+    it, the first one is kept."""
+    plan, run, m = sim
+    nudged = rotated_about_centre(plan, m, angle=np.deg2rad(0.3), shift=(0.03, -0.02))
+    for refine, expected in ((True, m), (False, nudged)):
+        seq = iter([nudged] + [m] * 40)  # a slightly-off first registration, then the right one
+        cfg = CFG.updates.model_copy(update={"refine_on_agreement": refine})
+        upd = FloorPlanUpdater(
+            plan,
+            cfg,
+            register_fn=lambda p, g, seq=seq: Registration.from_matrix(next(seq), score=0.9, ambiguity=0.2),
+        )
+        slam, _ = run_slam(run, upd)
+        assert np.allclose(upd.registration.matrix, expected)
+        refined = [e for e in upd.log if e.kind == "register" and e.reason.endswith("refined")]
+        assert bool(refined) == refine
+        assert slam.graph.priors() and {h.source for h in slam.graph.priors()} == {"reloc:reg0"}
