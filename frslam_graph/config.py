@@ -262,6 +262,9 @@ class LoopClosureConfig(_Section):
     # alone. FRSlam.finish() runs what is left.
     budget_ms: float = Field(8.0, gt=0.0)
     max_lookups_per_step: int = Field(300_000, ge=10_000)
+    # at most this many relinearising iSAM2 iterations (each a step) after a small closure; the
+    # factor's own iSAM2 update already takes one Gauss-Newton step from a nearby estimate
+    settle_small: int = Field(1, ge=0)
     # Optional wall-clock cap per add_scan (ms): after the first step, another starts only while
     # less than this was spent. None: the cost model alone (deterministic). With a cap, how the
     # work is spread (hence which closures are found when) depends on the machine's load.

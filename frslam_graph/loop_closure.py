@@ -1074,7 +1074,7 @@ class LoopCloser:
                 yield _MS_PER_KEYFRAME_BATCH * len(graph)
                 graph.optimize_batch()
                 self.stats.batches += 1
-        yield from self._settle(graph, 10 if settle else 3)
+        yield from self._settle(graph, 10 if settle else self.config.settle_small)
         moved = _moved(graph.estimates(), before)
         for lc in closures:
             self.closures.append(lc)
