@@ -361,3 +361,14 @@ def test_pending_closure_check_goes_ahead_of_queued_candidates():
     first = closer._jobs[0]
     assert (first.reference, first.query) == (3, 40) and first.predicted is not None
     assert list(closer._jobs)[1:3] == older
+
+
+def test_spread_work_is_deterministic(two_laps):
+    """The per-scan budget is in estimated (cost-model) milliseconds, not clock time: a second run
+    finds the same closures at the same scans and the same trajectory."""
+    slam, _, _ = _run(two_laps, loop=True)  # not the `runs` fixture: another test alters it
+    again, _, _ = _run(two_laps, loop=True)
+    np.testing.assert_array_equal(again.trajectory(), slam.trajectory())
+    first = [(e.stamp, e.keyframe, e.data["reference"]) for e in slam.log if e.kind == "loop_closure"]
+    second = [(e.stamp, e.keyframe, e.data["reference"]) for e in again.log if e.kind == "loop_closure"]
+    assert first == second and first
