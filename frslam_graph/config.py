@@ -144,6 +144,9 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
+    # every other retry registers on the map of the keyframes of the last this many metres (the
+    # whole map may have drifted too far to match)
+    local_map_distance: float = Field(40.0, gt=0.0)
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
     max_walls_in_free_space: float = Field(0.1, ge=0.0, le=1.0)  # observed interior plan walls in free space
     # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
@@ -167,6 +170,9 @@ class UpdatesConfig(_Section):
     # relocalisation against the registered plan
     reloc_window_xy: float = Field(0.75, gt=0.0)
     reloc_window_theta_deg: float = Field(15.0, gt=0.0, le=180.0)
+    # the window grows with the drift since the last accepted prior, up to these
+    reloc_window_max_xy: float = Field(2.0, gt=0.0)
+    reloc_window_max_theta_deg: float = Field(30.0, gt=0.0, le=180.0)
     reloc_min_score: float = Field(0.5, ge=0.0, le=1.0)
     reloc_max_ambiguity: float = Field(0.8, ge=0.0, le=1.0)
     reloc_resolution: float = Field(0.025, gt=0.0)
@@ -186,6 +192,10 @@ class UpdatesConfig(_Section):
     remove_min_theta_deg: float = Field(3.0, ge=0.0)  # ... or turned (deg)
     remove_max_share: float = Field(0.3, gt=0.0, le=1.0)  # more contradicted at once: keep all
     prior_kind: Literal["full", "translation"] = "full"
+    # after a registration is accepted, the keyframes before it (one per relocation_distance_D,
+    # newest first) are relocalised on the plan too, this many per keyframe
+    backfill: bool = True
+    backfill_per_keyframe: int = Field(2, ge=1)
 
 
 class LoopClosureConfig(_Section):

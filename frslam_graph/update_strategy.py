@@ -113,6 +113,10 @@ class FloorPlanUpdater:
         self._last_odom: np.ndarray | None = None
         self._area_at_attempt = 0.0
         self._dist_at_attempt = 0.0
+        self._kf_dist: list[float] = []  # odometry distance travelled at each keyframe
+        self._retries = 0
+        self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
+        self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
         self._attempts = 0
         self._dist_at_reloc = 0.0
         self._turn = 0.0  # radians turned (odometry)
@@ -162,13 +166,14 @@ class FloorPlanUpdater:
             dth = keyframe.pose_odom[2] - self._last_odom[2]
             self._turn += abs(float((dth + np.pi) % (2 * np.pi) - np.pi))
         self._last_odom = np.asarray(keyframe.pose_odom, float).copy()
+        self._kf_dist.append(self._dist)
         points = slam.keyframe_scans()[0][i]
         self._update_coverage(keyframe.pose_map, points)
         self.timings["coverage"] += time.perf_counter() - t0
         obstructed = self._check_obstruction(slam, keyframe)
 
         area = self.mapped_area
-        reason = None
+        reason, local = None, False
         if self._attempts < cfg.max_registrations:
             if self._attempts == 0:
                 if area >= cfg.first_register_area_m2:
@@ -186,13 +191,17 @@ class FloorPlanUpdater:
                     and self._dist - self._dist_at_attempt >= cfg.register_retry_distance
                 ):
                     reason = f"no registration accepted yet; retry after {self._dist - self._dist_at_attempt:.0f} m"
+                    # the whole map may have drifted too far to match: alternate with the map of
+                    # the last local_map_distance metres
+                    local = self._retries % 2 == 1 and self._dist > cfg.local_map_distance
+                    self._retries += 1
                 elif self._inconsistent_run >= 5:
                     reason = (
                         f"{self._inconsistent_run} relocalisations in a row inconsistent with the estimate"
                     )
                     self._inconsistent_run = 0
         if reason is not None:
-            self._register(slam, keyframe, reason)
+            self._register(slam, keyframe, reason, local)
         elif self.accepted is not None:
             if obstructed:
                 self._relocalise_current(slam, keyframe, "obstructed")
@@ -200,6 +209,8 @@ class FloorPlanUpdater:
                 self._relocalise_current(slam, keyframe, "relocation distance")
             elif self._turn - self._turn_at_reloc >= np.deg2rad(cfg.relocation_angle_deg):
                 self._relocalise_current(slam, keyframe, "relocation angle")
+        if self.accepted is not None and self._backfill:
+            self._run_backfill(slam, cfg.backfill_per_keyframe)
 
     # ------------------------------------------------------------------ events
     def _event(
@@ -263,7 +274,7 @@ class FloorPlanUpdater:
         return obstructed
 
     # ------------------------------------------------------------------ registration
-    def _register(self, slam, keyframe, reason: str) -> None:
+    def _register(self, slam, keyframe, reason: str, local: bool = False) -> None:
         cfg = self.config
         t0 = time.perf_counter()
         self._attempts += 1
@@ -271,7 +282,11 @@ class FloorPlanUpdater:
         self._area_at_attempt = area
         self._dist_at_attempt = self._dist
         stamp, i = float(keyframe.stamp), keyframe.index
-        grid = slam.occupancy_grid(cfg.map_resolution)
+        if local:
+            grid = self._local_grid(slam)
+            reason += f"; on the map of the last {cfg.local_map_distance:.0f} m"
+        else:
+            grid = slam.occupancy_grid(cfg.map_resolution)
         if self.accepted is not None:
             self._recheck_accepted(slam, keyframe, grid)
         try:
@@ -297,6 +312,7 @@ class FloorPlanUpdater:
         self._try_prior(slam, keyframe, reloc, "registration accepted")
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
+        self._queue_backfill(slam, i)
 
     def _recheck_accepted(self, slam, keyframe, grid) -> None:
         """Retract the accepted registration when the grown map contradicts it (its walls cross
@@ -323,6 +339,54 @@ class FloorPlanUpdater:
         self.accepted = None
         self._remove_priors_of(slam, acc, why)
         self._dist_at_prior = 0.0  # the trajectory is back on odometry: gate loosely
+
+    # ------------------------------------------------------------------ backfill
+    def _queue_backfill(self, slam, i: int) -> None:
+        """Queue the keyframes before ``i`` (newest first, one per ``relocation_distance_D``
+        metres) that have no prior of the accepted registration: relocalised on the plan a few
+        per keyframe, each prior pulling its older neighbours closer before their turn, so the
+        map drawn before the registration is corrected too."""
+        cfg = self.config
+        if not cfg.backfill or self.accepted is None:
+            self._backfill = []
+            return
+        tag = f"reloc:reg{self.accepted.id}"
+        have = {h.keyframe for h in slam.graph.priors() if h.source == tag}
+        d = self._kf_dist
+        queue, last = [], d[i] if i < len(d) else self._dist
+        for k in range(min(i, len(d)) - 1, -1, -1):
+            if last - d[k] >= cfg.relocation_distance_D and k not in have:
+                queue.append(k)
+                last = d[k]
+        self._backfill = queue
+        self._backfill_anchor = d[i] if i < len(d) else self._dist
+
+    def _run_backfill(self, slam, n: int) -> None:
+        scans = slam.keyframe_scans()[0]
+        for _ in range(n):
+            if not self._backfill:
+                return
+            k = self._backfill.pop(0)
+            kf = slam.keyframe(k)
+            t0 = time.perf_counter()
+            reloc = self.accepted.relocaliser.relocalise(scans[k], kf.pose_map)
+            self.timings["relocalise"] += time.perf_counter() - t0
+            drift = max(self._backfill_anchor - self._kf_dist[k], 0.0)
+            if self._try_prior(slam, kf, reloc, "backfill", drift=drift, backfill=True):
+                self._backfill_anchor = self._kf_dist[k]
+
+    def _local_grid(self, slam):
+        """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
+        travelled: less drift accumulated inside it than in the whole map."""
+        from frslam_graph.mapping import occupancy_grid  # noqa: PLC0415
+
+        d = np.asarray(self._kf_dist)
+        keep = np.nonzero(d >= self._dist - self.config.local_map_distance)[0]
+        pts, origins = slam.keyframe_scans()
+        est = slam.graph.estimates()
+        return occupancy_grid(
+            est[keep], [pts[k] for k in keep], [origins[k] for k in keep], self.config.map_resolution
+        )
 
     def _tolerances(self) -> tuple[float, float]:
         """(map-fit distance, free-space margin) in metres, grown with the distance travelled
@@ -437,7 +501,16 @@ class FloorPlanUpdater:
     def _relocalise_current(self, slam, keyframe, why: str) -> None:
         t0 = time.perf_counter()
         points = slam.keyframe_scans()[0][keyframe.index]
-        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map)
+        cfg = self.config
+        # the search window covers the drift since the last accepted prior (3 sigma of the gate's
+        # drift model), so a run of rejected relocalisations does not lose the plan for good
+        travelled = self._dist - self._dist_at_prior
+        wxy = min(max(cfg.reloc_window_xy, 3.0 * cfg.gate_drift_frac * travelled), cfg.reloc_window_max_xy)
+        wth = min(
+            max(cfg.reloc_window_theta_deg, 3.0 * cfg.gate_drift_deg_per_m * travelled),
+            cfg.reloc_window_max_theta_deg,
+        )
+        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map, wxy, np.deg2rad(wth))
         self.timings["relocalise"] += time.perf_counter() - t0
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
@@ -460,7 +533,15 @@ class FloorPlanUpdater:
             pass
         return float(d @ np.linalg.solve(s, d))
 
-    def _try_prior(self, slam, keyframe, reloc: Relocalisation, why: str, drift: float | None = None) -> None:
+    def _try_prior(
+        self,
+        slam,
+        keyframe,
+        reloc: Relocalisation,
+        why: str,
+        drift: float | None = None,
+        backfill: bool = False,
+    ) -> bool:
         cfg = self.config
         stamp, i = float(keyframe.stamp), keyframe.index
         est = np.asarray(keyframe.pose_map, float)
@@ -490,11 +571,13 @@ class FloorPlanUpdater:
             nums["chi2"] = chi2
             if chi2 > cfg.inconsistent_chi2:
                 rej = f"inconsistent with the estimate: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
-                self._inconsistent_run += 1
+                if not backfill:
+                    self._inconsistent_run += 1
         if rej is not None:
             self._event(slam, stamp, "prior_rejected", rej, i, False, **nums)
-            return
-        self._inconsistent_run = 0
+            return False
+        if not backfill:
+            self._inconsistent_run = 0
         cov = tangent_cov(reloc.pose, reloc.covariance)
         handle = slam.add_floorplan_prior(
             int(i),
@@ -504,8 +587,10 @@ class FloorPlanUpdater:
             kind=cfg.prior_kind,
             info={"score": reloc.score, "ambiguity": reloc.ambiguity},
         )
-        self._dist_at_prior = self._dist
+        if not backfill:
+            self._dist_at_prior = self._dist
         self._event(slam, stamp, "prior_added", why, i, True, mirror=False, prior=handle.id, **nums)
+        return True
 
     def _check_priors(self, slam, stamp: float) -> None:
         """Remove priors whose residual after optimisation is far beyond their covariance.

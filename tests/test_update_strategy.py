@@ -325,3 +325,32 @@ def test_agreeing_registration_refines_the_accepted_one(sim):
         refined = [e for e in upd.log if e.kind == "register" and e.reason.endswith("refined")]
         assert bool(refined) == refine
         assert slam.graph.priors() and {h.source for h in slam.graph.priors()} == {"reloc:reg0"}
+
+
+def test_backfill_puts_priors_on_keyframes_before_the_registration(sim):
+    """A registration accepted late also corrects the keyframes mapped before it: they are
+    relocalised on the plan (newest first, one per relocation_distance_D) and get priors where
+    the robot truly was; with backfill off they get none."""
+    plan, run, m = sim
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    for backfill in (True, False):
+        seq = iter([wrong] * 5 + [m] * 40)  # rejected registrations, then the right one
+        cfg = CFG.updates.model_copy(update={"backfill": backfill, "register_retry_distance": 1.0})
+        upd = FloorPlanUpdater(
+            plan,
+            cfg,
+            register_fn=lambda p, g, seq=seq: Registration.from_matrix(next(seq), score=0.9, ambiguity=0.2),
+        )
+        slam, _ = run_slam(run, upd)
+        first = next(e for e in upd.log if e.kind == "register" and e.accepted)
+        filled = [e for e in upd.log if e.kind == "prior_added" and e.reason == "backfill"]
+        if not backfill:
+            assert not filled
+            continue
+        assert filled and all(e.keyframe < first.keyframe for e in filled)
+        kfs = slam.keyframe_array()
+        before = [h for h in slam.graph.priors() if h.keyframe < first.keyframe]
+        assert len(before) == len(filled) >= 2
+        for h in before:  # where the robot truly was
+            j = int(np.argmin(np.abs(run.stamps - kfs[h.keyframe, 0])))
+            assert np.hypot(*(h.pose[:2] - run.true_poses[j, :2])) < 0.05
