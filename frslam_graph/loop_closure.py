@@ -669,7 +669,8 @@ class LoopCloser:
     def __init__(
         self, config: LoopClosureConfig | None = None, clock: Callable[[], float] = time.perf_counter
     ):
-        """``clock`` (seconds) measures ``budget_ms``; injectable for tests."""
+        """``clock`` (seconds) measures ``wall_budget_ms`` (``budget_ms`` is in estimated
+        milliseconds of the cost model, no clock involved); injectable for tests."""
         self.config = config or LoopClosureConfig()
         self.clock = clock
         self.closures: list[LoopClosure] = []
@@ -712,10 +713,10 @@ class LoopCloser:
 
     # ------------------------------------------------------------------ hooks
     def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo) -> list[LoopClosure]:
-        """A new keyframe: plan its candidates when the previous ones are done (at most every
-        ``attempt_every`` keyframes), then work on the queue within the per-scan budget.
-        Returns the closures that entered the graph during this call (of this or an earlier
-        keyframe)."""
+        """A new keyframe: every ``attempt_every`` keyframes queue its candidates (a pending
+        closure's check ahead of the older ones), then work on the queue within the per-scan
+        budget. Returns the closures that entered the graph during this call (of this or an
+        earlier keyframe)."""
         i = keyframe.index
         self._sync(slam, i)
         self._append_motion(keyframe.pose_odom)
@@ -1129,6 +1130,8 @@ __all__ = [
     "ScanMatch",
     "icp_point_to_line",
     "match_scan",
+    "match_scan_steps",
+    "run_steps",
     "transform_points",
     "voxel_downsample",
 ]
