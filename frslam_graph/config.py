@@ -271,6 +271,8 @@ class LoopClosureConfig(_Section):
     # so results do not depend on the machine's speed. A step estimated above the budget runs
     # alone. FRSlam.finish() runs what is left.
     budget_ms: float = Field(8.0, gt=0.0)
+    # on keyframe scans (their odometry-graph update and update strategy run there too)
+    keyframe_budget_ms: float = Field(4.0, gt=0.0)
     max_lookups_per_step: int = Field(300_000, ge=10_000)
     # at most this many relinearising iSAM2 iterations (each a step) after a small closure; the
     # factor's own iSAM2 update already takes one Gauss-Newton step from a nearby estimate

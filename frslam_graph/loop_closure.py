@@ -91,7 +91,8 @@ _MS_PER_CELL_FREE = 3e-6  # free-space mask, per cell
 _MS_PER_POINT_NORMALS = 1.5e-3  # k-d tree and PCA normals, per reference point
 _MS_ICP = 0.6  # one ICP refinement: fixed part ...
 _MS_PER_POINT_ICP = 2e-4  # ... and per query point and iteration
-_MS_PER_KEYFRAME_GATHER = 0.02  # submap points: transform one keyframe's scan
+_MS_GATHER = 0.2  # submap points: fixed part ...
+_MS_PER_POINT_GATHER = 1.2e-4  # ... and per end point of the keyframes gathered
 _MS_PER_KEYFRAME_UPDATE = 0.01  # one relinearising iSAM2 update, per keyframe of the graph
 _MS_PER_KEYFRAME_BATCH = 0.04  # LM batch and iSAM2 rebuild, per keyframe of the graph
 _MS_FINE = 1.5  # finer level of the correlative search (a few hundred poses)
@@ -644,6 +645,13 @@ class _Job:
     predicted: np.ndarray | None = None
 
 
+def _gather_cost(slam: FRSlam, lo: int, hi: int) -> float:
+    """Estimated cost (ms) of gathering the points of keyframes lo..hi into a submap."""
+    pts, _ = slam.keyframe_scans()
+    n = sum(len(pts[k]) for k in range(max(lo, 0), min(hi, len(pts) - 1) + 1))
+    return _MS_GATHER + _MS_PER_POINT_GATHER * n
+
+
 def _moved(after: np.ndarray, before: np.ndarray) -> float:
     """Largest xy displacement (m) of the keyframes in both arrays."""
     n = min(len(after), len(before))
@@ -728,7 +736,7 @@ class LoopCloser:
         try:
             if i >= cfg.min_keyframe_gap and i % cfg.attempt_every == 0:
                 self._plan(slam, i)
-            return self._work(slam, cfg.budget_ms, cfg.wall_budget_ms)
+            return self._work(slam, min(cfg.keyframe_budget_ms, cfg.budget_ms), cfg.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
@@ -917,7 +925,7 @@ class LoopCloser:
             return sub
         cfg = self.config
         lo, hi = c - cfg.submap_keyframes, min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
-        yield _MS_PER_KEYFRAME_GATHER * (hi - lo + 1)
+        yield _gather_cost(slam, lo, hi)
         pts, scans = self._submap(slam, slam.graph.estimates(), c, lo, hi, cfg.submap_travel)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
@@ -971,7 +979,7 @@ class LoopCloser:
         cfg = self.config
         c, i = job.reference, job.query
         if self._query is None or self._query[0] != i:
-            yield _MS_PER_KEYFRAME_GATHER * (cfg.submap_keyframes + 1)
+            yield _gather_cost(slam, i - cfg.submap_keyframes, i)
         query = self._query_points(slam, i)
         ref = yield from self._reference(slam, c, i)
         est = slam.graph.estimates()

@@ -372,3 +372,17 @@ def test_spread_work_is_deterministic(two_laps):
     first = [(e.stamp, e.keyframe, e.data["reference"]) for e in slam.log if e.kind == "loop_closure"]
     second = [(e.stamp, e.keyframe, e.data["reference"]) for e in again.log if e.kind == "loop_closure"]
     assert first == second and first
+
+
+def test_keyframe_scans_get_the_smaller_budget():
+    from types import SimpleNamespace
+
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 8.0, "keyframe_budget_ms": 4.0}})
+    closer = LoopCloser(cfg.loop_closure)
+    log: list[int] = []
+    closer._job = _fake_job([3.0] * 6, log)
+    closer._jobs.append(None)
+    # keyframe 0 (too early to plan): only 3 of the 4 ms fit; the next (plain) scan fits two
+    closer.on_keyframe(None, SimpleNamespace(index=0, pose_odom=np.zeros(3)))
+    assert log == [0]
+    assert _calls(closer, 1, log) == [[1, 2]]
