@@ -162,6 +162,9 @@ class UpdatesConfig(_Section):
     # free space (above the acceptance threshold: the map keeps drifting where priors are sparse)
     retract_walls_in_free_space: float = Field(0.2, ge=0.0, le=1.0)
     agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
+    # with no registration accepted, after this many metres without a prior a registration needs
+    # a second one that agrees (within agree_tol) before it is accepted
+    confirm_after_m: float = Field(20.0, ge=0.0)
     switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
     # an agreeing registration (within agree_tol) that explains the grown map at least as well
     # refines the accepted one for the relocalisations that follow

@@ -115,6 +115,7 @@ class FloorPlanUpdater:
         self._dist_at_attempt = 0.0
         self._kf_dist: list[float] = []  # odometry distance travelled at each keyframe
         self._retries = 0
+        self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
         self._attempts = 0
@@ -484,6 +485,24 @@ class FloorPlanUpdater:
                 return reject(
                     f"inconsistent with the trajectory: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
                 )
+            travelled = self._dist - self._dist_at_prior
+            if travelled > cfg.confirm_after_m:
+                # the drift allowance has made the chi2 gate weak: a second registration that
+                # agrees must confirm this one (as for loop closures with large corrections)
+                pending, self._pending_reg = self._pending_reg, reg
+                if pending is None:
+                    return reject(
+                        f"{travelled:.0f} m travelled without a prior: waiting for a second "
+                        "registration that agrees"
+                    )
+                disp = _matrix_disagreement(self.plan, pending.matrix, reg.matrix)
+                nums["disagreement"] = disp
+                if disp > cfg.agree_tol:
+                    return reject(
+                        f"{travelled:.0f} m travelled without a prior: disagrees with the previous "
+                        f"registration (RMS {disp:.2f} m); waiting for one that agrees"
+                    )
+        self._pending_reg = None
         acc = _Accepted(self._next_id, reg, plan_map, relocaliser, fit)
         self._next_id += 1
         return acc, relocaliser, reloc

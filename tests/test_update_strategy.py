@@ -354,3 +354,30 @@ def test_backfill_puts_priors_on_keyframes_before_the_registration(sim):
         for h in before:  # where the robot truly was
             j = int(np.argmin(np.abs(run.stamps - kfs[h.keyframe, 0])))
             assert np.hypot(*(h.pose[:2] - run.true_poses[j, :2])) < 0.05
+
+
+def test_late_first_registration_needs_a_second_that_agrees(sim):
+    """After confirm_after_m metres without a prior the chi2 gate allows for so much drift that
+    it cannot check a registration: the first one waits for a second that agrees; a wrong one
+    in between does not get in."""
+    plan, run, m = sim
+    shifted = rotated_about_centre(plan, m, shift=(1.5, 0.0))
+    cfg = CFG.updates.model_copy(update={"confirm_after_m": 0.0, "register_retry_distance": 1.0})
+    seq = iter([shifted, m, m] + [m] * 40)
+    upd = FloorPlanUpdater(
+        plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(seq), score=0.9, ambiguity=0.2)
+    )
+    run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind == "register"]
+    assert not reg[0].accepted and not reg[1].accepted
+    assert any("waiting for" in e.reason for e in reg[:2])
+    assert reg[2].accepted and np.allclose(upd.registration.matrix, m)
+    # default: the same source is accepted at once early in the run
+    seq2 = iter([m] * 40)
+    upd2 = FloorPlanUpdater(
+        plan,
+        CFG.updates,
+        register_fn=lambda p, g: Registration.from_matrix(next(seq2), score=0.9, ambiguity=0.2),
+    )
+    run_slam(run, upd2)
+    assert next(e for e in upd2.log if e.kind == "register").accepted
