@@ -1074,8 +1074,12 @@ class LoopCloser:
         graph = slam.graph
         yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
+        # with floor-plan priors in the graph, absolute corrections come from the plan: a
+        # confirmed pair stays under the robust kernel too, so an aliased pair (two matches of
+        # the same repeated structure) cannot overrule the priors
+        anchored = any(h.source.startswith("reloc:") for h in graph.priors())
         for lc in closures:
-            graph.add_factor(self._factor(lc, robust=not settle), extra_iterations=0)
+            graph.add_factor(self._factor(lc, robust=not settle or anchored), extra_iterations=0)
         if settle:
             yield from self._settle(graph, 10)
             moved = _moved(graph.estimates(), before)

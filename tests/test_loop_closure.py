@@ -386,3 +386,39 @@ def test_keyframe_scans_get_the_smaller_budget():
     closer.on_keyframe(None, SimpleNamespace(index=0, pose_odom=np.zeros(3)))
     assert log == [0]
     assert _calls(closer, 1, log) == [[1, 2]]
+
+
+@pytest.mark.parametrize("anchored", [False, True])
+def test_confirmed_pair_stays_robust_once_floor_plan_priors_anchor_the_map(anchored):
+    """A confirmed pair of closures enters as plain Gaussians (to pull a stiff odometry chain)
+    unless floor-plan priors already anchor the graph: then it stays under the robust kernel,
+    so an aliased pair cannot overrule the plan."""
+    from types import SimpleNamespace
+
+    import gtsam
+
+    from frslam_graph.loop_closure import LoopCloser, LoopClosure
+    from frslam_graph.pipeline import FRSlam
+
+    slam = FRSlam()
+    g = slam.graph
+    g.add_first(np.zeros(3))
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+    for _ in range(6):
+        g.add_keyframe(np.array([1.0, 0.0, 0.0]), cov)
+    if anchored:
+        g.add_prior(0, np.zeros(3), np.diag([1e-4, 1e-4, 1e-5]), source="reloc:reg0")
+    match = SimpleNamespace(inlier_fraction=0.9, ambiguity=0.1, coarse_score=0.9)
+    lcs = [
+        LoopClosure(0, 5, np.array([5.0, 0.1, 0.0]), cov, match, np.zeros(3)),
+        LoopClosure(1, 6, np.array([5.0, 0.1, 0.0]), cov, match, np.zeros(3)),
+    ]
+    closer = LoopCloser()
+    for _ in closer._add(slam, lcs, settle=True):
+        pass
+    fg = g._graph()
+    models = [
+        fg.at(i).noiseModel() for i in range(fg.size()) if isinstance(fg.at(i), gtsam.BetweenFactorPose2)
+    ]
+    robust = [isinstance(m, gtsam.noiseModel.Robust) for m in models[-2:]]
+    assert robust == [anchored, anchored]
