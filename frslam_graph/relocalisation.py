@@ -142,10 +142,9 @@ def free_space_polygons(plan, wall_offset: float) -> list[Polygon]:
     if any(len(set(d.rooms)) < 2 for d in doors):
         linked = plan.link_doors(tol=max(0.3, 4.0 * wall_offset))
         doors = [d if len(set(d.rooms)) == 2 else ld for d, ld in zip(doors, linked.doors, strict=True)]
-    if doors:
-        envelope = shapely.union_all([r.polygon for r in plan.rooms]).buffer(
-            wall_offset, join_style="mitre", mitre_limit=3.0
-        )
+    envelope = shapely.union_all([r.polygon for r in plan.rooms]).buffer(
+        wall_offset, join_style="mitre", mitre_limit=3.0
+    )
     for d in doors:
         if len(set(d.rooms)) < 2 or d.width <= 1e-9:
             continue
@@ -160,11 +159,7 @@ def free_space_polygons(plan, wall_offset: float) -> list[Polygon]:
             polys.append(opening)
     # boundaries between rooms that no plan wall runs along (an open living-dining-kitchen)
     bare, _ = open_boundaries(plan, 2.0 * wall_offset)
-    if bare:
-        envelope = shapely.union_all([r.polygon for r in plan.rooms]).buffer(
-            wall_offset, join_style="mitre", mitre_limit=3.0
-        )
-        polys += [g for g in (o.intersection(envelope) for o in bare) if not g.is_empty]
+    polys += [g for g in (o.intersection(envelope) for o in bare) if not g.is_empty]
     return polys
 
 

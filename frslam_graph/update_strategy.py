@@ -354,13 +354,14 @@ class FloorPlanUpdater:
         tag = f"reloc:reg{self.accepted.id}"
         have = {h.keyframe for h in slam.graph.priors() if h.source == tag}
         d = self._kf_dist
-        queue, last = [], d[i] if i < len(d) else self._dist
+        here = d[i] if i < len(d) else self._dist
+        queue, last = [], here
         for k in range(min(i, len(d)) - 1, -1, -1):
             if last - d[k] >= cfg.relocation_distance_D and k not in have:
                 queue.append(k)
                 last = d[k]
         self._backfill = queue
-        self._backfill_anchor = d[i] if i < len(d) else self._dist
+        self._backfill_anchor = here
 
     def _run_backfill(self, slam, n: int) -> None:
         scans = slam.keyframe_scans()[0]

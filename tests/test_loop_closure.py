@@ -201,15 +201,21 @@ def test_transform_points_matches_compose():
     assert key(3) == gtsam.symbol("x", 3)
 
 
+def _straight_line_with_pending_closure(closer: LoopCloser) -> np.ndarray:
+    """41 keyframes along x, 0.5 m apart, and a pending closure of keyframe 39 on old keyframe
+    2; returns the estimates (41, 3)."""
+    n = 41
+    for k in range(n):
+        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
+    closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    return np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
+
+
 def test_pending_closure_predicts_where_to_look_next():
     closer = LoopCloser()
     # 40 keyframes along x, 0.5 m apart; keyframe 39 (at 19.5 m) matched old keyframe 2 at a
     # 10 m correction: keyframe 40 should be looked for near old keyframe 3 (1 m further on)
-    n = 41
-    for k in range(n):
-        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
-    est = np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
-    closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    est = _straight_line_with_pending_closure(closer)
     c, win_xy, win_th, centre = closer._hypothesis(est, 40)
     cfg = closer.config
     assert c == 3 and win_xy == cfg.hypothesis_window_xy
@@ -349,11 +355,7 @@ def test_pending_closure_check_goes_ahead_of_queued_candidates():
     from frslam_graph.loop_closure import _Job
 
     closer = LoopCloser()
-    n = 41
-    for k in range(n):
-        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
-    est = np.column_stack((0.5 * np.arange(n), np.zeros(n), np.zeros(n)))
-    closer._pending.append(LoopClosure(2, 39, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    est = _straight_line_with_pending_closure(closer)
     older = [_Job(5, 36, 2.0, 0.2), _Job(6, 38, 2.0, 0.2)]  # not matched yet
     closer._jobs.extend(older)
     closer._last_plan = 38
