@@ -491,15 +491,49 @@ class ScanOdometry:
 def _inlier_fractions(
     map_points: np.ndarray, source: np.ndarray, poses: list[np.ndarray], radius: float
 ) -> list[float]:
-    """Fraction of the source points within ``radius`` of the map, for each candidate pose."""
+    """Fraction of the source points within ``radius`` of the map, for each candidate pose.
+
+    Bounded work: only the map points in cells (of side ``radius``) next to a transformed source
+    point can be within ``radius`` of it, so the k-d tree is built on those alone (exactly the same
+    fractions as a tree over the whole local map, whose size grows with the explored area).
+    """
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(np.asarray(map_points)[:, :2])
+    mp = np.asarray(map_points)[:, :2]
+    moved = [source[:, :2] @ T[:2, :2].T + T[:2, 3] for T in poses]
+    moved = [p[np.all(np.isfinite(p), axis=1)] for p in moved]  # a failed pose: no inliers
+    near = _near_cells(mp, np.vstack(moved), radius)
+    tree = cKDTree(mp[near])
     out = []
-    for T in poses:
-        p = source[:, :2] @ T[:2, :2].T + T[:2, 3]
+    for p in moved:
+        if tree.n == 0 or len(p) == 0:
+            out.append(0.0)
+            continue
         dist, _ = tree.query(p, distance_upper_bound=radius)
-        out.append(float(np.mean(np.isfinite(dist))))
+        out.append(float(np.count_nonzero(np.isfinite(dist)) / max(len(source), 1)))
+    return out
+
+
+def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of ``points`` (N, 2) in a cell of side ``radius`` adjacent to (or holding) a query.
+
+    Every point within ``radius`` of a query is in it: |p - q| <= r implies their cell indices
+    differ by at most one per axis. A boolean raster over the queries' box, dilated by one cell.
+    """
+    if len(queries) == 0 or len(points) == 0:
+        return np.zeros(len(points), dtype=bool)
+    qc = np.floor(queries / radius).astype(np.int64)
+    base = qc.min(axis=0) - 1  # lowest cell of the dilated set; raster index = cell - base
+    qi = qc - base
+    occ = np.zeros(tuple((qi.max(axis=0) + 2).tolist()), dtype=bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            occ[qi[:, 0] + dx, qi[:, 1] + dy] = True
+    pc = np.floor(points / radius) - base  # float: far points must not overflow int64
+    inside = (pc[:, 0] >= 0) & (pc[:, 1] >= 0) & (pc[:, 0] < occ.shape[0]) & (pc[:, 1] < occ.shape[1])
+    out = np.zeros(len(points), dtype=bool)
+    idx = pc[inside].astype(np.int64)
+    out[inside] = occ[idx[:, 0], idx[:, 1]]
     return out
 
 

@@ -282,3 +282,35 @@ def test_standing_still_makes_time_keyframes(room):
     assert all(np.abs(r.between).max() < 0.01 for r in kfs[1:])
     off = ScanOdometry(CFG)  # default: off
     assert sum(off.process(0.1 * k, points[0], odom[0]).is_keyframe for k in range(121)) == 1
+
+
+def test_inlier_fractions_local_crop_is_exact():
+    """The two-seed score looks at the map near the source only: same fractions as a full search."""
+    from scipy.spatial import cKDTree
+
+    from frslam_graph.motion_model import to_matrix4
+    from frslam_graph.odometry import _inlier_fractions
+
+    rng = np.random.default_rng(3)
+    map_pts = np.column_stack((rng.uniform(-30, 30, (20000, 2)), np.zeros(20000)))
+    source = np.column_stack((rng.uniform(-8, 8, (300, 2)), np.zeros(300)))
+    poses = [to_matrix4(np.array([0.3, -0.2, 0.1])), to_matrix4(np.array([-0.05, 0.1, -0.4]))]
+    radius = 0.2
+    tree = cKDTree(map_pts[:, :2])
+    want = []
+    for T in poses:
+        d, _ = tree.query(source[:, :2] @ T[:2, :2].T + T[:2, 3], distance_upper_bound=radius)
+        want.append(float(np.mean(np.isfinite(d))))
+    assert 0.2 < want[0] < 0.9  # the fixture has both inliers and outliers
+    assert _inlier_fractions(map_pts, source, poses, radius) == want
+
+
+def test_inlier_fractions_failed_pose_scores_zero():
+    """A non-finite ICP pose among the seeds scores no inliers (it used to raise from the k-d tree)."""
+    from frslam_graph.motion_model import to_matrix4
+    from frslam_graph.odometry import _inlier_fractions
+
+    pts = np.column_stack((np.linspace(0, 5, 200), np.zeros(200), np.zeros(200)))
+    good = to_matrix4(np.zeros(3))
+    assert _inlier_fractions(pts, pts, [good, np.full((4, 4), np.nan)], 0.2) == [1.0, 0.0]
+    assert _inlier_fractions(pts[:0], pts, [good], 0.2) == [0.0]
