@@ -643,6 +643,7 @@ class _Job:
     radius: float
     window_theta: float
     predicted: np.ndarray | None = None
+    closures: int = 0  # closures accepted when it was planned
 
 
 def _gather_cost(slam: FRSlam, lo: int, hi: int) -> float:
@@ -668,6 +669,7 @@ class LoopClosureStats:
     seconds: float = 0.0  # wall clock spent in the loop closer
     cpu_seconds: float = 0.0  # process CPU time spent in the loop closer
     keyframes: int = 0
+    redundant: int = 0  # candidate regions not searched: already tied to the keyframe (see config)
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -689,6 +691,8 @@ class LoopCloser:
         self._last_closure = -1
         self._tried: dict[tuple[int, int], int] = {}
         self._pending: list[LoopClosure] = []
+        # graph distances of the latest plan: (keyframe, closures, travel, turn)
+        self._dist: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
         self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
         self._rng = np.random.default_rng(0)
@@ -716,6 +720,7 @@ class LoopCloser:
         if len(self._odom) == index:
             return
         self._travel, self._turn, self._odom = [], [], []
+        self._dist = None
         for kf in slam.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
@@ -799,6 +804,18 @@ class LoopCloser:
         the graph, accepted closures counting as zero length: how far the relative drift can grow."""
         trav, turn = np.asarray(self._travel[: i + 1]), np.asarray(self._turn[: i + 1])
         n = i + 1
+        d = self._dist
+        if d is not None and d[0] <= i and d[1] == len(self.closures) and self._last_closure <= d[0]:
+            # no closure since the previous keyframe i0 = d[0] and none after it: every path from
+            # i runs down the chain to i0 (each edge of the chain counts + 1e-9, as below)
+            i0 = d[0]
+            k = np.arange(i0 + 1, n)
+            out = [
+                np.concatenate((prev + (x[i] - x[i0]) + 1e-9 * (i - i0), x[i] - x[k] + 1e-9 * (i - k)))
+                for prev, x in ((d[2], trav), (d[3], turn))
+            ]
+            self._dist = (i, len(self.closures), out[0], out[1])
+            return out[0], out[1]
         a = np.arange(n - 1)
         rows = [a, a + 1]
         cols = [a + 1, a]
@@ -813,11 +830,26 @@ class LoopCloser:
             wt += [np.full(len(r), 1e-9)] * 2
             wr += [np.full(len(r), 1e-9)] * 2
         rr, cc = np.concatenate(rows), np.concatenate(cols)
+        # one sparsity structure for both weights (rows sorted; duplicate edges are kept, the
+        # search takes the shorter)
+        perm = np.argsort(rr, kind="stable")
+        indptr = np.zeros(n + 1, np.int64)
+        np.cumsum(np.bincount(rr, minlength=n), out=indptr[1:])
+        cols_sorted = cc[perm].astype(np.int32)
         out = []
         for w in (wt, wr):
-            g = csr_matrix((np.concatenate(w), (rr, cc)), shape=(n, n))
+            g = csr_matrix((np.concatenate(w)[perm], cols_sorted, indptr), shape=(n, n))
             out.append(dijkstra(g, indices=i, directed=True))
+        self._dist = (i, len(self.closures), out[0], out[1])
         return out[0], out[1]
+
+    def _tied(self, i: int) -> np.ndarray:
+        """Mask over keyframes 0..i: tied to keyframe i by a short path of the graph (the relative
+        uncertainty is small; see ``LoopClosureConfig.redundant_travel``)."""
+        cfg = self.config
+        d = self._dist
+        d_rel, r_rel = (d[2], d[3]) if d and d[:2] == (i, len(self.closures)) else self._graph_distances(i)
+        return (d_rel <= cfg.redundant_travel) & (r_rel <= np.deg2rad(cfg.redundant_turn_deg))
 
     def _eligible(self, i: int) -> np.ndarray:
         """Mask over keyframes 0..i-min_keyframe_gap far enough back (travel or turn)."""
@@ -868,15 +900,30 @@ class LoopCloser:
             return []
         idx = idx[ok]
         order = idx[np.argsort(dist[ok], kind="stable")]
-        cells = np.floor(est[order, :2] / cfg.candidate_spacing).astype(int)
-        # one candidate per cell (the nearest); the first pick is the nearest cell not tried
-        # recently, the others go round-robin (never tried first, then the least recently tried)
-        # so that a wide search area is covered over the keyframes
+        cells = list(map(tuple, np.floor(est[order, :2] / cfg.candidate_spacing).astype(int).tolist()))
+        order = order.tolist()
+        # a region the graph already ties to keyframe i (short path through a recent closure)
+        # is redundant: not searched while the relative drift since that closure is small
+        tied = self._tied(i)[order]
+        redundant = {cell for cell, t in zip(cells, tied.tolist(), strict=True) if t}
+        # per cell the nearest keyframe, or the nearest whose reference submap is cached
+        cached: dict[tuple[int, int], int] = {}
+        if cfg.reuse_submaps and self._submaps:
+            for c, cell in zip(order, cells, strict=True):
+                if c in self._submaps:
+                    cached.setdefault(cell, c)
+        # one candidate per cell; the first pick is the nearest cell not tried recently, the
+        # others go round-robin (never tried first, then the least recently tried) so that a
+        # wide search area is covered over the keyframes
         picks, seen = [], set()
-        for rank, (c, cell) in enumerate(zip(order.tolist(), map(tuple, cells.tolist()), strict=True)):
+        for rank, (c, cell) in enumerate(zip(order, cells, strict=True)):
             if cell in seen:
                 continue
             seen.add(cell)
+            if cell in redundant:
+                self.stats.redundant += 1
+                continue
+            c = cached.get(cell, c)
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue
@@ -956,11 +1003,17 @@ class LoopCloser:
             (c, r, w, None) for c, r, w in self._candidates(est, i)
         ]
         hyp = self._hypothesis(est, i)
+        if hyp is not None and self._tied(i)[hyp[0]]:
+            # the graph already ties keyframe i to the predicted place by a recent verified
+            # closure: the check is redundant (and the closure, if it agrees, adds little)
+            self.stats.redundant += 1
+            hyp = None
         if hyp is not None:
             cands = cands[: cfg.max_candidates - 1]
-        self._jobs.extend(_Job(c, i, r, w, pred) for c, r, w, pred in cands)
+        n = len(self.closures)
+        self._jobs.extend(_Job(c, i, r, w, pred, n) for c, r, w, pred in cands)
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
-            self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3]))
+            self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n))
 
     def _query_points(self, slam: FRSlam, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
@@ -978,6 +1031,11 @@ class LoopCloser:
         (:meth:`_add`)."""
         cfg = self.config
         c, i = job.reference, job.query
+        if len(self.closures) != job.closures and self._tied(i)[c]:
+            # a closure accepted since the plan (e.g. the keyframe's other candidate) ties the
+            # region already: matching it would add little
+            self.stats.redundant += 1
+            return []
         if self._query is None or self._query[0] != i:
             yield _gather_cost(slam, i - cfg.submap_keyframes, i)
         query = self._query_points(slam, i)

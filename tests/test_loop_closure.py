@@ -424,3 +424,102 @@ def test_confirmed_pair_stays_robust_once_floor_plan_priors_anchor_the_map(ancho
     ]
     robust = [isinstance(m, gtsam.noiseModel.Robust) for m in models[-2:]]
     assert robust == [anchored, anchored]
+
+
+# ------------------------------------------------------------ redundant regions are not searched
+def _circle(closer: LoopCloser, n: int = 62) -> np.ndarray:
+    """n keyframes 0.5 m apart on a circle of radius 3 m (about 38 per lap, turning 1/3 rad per
+    metre); keyframe 60 is back next to keyframe 22. Returns the estimates (n, 3)."""
+    th = 0.5 / 3.0 * np.arange(n)
+    est = np.column_stack((3.0 * np.cos(th), 3.0 * np.sin(th), th + np.pi / 2.0))
+    for p in est:
+        closer._append_motion(p)
+    return est
+
+
+def _circle_closer(closure: tuple[int, int] | None, **cfg) -> tuple[LoopCloser, np.ndarray]:
+    lc = {"max_candidates": 10, "retry_keyframes": 0, "redundant_travel": 5.0, **cfg}
+    closer = LoopCloser(FRSlamConfig.from_dict({"loop_closure": lc}).loop_closure)
+    est = _circle(closer)
+    if closure is not None:
+        closer.closures.append(LoopClosure(*closure, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+        closer._last_closure = closure[1]
+    return closer, est
+
+
+def test_region_tied_by_a_recent_closure_is_not_searched_again():
+    # keyframe 56 closed on 18 two metres ago: 60 is tied to the region of 22 (4 m of graph
+    # path through the closure, below redundant_travel): only regions farther along are searched
+    closer, est = _circle_closer((18, 56))
+    refs = [c for c, _, _ in closer._candidates(est, 60)]
+    d_rel, _ = closer._graph_distances(60)
+    assert refs and all(d_rel[c] > 5.0 for c in refs)
+    assert 22 not in refs and closer.stats.redundant > 0
+    # without the rule the nearest region (keyframe 22, 0.15 m away) is the first candidate
+    closer, est = _circle_closer((18, 56), redundant_travel=0.0)
+    assert closer._candidates(est, 60)[0][0] == 22 and closer.stats.redundant == 0
+
+
+@pytest.mark.parametrize("closure", [(10, 48), None])
+def test_region_is_searched_again_once_its_uncertainty_grew(closure):
+    # the closure is 6 m of travel back (or there is none): the drift since can exceed what a
+    # closure corrects, the nearest region is searched again
+    closer, est = _circle_closer(closure)
+    assert closer._candidates(est, 60)[0][0] == 22
+    assert closer.stats.redundant == 0
+
+
+def test_large_turn_since_the_closure_unties_the_region():
+    # same 4 m path as above, but the heading drift allowance is exceeded by the turning
+    closer, est = _circle_closer((18, 56), redundant_turn_deg=45.0)  # the path turns 76 degrees
+    assert closer._candidates(est, 60)[0][0] == 22
+
+
+def test_queued_candidate_tied_by_a_later_closure_is_dropped_unmatched():
+    from frslam_graph.loop_closure import _Job, run_steps
+
+    closer, est = _circle_closer(None)
+    job = _Job(22, 60, 3.0, 0.2, None, len(closer.closures))  # planned before the closure below
+    closer.closures.append(LoopClosure(18, 56, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    closer._last_closure = 56
+    # (no pipeline needed: the job stops before gathering any point)
+    assert run_steps(closer._job(None, job)) == []
+    assert closer.stats.redundant == 1 and closer.stats.attempts == 0
+
+
+def test_pending_check_of_a_tied_place_is_skipped():
+    from types import SimpleNamespace
+
+    closer, est = _circle_closer((18, 56))
+    # an older pending closure (large correction) predicts keyframe 60 next to keyframe 22,
+    # which the newer verified closure already ties to 60
+    closer._pending.append(LoopClosure(0, 38, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
+    assert closer._hypothesis(est, 60)[0] == 22
+    closer._last_plan = 58
+    closer._plan(SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy())), 60)
+    assert all(j.predicted is None and j.reference != 22 for j in closer._jobs)
+
+
+def test_candidate_prefers_a_cached_reference_submap_in_its_cell():
+    closer, est = _circle_closer(None)
+    cells = np.floor(est[:, :2] / closer.config.candidate_spacing).astype(int)
+    mates = [k for k in range(41) if k != 22 and (cells[k] == cells[22]).all()]
+    assert mates  # another keyframe of the nearest one's cell
+    closer._submaps[mates[0]] = None  # cached: no rebuild needed
+    assert closer._candidates(est, 60)[0][0] == mates[0]
+
+
+def test_graph_distances_are_updated_incrementally_between_closures():
+    rng = np.random.default_rng(3)
+    closer = LoopCloser()
+    for _ in range(120):
+        closer._append_motion(rng.normal(size=3))
+    for i in range(30, 120, 3):
+        if i % 4 == 0:  # a closure now and then (sometimes of an earlier keyframe)
+            q = i - i % 3
+            closer.closures.append(LoopClosure(q // 3, q, np.zeros(3), np.eye(3), None, np.zeros(3)))
+            closer._last_closure = max(closer._last_closure, q)
+        fresh = LoopCloser()
+        fresh._travel, fresh._turn, fresh.closures = closer._travel, closer._turn, closer.closures
+        for a, b in zip(closer._graph_distances(i), fresh._graph_distances(i), strict=True):
+            np.testing.assert_allclose(a, b, atol=1e-9)
