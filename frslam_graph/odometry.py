@@ -515,26 +515,25 @@ def _inlier_fractions(
 
 
 def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.ndarray:
-    """Mask of ``points`` (N, 2) in a cell of side ``radius`` adjacent to (or holding) a query.
+    """Mask of ``points`` (N, 2) that may lie within ``radius`` of a query (a superset).
 
-    Every point within ``radius`` of a query is in it: |p - q| <= r implies their cell indices
-    differ by at most one per axis. A boolean raster over the queries' box, dilated by one cell.
+    On a raster of cells a hair larger than ``radius`` (both sets indexed by the same monotone
+    formula), a point within ``radius`` of a query is in the query's cell or a neighbouring one:
+    the queries' cells dilated by one, with a false border onto which outside points are clipped.
     """
     if len(queries) == 0 or len(points) == 0:
         return np.zeros(len(points), dtype=bool)
-    qc = np.floor(queries / radius).astype(np.int64)
-    base = qc.min(axis=0) - 1  # lowest cell of the dilated set; raster index = cell - base
-    qi = qc - base
-    occ = np.zeros(tuple((qi.max(axis=0) + 2).tolist()), dtype=bool)
+    inv = 1.0 / (radius * (1.0 + 1e-6))
+    o = queries.min(axis=0) - 3.0 / inv  # query cells >= 2: dilation and border fit below
+    qi = ((queries - o) * inv).astype(np.intp)
+    shape = (qi.max(axis=0) + 3).tolist()
+    occ = np.zeros(shape, dtype=bool)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             occ[qi[:, 0] + dx, qi[:, 1] + dy] = True
-    pc = np.floor(points / radius) - base  # float: far points must not overflow int64
-    inside = (pc[:, 0] >= 0) & (pc[:, 1] >= 0) & (pc[:, 0] < occ.shape[0]) & (pc[:, 1] < occ.shape[1])
-    out = np.zeros(len(points), dtype=bool)
-    idx = pc[inside].astype(np.int64)
-    out[inside] = occ[idx[:, 0], idx[:, 1]]
-    return out
+    ix = np.clip((points[:, 0] - o[0]) * inv, 0, shape[0] - 1).astype(np.intp)
+    iy = np.clip((points[:, 1] - o[1]) * inv, 0, shape[1] - 1).astype(np.intp)
+    return occ[ix, iy]
 
 
 def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:

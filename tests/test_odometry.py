@@ -303,6 +303,14 @@ def test_inlier_fractions_local_crop_is_exact():
         want.append(float(np.mean(np.isfinite(d))))
     assert 0.2 < want[0] < 0.9  # the fixture has both inliers and outliers
     assert _inlier_fractions(map_pts, source, poses, radius) == want
+    # map points exactly radius away from sources sitting on cell boundaries
+    src = np.array([[0.2, 0.4, 0.0], [-0.6, 1.0, 0.0], [3.0, -2.2, 0.0]])
+    offsets = radius * np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.6, 0.8], [-0.8, -0.6]])
+    edge = (src[:, None, :2] + offsets[None]).reshape(-1, 2)
+    edge = np.column_stack((np.vstack((edge, edge * (1 + 1e-9))), np.zeros(2 * len(edge))))
+    eye = [np.eye(4)]
+    d, _ = cKDTree(edge[:, :2]).query(src[:, :2], distance_upper_bound=radius)
+    assert _inlier_fractions(edge, src, eye, radius) == [float(np.mean(np.isfinite(d)))]
 
 
 def test_inlier_fractions_failed_pose_scores_zero():
