@@ -73,6 +73,11 @@ class OdometryConfig(_Section):
     wheel_rot_per_m_deg: float = Field(1.0, ge=0.0)
     wheel_rot_frac: float = Field(0.02, ge=0.0)
     wheel_sigma_floor_xy: float = Field(0.002, gt=0.0)
+    # Distance (m) over which wheel errors (a wrong wheel radius, a heading bias) stay correlated;
+    # used where the wheels alone carry the motion (scan_matching off, or no usable scan), so that
+    # a chain of wheel increments allows wheel_dist_frac of every stretch up to this length (see
+    # motion_model.wheel_noise). Fused with ICP, the per-increment noise applies.
+    wheel_correlation_length: float = Field(5.0, ge=0.0)
     # Per-step heading floor: wheel heading errors are systematic (not white), so a generous floor
     # keeps ICP in charge of the heading wherever the scan observes it.
     wheel_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
@@ -144,6 +149,9 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
+    # while none is accepted, a registration that matched but failed the checks is retried once
+    # after this many metres (a fresh map before drift grows; 0 = off)
+    register_recheck_distance: float = Field(3.0, ge=0.0)
     # every other retry registers on the map of the keyframes of the last this many metres (the
     # whole map may have drifted too far to match)
     local_map_distance: float = Field(40.0, gt=0.0)

@@ -121,15 +121,23 @@ def wheel_noise(
     rot_frac: float = 0.02,
     floor_xy: float = 0.002,
     floor_theta: float = np.deg2rad(0.1),
+    correlation_length: float = 0.0,
 ) -> np.ndarray:
     """3×3 covariance of a wheel increment u (in its own start frame).
 
-    Translation: sigma = dist_frac · d along and across the motion (isotropic, so slip sideways is
-    covered); heading: sigma = rot_per_m · d + rot_frac · |dtheta|; both floored.
+    Translation: sigma = dist_frac · sqrt(d · max(d, L)) along and across the motion (isotropic, so
+    slip sideways is covered); heading: sigma = rot_per_m · sqrt(d · max(d, L)) + rot_frac ·
+    |dtheta|; both floored. ``L = correlation_length`` (m) is the distance over which wheel errors
+    stay correlated (a wrong wheel radius, a slow heading bias): summed over the increments of a
+    stretch s <= L the white-noise model still allows dist_frac · s, the error a systematic 2 %
+    scale error makes there, where the plain per-increment dist_frac · d would allow only
+    dist_frac · s / sqrt(n) after n increments (an odometry chain that overrules right floor-plan
+    priors after a long stretch without them). L = 0 gives the per-increment model.
     """
     d = float(np.hypot(u[0], u[1]))
-    sxy = max(dist_frac * d, floor_xy)
-    sth = max(rot_per_m * d + rot_frac * abs(float(u[2])), floor_theta)
+    dl = float(np.sqrt(d * max(d, correlation_length)))
+    sxy = max(dist_frac * dl, floor_xy)
+    sth = max(rot_per_m * dl + rot_frac * abs(float(u[2])), floor_theta)
     return np.diag([sxy * sxy, sxy * sxy, sth * sth])
 
 

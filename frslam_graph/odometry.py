@@ -266,6 +266,10 @@ class ScanOdometry:
             if not wheel_only:
                 self.stats.empty_scans += 1
             fallback = not wheel_only
+            if used_wheel:
+                # the wheels alone carry the motion, increment after increment: their errors are
+                # correlated over wheel_correlation_length (see motion_model.wheel_noise)
+                cov_u = wheel_noise(u, **self._wheel_args, correlation_length=cfg.wheel_correlation_length)
             self._ekf.predict(u, cov_u)
             self._resync_icp(u)
             R_body = None

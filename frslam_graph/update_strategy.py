@@ -13,7 +13,9 @@ geometry, which corrects the drift accumulated along the way.
 - it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
   first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
   ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
-  no registration is accepted (the map changes as it is re-estimated), and when progress is
+  no registration is accepted (the map changes as it is re-estimated), once
+  ``register_recheck_distance`` metres after a match that the checks rejected (before the
+  drift grows further), and when progress is
   obstructed (no progress
   for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
 - a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
@@ -115,6 +117,7 @@ class FloorPlanUpdater:
         self._dist_at_attempt = 0.0
         self._kf_dist: list[float] = []  # odometry distance travelled at each keyframe
         self._retries = 0
+        self._recheck = False  # the last attempt matched but was rejected: retry soon, once
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
@@ -187,6 +190,16 @@ class FloorPlanUpdater:
                     reason = f"mapped area grew by {grown:.1f} m² to {area:.1f} m²"
                 elif obstructed and grown >= 1.0:
                     reason = "progress obstructed"
+                elif (
+                    self._recheck
+                    and self.accepted is None
+                    and cfg.register_recheck_distance > 0.0
+                    and self._dist - self._dist_at_attempt >= cfg.register_recheck_distance
+                ):
+                    reason = (
+                        f"the last registration matched but was rejected; retry after "
+                        f"{self._dist - self._dist_at_attempt:.0f} m"
+                    )
                 elif (
                     self.accepted is None
                     and self._dist - self._dist_at_attempt >= cfg.register_retry_distance
@@ -279,6 +292,7 @@ class FloorPlanUpdater:
         cfg = self.config
         t0 = time.perf_counter()
         self._attempts += 1
+        quick, self._recheck = self._recheck, False
         area = self.mapped_area
         self._area_at_attempt = area
         self._dist_at_attempt = self._dist
@@ -300,6 +314,9 @@ class FloorPlanUpdater:
         verdict = self._judge(slam, keyframe, reg, grid, nums, reason)
         self.timings["register"] += time.perf_counter() - t0
         if verdict is None:
+            # a match the checks rejected (wrong, or right on a map that drifted) gets one quick
+            # retry on a map a few metres larger, before the drift grows any further
+            self._recheck = reg.ok and self.accepted is None and not quick
             return
         accepted, relocaliser, reloc = verdict
         msg, kind = f"{reason}; accepted", "register"

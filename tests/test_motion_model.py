@@ -114,3 +114,35 @@ def test_log_exp_match_gtsam_near_zero_rotation():
         p = np.array([0.3, -0.1, th])
         np.testing.assert_allclose(_log(p), gtsam.Pose2.Logmap(gtsam.Pose2(*p)), atol=1e-12)
         np.testing.assert_allclose(_exp(_log(p)), p, atol=1e-12)
+
+
+def _summed_std(noise_kw, step, metres):
+    """Position std (m) of ``metres`` of straight driving in increments of ``step`` metres, each
+    with its own wheel_noise (increments are independent in the pose graph)."""
+    n = round(metres / step)
+    u = np.array([step, 0.0, 0.0])
+    var = n * wheel_noise(u, **noise_kw)[0, 0]
+    return float(np.sqrt(var))
+
+
+def test_wheel_noise_correlation_length_covers_a_systematic_scale_error():
+    """A 2 % wheel-radius error makes 2 % of every stretch. Per-increment noise (L = 0) summed over
+    n independent increments allows only 2 % / sqrt(n), and less the faster the odometry runs; with
+    a correlation length L the summed std is at least 2 % of every stretch up to L, whatever the
+    rate."""
+    kw = dict(dist_frac=0.02, rot_per_m=np.deg2rad(1.0), rot_frac=0.0, floor_xy=1e-9, floor_theta=1e-9)
+    plain_10hz = _summed_std(kw, 0.1, 5.0)
+    plain_50hz = _summed_std(kw, 0.02, 5.0)
+    assert plain_10hz < 0.2 * 0.02 * 5.0 and plain_50hz < plain_10hz  # overconfident, rate-dependent
+    corr = dict(kw, correlation_length=5.0)
+    for step in (0.02, 0.1, 0.3):
+        for metres in (1.2, 3.0, 4.8):
+            assert _summed_std(corr, step, metres) >= 0.02 * metres * 0.999
+        np.testing.assert_allclose(_summed_std(corr, step, 4.8), _summed_std(corr, 0.1, 4.8), rtol=1e-6)
+    # an increment longer than L keeps the per-increment model; L = 0 is the old model
+    u = np.array([8.0, 0.0, 0.0])
+    np.testing.assert_allclose(wheel_noise(u, **corr), wheel_noise(u, **kw))
+    np.testing.assert_allclose(
+        wheel_noise(np.array([0.5, 0.0, 0.1]), **dict(kw, correlation_length=0.0)),
+        wheel_noise(np.array([0.5, 0.0, 0.1]), **kw),
+    )

@@ -101,6 +101,31 @@ def test_scan_matching_off_follows_the_wheels(room):
     assert end_error(truth, poses2) / path_length(truth) < 0.02
 
 
+def test_wheel_only_keyframe_covariance_allows_a_systematic_scale_error(room):
+    """With the wheels alone, the keyframe between-factors together allow wheel_dist_frac of
+    every stretch up to wheel_correlation_length (a 2 % wheel-radius error over 5 m is 10 cm);
+    fused with ICP the per-increment noise applies, as with wheel_correlation_length = 0."""
+    truth, points, odom = room
+
+    def chain_std(cfg, metres):
+        _, _, results = run(points, truth, odom, cfg=cfg)
+        kf = [r for r in results if r.is_keyframe and r.between is not None]
+        d = np.cumsum([np.hypot(*r.between[:2]) for r in kf])
+        k = int(np.searchsorted(d, metres))
+        return float(np.sqrt(sum(r.covariance[0, 0] for r in kf[: k + 1]))), float(d[k])
+
+    wheel = OdometryConfig(max_range=10.0, scan_matching=False)
+    s, d = chain_std(wheel, 4.5)
+    assert s >= 0.02 * d * 0.9
+    s0, _ = chain_std(wheel.model_copy(update={"wheel_correlation_length": 0.0}), 4.5)
+    assert s0 < 0.5 * 0.02 * d
+    fused = OdometryConfig(max_range=10.0)
+    np.testing.assert_allclose(
+        chain_std(fused, 4.5)[0],
+        chain_std(fused.model_copy(update={"wheel_correlation_length": 0.0}), 4.5)[0],
+    )
+
+
 def test_corridor_is_flagged_degenerate_and_wheel_odometry_carries_the_axis(corridor):
     truth, points = corridor
     odom = drifting_odometry(truth, scale=0.02, heading_per_m=0.0)

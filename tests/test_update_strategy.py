@@ -381,3 +381,34 @@ def test_late_first_registration_needs_a_second_that_agrees(sim):
     )
     run_slam(run, upd2)
     assert next(e for e in upd2.log if e.kind == "register").accepted
+
+
+def test_rejected_match_gets_one_quick_recheck(sim):
+    """A registration that matched but failed the checks (a wrong one, or a right one on a map
+    that drifted) is retried once after register_recheck_distance metres, before the drift grows:
+    the right registration that follows is accepted there. The quick retry happens only once in
+    a row, and not at all with register_recheck_distance = 0 (the other triggers are switched off
+    here: no growth trigger, retries farther apart than the route)."""
+    plan, run, m = sim
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+
+    def run_with(seq, recheck):
+        it = iter(seq + [m] * 40)
+        cfg = CFG.updates.model_copy(update={**base, "register_recheck_distance": recheck})
+        upd = FloorPlanUpdater(
+            plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
+        )
+        slam, _ = run_slam(run, upd)
+        return upd, slam, [e for e in upd.log if e.kind == "register"]
+
+    upd, slam, reg = run_with([wrong], 3.0)
+    assert len(reg) == 2 and not reg[0].accepted and reg[1].accepted
+    assert "retry after 3 m" in reg[1].reason and np.allclose(upd.registration.matrix, m)
+    kfs = slam.keyframe_array()
+    travelled = np.cumsum(np.r_[0.0, np.hypot(*np.diff(kfs[:, 1:3], axis=0).T)])
+    assert 3.0 <= travelled[reg[1].keyframe] - travelled[reg[0].keyframe] < 4.0
+    upd, _, reg = run_with([wrong, wrong], 3.0)  # once in a row only
+    assert len(reg) == 2 and upd.accepted is None
+    upd, _, reg = run_with([wrong], 0.0)  # off
+    assert len(reg) == 1 and upd.accepted is None

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import statistics
 import sys
 import time
@@ -275,6 +276,8 @@ def house_task(task: dict) -> dict:
             out["rows"] = []
             return out
         cfg = FRSlamConfig().with_updates(**spec["cfg"]) if spec["cfg"] else FRSlamConfig()
+        if task.get("overrides"):
+            cfg = cfg.with_updates(**task["overrides"])
         scans = run.scans
         for mode in task["modes"]:
             wrong = None
@@ -318,6 +321,7 @@ def run_houses(
     speed: float,
     modes: list[str],
     budget_s: float | None = None,
+    overrides: dict | None = None,
 ):
     """Run ``n`` routable houses (skipping and counting the others); returns (rows, skipped, cut).
 
@@ -341,6 +345,7 @@ def run_houses(
             "speed": speed,
             "seed": k,
             "modes": modes,
+            "overrides": overrides,
         }
 
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -522,6 +527,20 @@ def main() -> None:
     ap.add_argument("--no-faults", action="store_true", help="section 2: skip 'other' and 'wrong'")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument(
+        "--set",
+        type=json.loads,
+        default=None,
+        metavar="JSON",
+        help='section 2: config overrides for every regime, e.g. \'{"updates": {"backfill": false}}\'',
+    )
+    ap.add_argument(
+        "--modes",
+        nargs="+",
+        default=None,
+        choices=list(MODES),
+        help="section 2: modes to run besides none and plan",
+    )
+    ap.add_argument(
         "--time-budget", type=float, default=None, help="section 2: start no house after this many seconds"
     )
     ap.add_argument("--aces", action="store_true", help="section 3: run ACES (a few minutes)")
@@ -532,6 +551,8 @@ def main() -> None:
     if args.quick:
         args.laps, args.runs, args.houses = 2, 1, min(args.houses, 2)
     modes = ["none", "plan"] if args.no_faults else list(MODES)
+    if args.modes:  # the table compares with 'none' and 'plan': always run them
+        modes = [m for m in MODES if m in {"none", "plan", *args.modes}]
 
     t_start = time.perf_counter()
     parts: list[str] = []
@@ -543,7 +564,14 @@ def main() -> None:
         csv_rows += [["latency", "", "", name, f"{v:.6g}"] for name, v in med]
     if "priors" not in args.skip:
         rows, skipped, cut = run_houses(
-            args.houses, args.workers, args.regimes, args.length, args.speed, modes, args.time_budget
+            args.houses,
+            args.workers,
+            args.regimes,
+            args.length,
+            args.speed,
+            modes,
+            args.time_budget,
+            args.set,
         )
         text = priors_section(rows, skipped, args, cut)
         print(text, flush=True)
