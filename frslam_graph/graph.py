@@ -81,7 +81,11 @@ class PoseGraph:
         self._isam = self._new_isam()
         self._factors: list[gtsam.NonlinearFactor | None] = []  # mirror of iSAM2's factor slots
         self._n = 0
-        self._estimate_cache: np.ndarray | None = None
+        self._estimate_cache: np.ndarray | None = None  # all estimates, valid now
+        # incremental refresh (see estimates()): the last computed estimates, iSAM2's delta then,
+        # and the keyframes iSAM2 marked (new, relinearised, touched factors) since
+        self._stale: tuple[np.ndarray, np.ndarray] | None = None
+        self._marked: set[int] = set()
         self._latest = np.zeros(3)
         self._priors: dict[int, PriorHandle] = {}
         self._next_prior = 0
@@ -104,7 +108,7 @@ class PoseGraph:
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
             graph.add(f)
-        result = self._isam.update(graph, values or gtsam.Values(), remove or [])
+        result = self._isam_update(graph, values or gtsam.Values(), remove or [])
         idx = list(result.getNewFactorsIndices())
         for f, i in zip(factors, idx, strict=True):
             while len(self._factors) <= i:
@@ -112,10 +116,26 @@ class PoseGraph:
             self._factors[i] = f
         for i in remove or []:
             self._factors[i] = None
-        self._estimate_cache = None
         if self._n:
             self._latest = _vec(self._isam.calculateEstimatePose2(key(self._n - 1)))
         return idx
+
+    def _isam_update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        remove: list[int],
+        force_relinearize: bool = False,
+    ) -> gtsam.ISAM2Result:
+        """Every iSAM2 update goes through here: it invalidates the estimates and records the
+        keyframes whose linearisation point may have moved (for the incremental refresh)."""
+        if force_relinearize:
+            result = self._isam.update(graph, values, remove, None, None, None, True)
+        else:
+            result = self._isam.update(graph, values, remove)
+        self._estimate_cache = None
+        self._marked.update(gtsam.Symbol(k).index() for k in result.getMarkedKeys())
+        return result
 
     def add_first(self, pose: np.ndarray = (0.0, 0.0, 0.0)) -> int:
         """Keyframe 0 at ``pose`` in map, held by the anchor prior. Returns 0."""
@@ -209,8 +229,7 @@ class PoseGraph:
         prev = self.estimates()
         it = -1
         for it in range(max_iterations):  # noqa: B007
-            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
-            self._estimate_cache = None
+            self._isam_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], True)
             cur = self.estimates()
             moved = float(np.abs(cur - prev).max()) if len(cur) else 0.0
             prev = cur
@@ -261,11 +280,43 @@ class PoseGraph:
         return _vec(self._isam.calculateEstimatePose2(key(i)))
 
     def estimates(self) -> np.ndarray:
-        """(N, 3) poses of all keyframes in map."""
+        """(N, 3) poses of all keyframes in map.
+
+        Incremental after an update: a pose is iSAM2's linearisation point retracted by its delta,
+        so only the keyframes whose delta changed (compared exactly) or that iSAM2 marked (new,
+        relinearised) are recomputed, with the same per-key call; bit-identical to a full
+        ``calculateEstimate``, which runs when most of the graph changed.
+        """
         if self._estimate_cache is None:
-            values = self._isam.calculateEstimate()
-            self._estimate_cache = _values_array(values, self._n)
+            self._estimate_cache = self._refresh_estimates()
         return self._estimate_cache.copy()
+
+    def _refresh_estimates(self) -> np.ndarray:
+        n = self._n
+        delta = self._isam.getDelta().vector()
+        if len(delta) != 3 * n:  # pragma: no cover - only keyframe Pose2 variables live in the graph
+            raise FrslamError(f"graph holds {len(delta) // 3} poses, expected {n}", where="values")
+        delta = delta.reshape(n, 3)
+        est = None
+        if self._stale is not None and len(self._marked) <= n // 4:
+            old, old_delta = self._stale
+            m = len(old)
+            todo = set(np.flatnonzero(np.any(delta[:m] != old_delta, axis=1)).tolist())
+            todo |= {i for i in self._marked if i < m}
+            if len(todo) <= n // 4:
+                est = np.empty((n, 3))
+                est[:m] = old
+                for i in [*todo, *range(m, n)]:
+                    est[i] = _vec(self._isam.calculateEstimatePose2(key(i)))
+        if est is None:
+            est = self.full_estimates()
+        self._stale = (est, delta)
+        self._marked.clear()
+        return est
+
+    def full_estimates(self) -> np.ndarray:
+        """(N, 3) poses of all keyframes from iSAM2's full ``calculateEstimate`` (no cache)."""
+        return _values_array(self._isam.calculateEstimate(), self._n)
 
     def marginal_covariance(self, i: int | None = None) -> np.ndarray:
         """3×3 marginal covariance (tangent, body frame) of keyframe i (default: latest)."""
@@ -343,6 +394,8 @@ class PoseGraph:
         for _, f in live:
             graph.add(f)
         result = self._isam.update(graph, values)
+        self._stale = None  # a fresh iSAM2: nothing to refresh incrementally
+        self._marked.clear()
         new_idx = list(result.getNewFactorsIndices())
         remap = {}
         for (oi, f), ni in zip(live, new_idx, strict=True):

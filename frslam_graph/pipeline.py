@@ -110,6 +110,8 @@ class FRSlam:
         self.graph = PoseGraph(self.config.graph)
         self.log: list[DecisionEvent] = []
         self._kfs: list[_Keyframe] = []
+        self._kf_points: list[np.ndarray] = []  # per keyframe, for keyframe_scans() (no rebuild)
+        self._kf_origins: list[np.ndarray] = []
         self._stamps: list[float] = []
         self._scan_kf: list[int] = []
         self._scan_rel: list[np.ndarray] = []
@@ -239,9 +241,10 @@ class FRSlam:
             self.graph.add_first(res.pose)  # map == odom at start
         else:
             self.graph.add_keyframe(res.between, res.covariance)
-        self._kfs.append(
-            _Keyframe(stamp, scan_index, res.pose.copy(), pts.astype(np.float32), off[:2].copy())
-        )
+        kf = _Keyframe(stamp, scan_index, res.pose.copy(), pts.astype(np.float32), off[:2].copy())
+        self._kfs.append(kf)
+        self._kf_points.append(kf.points)
+        self._kf_origins.append(kf.sensor_origin)
         if self.loop_closer is not None:
             self.loop_closer.on_keyframe(self, self.keyframe(res.keyframe))
         if self.update_strategy is not None:
@@ -312,7 +315,7 @@ class FRSlam:
 
     def keyframe_scans(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""
-        return [k.points for k in self._kfs], [k.sensor_origin for k in self._kfs]
+        return list(self._kf_points), list(self._kf_origins)
 
     def occupancy_grid(self, resolution: float = 0.05):
         """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates.

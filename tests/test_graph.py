@@ -166,3 +166,35 @@ def test_factor_helpers_and_bad_input():
         g.estimate(3)
     with pytest.raises(FrslamError, match="keyframe"):
         g.marginal_covariance(3)
+
+
+def test_estimates_refresh_incrementally_and_bit_identical():
+    """Streaming keyframes refresh only the poses iSAM2 changed; every refresh equals the full
+    calculateEstimate exactly, also across priors, loop closures, removals and a batch."""
+    g = PoseGraph(GraphConfig())
+    g.add_first()
+    full_calls = []
+    real_full = g.full_estimates
+
+    def counting_full():
+        full_calls.append(len(g))
+        return real_full()
+
+    g.full_estimates = counting_full
+    rng = np.random.default_rng(5)
+    for i in range(1, 200):
+        g.add_keyframe([0.3, 0.0, 0.02 + 0.01 * rng.standard_normal()], ODO_COV)
+        if i == 120:
+            lc = between_factor(key(10), key(i), [0.0, 0.5, 0.1], ODO_COV, 0.002, np.deg2rad(0.05))
+            g.add_factor(lc)
+        if i == 150:
+            h = g.add_prior(i, [10.0, 12.0, 1.0], PRIOR_COV, source="plan")
+        if i == 170:
+            g.remove_prior(h)
+        assert np.array_equal(g.estimates(), real_full())
+    # plain streaming keyframes (before the closure) never recompute every pose
+    assert full_calls and not [n for n in full_calls if 20 <= n <= 120]
+    g.optimize_batch()
+    g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    assert np.array_equal(g.estimates(), real_full())
+    assert [g.estimate(i).tolist() for i in (0, 57, -1)] == [real_full()[i].tolist() for i in (0, 57, -1)]
