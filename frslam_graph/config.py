@@ -231,21 +231,19 @@ class LoopClosureConfig(_Section):
     attempt_every: int = Field(2, ge=1)  # keyframes between attempts
     max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
     retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
-    # Submaps (points in the keyframe's frame).
-    submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
-    query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe
-    submap_keyframes: int = Field(30, ge=1)  # at most this many keyframes per side
-    max_point_range: float = Field(15.0, gt=0.0)
     # Redundant regions are not searched: a region (candidate cell) holding a keyframe that the
     # graph already ties to the current one by a short path (at most redundant_travel metres and
     # redundant_turn_deg of turning; accepted closures count as zero length) has a small relative
     # uncertainty to it (a recent verified closure there): another closure would add little. Once
     # the travel or turning since that closure grows past these, the region is searched again.
     # redundant_travel 0 disables.
-    redundant_travel: float = Field(3.0, ge=0.0)
+    redundant_travel: float = Field(6.0, ge=0.0)
     redundant_turn_deg: float = Field(90.0, ge=0.0)
-    # Among a cell's keyframes, prefer one whose reference submap is cached (no rebuild).
-    reuse_submaps: bool = True
+    # Submaps (points in the keyframe's frame).
+    submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
+    query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe
+    submap_keyframes: int = Field(30, ge=1)  # at most this many keyframes per side
+    max_point_range: float = Field(15.0, gt=0.0)
     # Matcher.
     resolution: float = Field(0.05, gt=0.0)
     coarse_step_xy: float = Field(0.3, gt=0.0)

@@ -906,13 +906,7 @@ class LoopCloser:
         # is redundant: not searched while the relative drift since that closure is small
         tied = self._tied(i)[order]
         redundant = {cell for cell, t in zip(cells, tied.tolist(), strict=True) if t}
-        # per cell the nearest keyframe, or the nearest whose reference submap is cached
-        cached: dict[tuple[int, int], int] = {}
-        if cfg.reuse_submaps and self._submaps:
-            for c, cell in zip(order, cells, strict=True):
-                if c in self._submaps:
-                    cached.setdefault(cell, c)
-        # one candidate per cell; the first pick is the nearest cell not tried recently, the
+        # one candidate per cell (the nearest); the first pick is the nearest cell not tried recently, the
         # others go round-robin (never tried first, then the least recently tried) so that a
         # wide search area is covered over the keyframes
         picks, seen = [], set()
@@ -923,7 +917,6 @@ class LoopCloser:
             if cell in redundant:
                 self.stats.redundant += 1
                 continue
-            c = cached.get(cell, c)
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue

@@ -500,15 +500,6 @@ def test_pending_check_of_a_tied_place_is_skipped():
     assert all(j.predicted is None and j.reference != 22 for j in closer._jobs)
 
 
-def test_candidate_prefers_a_cached_reference_submap_in_its_cell():
-    closer, est = _circle_closer(None)
-    cells = np.floor(est[:, :2] / closer.config.candidate_spacing).astype(int)
-    mates = [k for k in range(41) if k != 22 and (cells[k] == cells[22]).all()]
-    assert mates  # another keyframe of the nearest one's cell
-    closer._submaps[mates[0]] = None  # cached: no rebuild needed
-    assert closer._candidates(est, 60)[0][0] == mates[0]
-
-
 def test_graph_distances_are_updated_incrementally_between_closures():
     rng = np.random.default_rng(3)
     closer = LoopCloser()
