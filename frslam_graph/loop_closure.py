@@ -10,6 +10,16 @@ nearest cell not tried recently plus round-robin over the others (a wide area is
 few keyframes). When the prediction is too uncertain the search is centred on the candidate
 itself ("is the robot back there?") instead of on the prediction.
 
+Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
+constraint sampling): a region (candidate cell) holding a keyframe that the graph already ties to
+the current one by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
+turning, accepted closures counting as zero length) is not searched: a recent verified closure
+there keeps their relative uncertainty small, and another closure would add little. Once the
+travel or turning since grows past these, the region is searched again. A queued candidate that a
+closure accepted after its plan ties already (e.g. the keyframe's other candidate) is dropped
+unmatched, and so is a pending closure's check of a place already tied. Counted in
+``stats.redundant``. The graph distances are updated incrementally while no closure is added.
+
 Each candidate is verified by :func:`match_scan`: the *query* submap (the points of the last
 ``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
 points of c's neighbouring keyframes, in c's frame). A correlative grid search over (x, y, theta)
@@ -906,9 +916,9 @@ class LoopCloser:
         # is redundant: not searched while the relative drift since that closure is small
         tied = self._tied(i)[order]
         redundant = {cell for cell, t in zip(cells, tied.tolist(), strict=True) if t}
-        # one candidate per cell (the nearest); the first pick is the nearest cell not tried recently, the
-        # others go round-robin (never tried first, then the least recently tried) so that a
-        # wide search area is covered over the keyframes
+        # one candidate per cell (the nearest); the first pick is the nearest cell not tried
+        # recently, the others go round-robin (never tried first, then the least recently tried)
+        # so that a wide search area is covered over the keyframes
         picks, seen = [], set()
         for rank, (c, cell) in enumerate(zip(order, cells, strict=True)):
             if cell in seen:
