@@ -86,6 +86,7 @@ class PoseGraph:
         # and the keyframes iSAM2 marked (new, relinearised, touched factors) since
         self._stale: tuple[np.ndarray, np.ndarray] | None = None
         self._marked: set[int] = set()
+        self._marked_all = False
         self._latest = np.zeros(3)
         self._priors: dict[int, PriorHandle] = {}
         self._next_prior = 0
@@ -134,7 +135,11 @@ class PoseGraph:
         else:
             result = self._isam.update(graph, values, remove)
         self._estimate_cache = None
-        self._marked.update(gtsam.Symbol(k).index() for k in result.getMarkedKeys())
+        marked = result.getMarkedKeys()
+        if self._marked_all or len(self._marked) + len(marked) > self._n // 4:
+            self._marked_all = True  # most of the graph: the next refresh is a full one anyway
+        else:
+            self._marked.update(gtsam.Symbol(k).index() for k in marked)
         return result
 
     def add_first(self, pose: np.ndarray = (0.0, 0.0, 0.0)) -> int:
@@ -298,7 +303,7 @@ class PoseGraph:
             raise FrslamError(f"graph holds {len(delta) // 3} poses, expected {n}", where="values")
         delta = delta.reshape(n, 3)
         est = None
-        if self._stale is not None and len(self._marked) <= n // 4:
+        if self._stale is not None and not self._marked_all:
             old, old_delta = self._stale
             m = len(old)
             todo = set(np.flatnonzero(np.any(delta[:m] != old_delta, axis=1)).tolist())
@@ -312,6 +317,7 @@ class PoseGraph:
             est = self.full_estimates()
         self._stale = (est, delta)
         self._marked.clear()
+        self._marked_all = False
         return est
 
     def full_estimates(self) -> np.ndarray:
@@ -396,6 +402,7 @@ class PoseGraph:
         result = self._isam.update(graph, values)
         self._stale = None  # a fresh iSAM2: nothing to refresh incrementally
         self._marked.clear()
+        self._marked_all = False
         new_idx = list(result.getNewFactorsIndices())
         remap = {}
         for (oi, f), ni in zip(live, new_idx, strict=True):
