@@ -15,6 +15,8 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+_CRACK = 0.01  # m: rooms closer than twice this count as touching
+
 
 def open_boundaries(
     plan, wall_thickness: float, min_opening: float = 0.5
@@ -35,7 +37,12 @@ def open_boundaries(
     tol = max(0.1, 0.01 * math.hypot(maxx - minx, maxy - miny))
     supported = shapely.union_all(lines).buffer(tol)
     polys = [r.polygon for r in plan.rooms]
-    inner = shapely.union_all(polys).buffer(-tol / 2.0)
+    # rooms that share a boundary in the drawing may not touch exactly once transformed (a
+    # hairline crack between two diagonal edges): close cracks narrower than 2 * _CRACK first,
+    # or eroding the union would cut the shared boundary out of the interior
+    inner = shapely.union_all([p.buffer(_CRACK, join_style="mitre") for p in polys]).buffer(
+        -tol / 2.0 - _CRACK, join_style="mitre"
+    )
     tree = shapely.STRtree(polys)
     openings, pairs = [], []
     for i, a in enumerate(plan.rooms):
