@@ -529,6 +529,13 @@ def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.nd
     """
     if len(queries) == 0 or len(points) == 0:
         return np.zeros(len(points), dtype=bool)
+    # queries away from every point (a diverged seed pose) would only stretch the raster
+    x, y = points[:, 0], points[:, 1]
+    m = 2.0 * radius
+    qx, qy = queries[:, 0], queries[:, 1]
+    queries = queries[(qx >= x.min() - m) & (qx <= x.max() + m) & (qy >= y.min() - m) & (qy <= y.max() + m)]
+    if len(queries) == 0:
+        return np.zeros(len(points), dtype=bool)
     inv = 1.0 / (radius * (1.0 + 1e-6))
     o = queries.min(axis=0) - 3.0 / inv  # query cells >= 2: dilation and border fit below
     qi = ((queries - o) * inv).astype(np.intp)
@@ -537,8 +544,8 @@ def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.nd
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             occ[qi[:, 0] + dx, qi[:, 1] + dy] = True
-    ix = np.clip((points[:, 0] - o[0]) * inv, 0, shape[0] - 1).astype(np.intp)
-    iy = np.clip((points[:, 1] - o[1]) * inv, 0, shape[1] - 1).astype(np.intp)
+    ix = np.clip((x - o[0]) * inv, 0, shape[0] - 1).astype(np.intp)
+    iy = np.clip((y - o[1]) * inv, 0, shape[1] - 1).astype(np.intp)
     return occ[ix, iy]
 
 

@@ -347,3 +347,6 @@ def test_inlier_fractions_failed_pose_scores_zero():
     good = to_matrix4(np.zeros(3))
     assert _inlier_fractions(pts, pts, [good, np.full((4, 4), np.nan)], 0.2) == [1.0, 0.0]
     assert _inlier_fractions(pts[:0], pts, [good], 0.2) == [0.0]
+    # a seed that diverged far from the map: no inliers, and no raster spanning the gap
+    far = to_matrix4(np.array([3e6, -2e6, 0.3]))
+    assert _inlier_fractions(pts, pts, [good, far], 0.2) == [1.0, 0.0]
