@@ -11,14 +11,17 @@ few keyframes). When the prediction is too uncertain the search is centred on th
 itself ("is the robot back there?") instead of on the prediction.
 
 Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
-constraint sampling): a region (candidate cell) holding a keyframe that the graph already ties to
-the current one by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
-turning, accepted closures counting as zero length) is not searched: a recent verified closure
-there keeps their relative uncertainty small, and another closure would add little. Once the
-travel or turning since grows past these, the region is searched again. A queued candidate that a
-closure accepted after its plan ties already (e.g. the keyframe's other candidate) is dropped
-unmatched, and so is a pending closure's check of a place already tied. Counted in
-``stats.redundant``. The graph distances are updated incrementally while no closure is added.
+constraint sampling): while the graph ties the current keyframe to an old keyframe within its
+search radius by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
+turning, accepted closures counting as zero length), a recent verified closure keeps their
+relative uncertainty small and another closure would add little: the keyframe plans no search at
+all. Not only the tied region: farther regions would take its place among the candidates, and
+those are the places that merely look alike (an aliased pair confirmed there bent a simulated
+house by 7 m). Once the travel or turning since the closure grows past these, the search resumes,
+nearest region first. A queued candidate that a closure accepted after its plan ties already (e.g.
+the keyframe's other candidate) is dropped unmatched, and so is a pending closure's check of a
+place already tied. Counted in ``stats.redundant``. The graph distances are updated incrementally
+while no closure is added.
 
 Each candidate is verified by :func:`match_scan`: the *query* submap (the points of the last
 ``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
@@ -679,7 +682,7 @@ class LoopClosureStats:
     seconds: float = 0.0  # wall clock spent in the loop closer
     cpu_seconds: float = 0.0  # process CPU time spent in the loop closer
     keyframes: int = 0
-    redundant: int = 0  # candidate regions not searched: already tied to the keyframe (see config)
+    redundant: int = 0  # searches skipped: the keyframe already tied to the region (see config)
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -910,12 +913,14 @@ class LoopCloser:
             return []
         idx = idx[ok]
         order = idx[np.argsort(dist[ok], kind="stable")]
+        if self._tied(i)[order].any():
+            # keyframe i is tied to a region around it (short path through a recent verified
+            # closure): it is not searched, and neither are the others (farther regions would
+            # take its place: places that look alike, where a wrong pair can be confirmed)
+            self.stats.redundant += 1
+            return []
         cells = list(map(tuple, np.floor(est[order, :2] / cfg.candidate_spacing).astype(int).tolist()))
         order = order.tolist()
-        # a region the graph already ties to keyframe i (short path through a recent closure)
-        # is redundant: not searched while the relative drift since that closure is small
-        tied = self._tied(i)[order]
-        redundant = {cell for cell, t in zip(cells, tied.tolist(), strict=True) if t}
         # one candidate per cell (the nearest); the first pick is the nearest cell not tried
         # recently, the others go round-robin (never tried first, then the least recently tried)
         # so that a wide search area is covered over the keyframes
@@ -924,9 +929,6 @@ class LoopCloser:
             if cell in seen:
                 continue
             seen.add(cell)
-            if cell in redundant:
-                self.stats.redundant += 1
-                continue
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue
