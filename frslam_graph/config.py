@@ -118,6 +118,11 @@ class GraphConfig(_Section):
     prior_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
     relinearize_threshold: float = Field(0.01, gt=0.0)
     relinearize_skip: int = Field(10, ge=1)  # streaming; settle() after priors forces it
+    # a floor-plan prior that agrees with the estimate this well gets only this many forced
+    # relinearising iSAM2 steps (each costs a few ms on a large graph); others get 10
+    prior_settle_near_xy: float = Field(0.05, ge=0.0)
+    prior_settle_near_theta_deg: float = Field(1.0, ge=0.0)
+    prior_settle_near_iterations: int = Field(1, ge=0)
     factorization: Literal["QR", "CHOLESKY"] = "QR"
     batch_max_iterations: int = Field(100, ge=1)
     batch_relative_tolerance: float = Field(1e-6, gt=0.0)

@@ -28,7 +28,7 @@ from frslam_graph.factors.floorplan_prior import (
     prior_covariance,
     robust_noise,
 )
-from frslam_graph.motion_model import compose, inverse
+from frslam_graph.motion_model import compose, inverse, wrap
 
 _CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345}
 
@@ -186,12 +186,23 @@ class PoseGraph:
         kernel_param: float | None = None,
         source: str = "",
         info: dict | None = None,
-        extra_iterations: int = 10,
+        extra_iterations: int | None = None,
     ) -> PriorHandle:
-        """Add a robust floor-plan prior on a keyframe; returns its handle (for removal/residuals)."""
+        """Add a robust floor-plan prior on a keyframe; returns its handle (for removal/residuals).
+
+        ``extra_iterations`` relinearising iSAM2 steps follow (:meth:`settle`). By default a
+        prior that agrees with the current estimate (within ``prior_settle_near_xy`` /
+        ``prior_settle_near_theta_deg``) gets ``prior_settle_near_iterations`` (the streaming
+        updates converge the rest), one that moves the trajectory 10."""
         cfg = self.config
         if not 0 <= keyframe < self._n:
             raise FrslamError(f"no keyframe {keyframe} (graph has {self._n})", where="keyframe")
+        if extra_iterations is None:
+            d = np.asarray(pose, float) - self.estimate(int(keyframe))
+            near = float(np.hypot(d[0], d[1])) <= cfg.prior_settle_near_xy and (
+                kind == "translation" or abs(float(wrap(d[2]))) <= np.deg2rad(cfg.prior_settle_near_theta_deg)
+            )
+            extra_iterations = cfg.prior_settle_near_iterations if near else 10
         kernel = kernel or cfg.prior_kernel
         param = kernel_param if kernel_param is not None else cfg.prior_kernel_param
         fxy, fth = cfg.prior_sigma_floor_xy, np.deg2rad(cfg.prior_sigma_floor_theta_deg)

@@ -198,3 +198,22 @@ def test_estimates_refresh_incrementally_and_bit_identical():
     g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
     assert np.array_equal(g.estimates(), real_full())
     assert [g.estimate(i).tolist() for i in (0, 57, -1)] == [real_full()[i].tolist() for i in (0, 57, -1)]
+
+
+def test_prior_that_agrees_with_the_estimate_gets_a_short_settle():
+    """A prior within prior_settle_near_xy / _theta_deg of the estimate is followed by only
+    prior_settle_near_iterations forced relinearisations (the streaming updates converge the rest,
+    and each forced step costs milliseconds on a large graph); one that moves the trajectory gets
+    the full settle; an explicit extra_iterations wins."""
+    g = chain(n=60, drift=0.002)
+    calls = []
+    settle = g.settle
+    g.settle = lambda n=10, tol=1e-4: calls.append(n) or settle(n, tol)
+    est = g.estimate(40)
+    g.add_prior(40, est + [0.01, -0.01, 0.005], PRIOR_COV, source="plan")  # 1.4 cm, 0.3 deg
+    g.add_prior(50, g.estimate(50) + [0.4, 0.0, 0.0], PRIOR_COV, source="plan")  # 40 cm off
+    g.add_prior(30, g.estimate(30) + [0.0, 0.0, np.deg2rad(3.0)], PRIOR_COV, source="plan")
+    g.add_prior(20, g.estimate(20), PRIOR_COV, source="plan", extra_iterations=4)
+    assert calls == [GraphConfig().prior_settle_near_iterations, 10, 10, 4]
+    assert GraphConfig().prior_settle_near_iterations < 10
+    assert abs(g.estimate(50)[0] - (g.estimate(49)[0] + 0.3)) < 0.1  # the far prior still converged
