@@ -80,6 +80,7 @@ class PoseGraph:
         self._floor_th = np.deg2rad(cfg.between_sigma_floor_theta_deg)
         self._isam = self._new_isam()
         self._factors: list[gtsam.NonlinearFactor | None] = []  # mirror of iSAM2's factor slots
+        self._version = 0  # iSAM2 updates so far
         self._n = 0
         self._estimate_cache: np.ndarray | None = None  # all estimates, valid now
         # incremental refresh (see estimates()): the last computed estimates, iSAM2's delta then,
@@ -130,6 +131,7 @@ class PoseGraph:
     ) -> gtsam.ISAM2Result:
         """Every iSAM2 update goes through here: it invalidates the estimates and records the
         keyframes whose linearisation point may have moved (for the incremental refresh)."""
+        self._version += 1
         if force_relinearize:
             result = self._isam.update(graph, values, remove, None, None, None, True)
         else:
@@ -141,6 +143,12 @@ class PoseGraph:
         else:
             self._marked.update(gtsam.Symbol(k).index() for k in marked)
         return result
+
+    @property
+    def version(self) -> int:
+        """Number of iSAM2 updates so far: changes whenever factors are added or removed or the
+        graph is relinearised (a caller can tell whether a hook touched the graph)."""
+        return self._version
 
     def add_first(self, pose: np.ndarray = (0.0, 0.0, 0.0)) -> int:
         """Keyframe 0 at ``pose`` in map, held by the anchor prior. Returns 0."""

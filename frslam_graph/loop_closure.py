@@ -738,11 +738,12 @@ class LoopCloser:
             self._append_motion(kf.pose_odom)
 
     # ------------------------------------------------------------------ hooks
-    def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo) -> list[LoopClosure]:
+    def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo, work: bool = True) -> list[LoopClosure]:
         """A new keyframe: every ``attempt_every`` keyframes queue its candidates (a pending
         closure's check ahead of the older ones), then work on the queue within the per-scan
-        budget. Returns the closures that entered the graph during this call (of this or an
-        earlier keyframe)."""
+        budget (not with ``work`` False: this scan's budget is spent elsewhere; the queue goes
+        on at the next scan). Returns the closures that entered the graph during this call (of
+        this or an earlier keyframe)."""
         i = keyframe.index
         self._sync(slam, i)
         self._append_motion(keyframe.pose_odom)
@@ -754,6 +755,9 @@ class LoopCloser:
         try:
             if i >= cfg.min_keyframe_gap and i % cfg.attempt_every == 0:
                 self._plan(slam, i)
+            if not work:
+                self.steps_last_call, self.cost_last_call = 0, 0.0
+                return []
             return self._work(slam, min(cfg.keyframe_budget_ms, cfg.budget_ms), cfg.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0

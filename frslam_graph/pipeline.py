@@ -245,12 +245,15 @@ class FRSlam:
         self._kfs.append(kf)
         self._kf_points.append(kf.points)
         self._kf_origins.append(kf.sensor_origin)
-        if self.loop_closer is not None:
-            self.loop_closer.on_keyframe(self, self.keyframe(res.keyframe))
+        busy = False
         if self.update_strategy is not None:
             info = self.keyframe(res.keyframe)
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
+            version = self.graph.version
             hook(self, info)
+            busy = self.graph.version != version  # priors added / removed: this scan's budget is spent
+        if self.loop_closer is not None:
+            self.loop_closer.on_keyframe(self, self.keyframe(res.keyframe), work=not busy)
 
     # ------------------------------------------------------------- outputs
     def pose(self) -> tuple[float, float, float]:

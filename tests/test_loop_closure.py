@@ -515,3 +515,35 @@ def test_graph_distances_are_updated_incrementally_between_closures():
         fresh._travel, fresh._turn, fresh.closures = closer._travel, closer._turn, closer.closures
         for a, b in zip(closer._graph_distances(i), fresh._graph_distances(i), strict=True):
             np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def test_keyframe_where_the_update_strategy_touched_the_graph_gets_no_closure_work(two_laps):
+    """A keyframe whose update-strategy hook added a prior (its relocalisation, prior and settle
+    spent this scan's budget) only queues loop-closure candidates; the queued work goes on at
+    the next scan. Keyframes the hook left alone get their keyframe budget as before."""
+    from types import SimpleNamespace
+
+    closer = LoopCloser(FRSlamConfig().loop_closure)
+    log: list[int] = []
+    closer._job = _fake_job([1.0] * 6, log)
+    closer._jobs.append(None)
+    closer.on_keyframe(None, SimpleNamespace(index=0, pose_odom=np.zeros(3)), work=False)
+    assert log == [] and closer.steps_last_call == 0 and not closer.idle
+    assert _calls(closer, 1, log) and log  # the next scan works on the queue
+
+    truth, ranges, amin, inc = two_laps
+    seen: list[tuple[int, bool]] = []
+
+    def hook(slam, kf):  # a prior on every third keyframe
+        if kf.index % 3 == 0:
+            slam.add_floorplan_prior(kf.index, kf.pose_map, np.diag([1e-2, 1e-2, 1e-3]), source="test")
+
+    slam = FRSlam(dict(CFG, loop_closure={"enabled": True}), update_strategy=hook)
+    on_keyframe = slam.loop_closer.on_keyframe
+    slam.loop_closer.on_keyframe = lambda s, kf, work=True: (
+        seen.append((kf.index, work)) or on_keyframe(s, kf, work)
+    )
+    for i in range(80):
+        slam.add_scan(truth[i, 0], ranges[i], amin, inc, None)
+    assert len(seen) >= 6
+    assert all(work == (k % 3 != 0) for k, work in seen)
