@@ -253,7 +253,11 @@ class ScanOdometry:
             ) * dt + np.deg2rad(2.0):
                 jump = True
             else:
-                u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args), True
+                # where the wheels alone carry the motion, increment after increment, their
+                # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
+                alone = not cfg.scan_matching or len(pts) < cfg.min_points
+                corr = cfg.wheel_correlation_length if alone else 0.0
+                u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args, correlation_length=corr), True
         seeds = [u]
         if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
             seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
@@ -267,10 +271,6 @@ class ScanOdometry:
             if not wheel_only:
                 self.stats.empty_scans += 1
             fallback = not wheel_only
-            if used_wheel:
-                # the wheels alone carry the motion, increment after increment: their errors are
-                # correlated over wheel_correlation_length (see motion_model.wheel_noise)
-                cov_u = wheel_noise(u, **self._wheel_args, correlation_length=cfg.wheel_correlation_length)
             self._ekf.predict(u, cov_u)
             self._resync_icp(u)
             R_body = None

@@ -119,7 +119,7 @@ class FRSlam:
         self._was_degenerate = False
         self._angles_cache: tuple[float, float, int, tuple[np.ndarray, np.ndarray]] | None = None
         self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
-        # loop closure (frslam_graph.loop_closure), run on each keyframe before the update strategy
+        # loop closure (frslam_graph.loop_closure), run on each keyframe after the update strategy
         from frslam_graph.loop_closure import LoopCloser
 
         lc = self.config.loop_closure
@@ -245,15 +245,15 @@ class FRSlam:
         self._kfs.append(kf)
         self._kf_points.append(kf.points)
         self._kf_origins.append(kf.sensor_origin)
+        info = self.keyframe(res.keyframe)
         busy = False
         if self.update_strategy is not None:
-            info = self.keyframe(res.keyframe)
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
             version = self.graph.version
             hook(self, info)
             busy = self.graph.version != version  # priors added / removed: this scan's budget is spent
-        if self.loop_closer is not None:
-            self.loop_closer.on_keyframe(self, self.keyframe(res.keyframe), work=not busy)
+        if self.loop_closer is not None:  # uses the keyframe's index and odometry pose only
+            self.loop_closer.on_keyframe(self, info, work=not busy)
 
     # ------------------------------------------------------------- outputs
     def pose(self) -> tuple[float, float, float]:

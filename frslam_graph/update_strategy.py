@@ -15,9 +15,8 @@ geometry, which corrects the drift accumulated along the way.
   ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
   no registration is accepted (the map changes as it is re-estimated), once
   ``register_recheck_distance`` metres after a match that the checks rejected (before the
-  drift grows further), and when progress is
-  obstructed (no progress
-  for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
+  drift grows further), and when progress is obstructed (no progress for
+  ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
 - a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
   walls explain ``min_map_fit`` of the map's occupied cells, and the current scan relocalises
   against it consistently with the current estimate. A later registration that agrees with the
