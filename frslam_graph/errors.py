@@ -24,6 +24,9 @@ class FrslamError(Exception):
         parts = [p for p in (self.source, where) if p]
         super().__init__(": ".join([*parts, message]))
 
+    def __reduce__(self):  # keep message / source / where across processes (pickle)
+        return (type(self), (self.message, self.source, self.where))
+
 
 class FloorPlanError(FrslamError, ValueError):
     """A floor plan file or object is malformed (JSON, R2V, room segmentation, HouseExpo)."""

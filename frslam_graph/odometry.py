@@ -98,6 +98,23 @@ class ScanGeometry:
     weak_axis: np.ndarray  # unit vector of the smallest eigenvalue
 
 
+@dataclass(frozen=True, slots=True)
+class PreparedScan:
+    """The per-scan work of the odometry that needs no state (:meth:`ScanOdometry.prepare`).
+
+    ``points``: valid end points (M, 2) in base_link; ``source`` / ``frame_ds``: KISS-ICP's
+    voxelised registration source and the thinned frame for its local map, (K, 3) with z = 0;
+    ``geometry``: the point-to-line information. The last three are None when the scan has too
+    few points or scan matching is off (computed on demand then). Preparing scans apart from the
+    sequential registration lets it run in another process (:mod:`frslam_graph.odometry_worker`).
+    """
+
+    points: np.ndarray
+    source: np.ndarray | None = None
+    frame_ds: np.ndarray | None = None
+    geometry: ScanGeometry | None = None
+
+
 def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) -> ScanGeometry:
     """Normals from beam-ordered points and the point-to-line Hessian of a planar registration.
 
@@ -216,14 +233,36 @@ class ScanOdometry:
         """Median of recent scan periods (s); 0 before two scans."""
         return self._period
 
+    def prepare(self, points: np.ndarray, icp_inputs: bool | None = None) -> PreparedScan:
+        """Valid points, KISS-ICP source / map frame and scan geometry of (M, 2) base_link points.
+
+        Depends on the configuration only, never on the odometry's state. ``icp_inputs`` (None =
+        when scan matching is on) computes what the registration needs.
+        """
+        cfg = self.config
+        pts = _valid_points(points, cfg.min_range, cfg.max_range)
+        if icp_inputs is None:
+            icp_inputs = cfg.scan_matching
+        if not icp_inputs or len(pts) < cfg.min_points:
+            return PreparedScan(pts)
+        icp = self._icp
+        frame = icp.preprocessor.preprocess(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts, _EYE4)
+        source, frame_ds = icp.voxelize(frame)
+        return PreparedScan(pts, source, frame_ds, scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours))
+
     def process(
-        self, stamp: float, points: np.ndarray, odom: tuple[float, float, float] | None = None
+        self,
+        stamp: float,
+        points: np.ndarray | PreparedScan,
+        odom: tuple[float, float, float] | None = None,
     ) -> OdometryResult | None:
+        """One scan: (M, 2) points in base_link (or their :meth:`prepare`), wheel pose or None."""
         cfg = self.config
         stamp = float(stamp)
         if not np.isfinite(stamp):
             raise RecordingError(f"scan stamp must be a finite number, got {stamp!r}", where="stamp")
-        pts = _valid_points(points, cfg.min_range, cfg.max_range)
+        scan = points if isinstance(points, PreparedScan) else self.prepare(points)
+        pts = scan.points
         wheel = None
         if odom is not None:
             wheel = np.asarray(odom, dtype=np.float64).reshape(-1)
@@ -275,13 +314,14 @@ class ScanOdometry:
             self._resync_icp(u)
             R_body = None
         else:
-            chosen, new_pose, guess, frame_ds = self._align(pts, seeds)
+            if scan.source is None:  # prepared without the registration's inputs
+                scan = self.prepare(pts, icp_inputs=True)
+            chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
             if chosen == 1:  # the scan sides with constant velocity: the wheel increment jumped
                 jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
-            geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
-            R_body, degenerate, fallback, axis = self._icp_covariance(geo)
+            R_body, degenerate, fallback, axis = self._icp_covariance(scan.geometry)
             if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
                 icp_rejected, z = True, np.zeros(3)
             R = vector_cov(z, R_body)
@@ -417,19 +457,17 @@ class ScanOdometry:
         return bool(big and d @ np.linalg.solve(cov, d) > cfg.odom_jump_gate**2)
 
     def _align(
-        self, pts: np.ndarray, seeds: list[np.ndarray]
+        self, scan: PreparedScan, seeds: list[np.ndarray]
     ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """KISS-ICP's register_frame up to the alignment, with one or more seed increments.
 
-        Same steps as ``KissICP.register_frame`` (preprocess, voxelise, align); nothing is changed
-        until :meth:`_commit`. With two seeds, both are aligned and the one whose result has more
-        source points near the local map wins (ties keep seed 0). Returns (seed index, pose 4×4,
-        initial guess 4×4, thinned frame for the map).
+        Same steps as ``KissICP.register_frame`` (preprocess and voxelise: :meth:`prepare`; align);
+        nothing is changed until :meth:`_commit`. With two seeds, both are aligned and the one whose
+        result has more source points near the local map wins (ties keep seed 0). Returns (seed
+        index, pose 4×4, initial guess 4×4, thinned frame for the map).
         """
         icp = self._icp
-        frame = np.column_stack((pts, np.zeros(len(pts))))
-        frame = icp.preprocessor.preprocess(frame, self._empty_ts, to_matrix4(seeds[0]))
-        source, frame_ds = icp.voxelize(frame)
+        source, frame_ds = scan.source, scan.frame_ds
         sigma = icp.adaptive_threshold.get_threshold()
         guesses = [icp.last_pose @ to_matrix4(s) for s in seeds]
         poses = [
@@ -549,6 +587,9 @@ def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.nd
     return occ[ix, iy]
 
 
+_EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
+
+
 def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] < 2:
@@ -559,4 +600,4 @@ def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.
     return pts[ok]
 
 
-__all__ = ["OdometryResult", "OdometryStats", "ScanGeometry", "ScanOdometry", "scan_geometry"]
+__all__ = ["OdometryResult", "OdometryStats", "PreparedScan", "ScanGeometry", "ScanOdometry", "scan_geometry"]

@@ -87,6 +87,21 @@ def test_run_writes_every_output(small_log, tmp_path, capsys):
     assert "ATE RMSE" in capsys.readouterr().out
 
 
+def test_run_sequential_gives_the_same_trajectory(small_log, tmp_path):
+    """--sequential keeps the odometry in-process; the default may run it in a worker process."""
+    from frslam_graph import odometry_worker
+    from frslam_graph.config import FRSlamConfig
+
+    log, _ = small_log
+    a, b = tmp_path / "default", tmp_path / "seq"
+    assert main(["run", str(log), "--out", str(a)]) == 0
+    assert main(["run", str(log), "--sequential", "--out", str(b)]) == 0
+    assert (a / "trajectory.tum").read_text() == (b / "trajectory.tum").read_text()
+    worker = json.loads((a / "metrics.json").read_text())["odometry_in_worker"]
+    assert worker == odometry_worker.available(FRSlamConfig().odometry)
+    assert json.loads((b / "metrics.json").read_text())["odometry_in_worker"] is False
+
+
 def test_compare_with_unusable_plan_still_reports_both(small_log, tmp_path, capsys):
     """A one-room plan cannot be registered: no priors, both runs reported, nothing lost."""
     log, gt = small_log

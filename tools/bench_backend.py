@@ -8,7 +8,10 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    Per-scan latency of ``FRSlam.add_scan`` (median, p99; wall clock and process CPU time, the
    latter robust to a machine shared with other jobs), with and without wheel odometry; the
    baseline timed in the same run is bare ``KissICP.register_frame`` on the same scans (ratio);
-   offline ``FRSlam.process`` (incl. the final LM batch) as a multiple of real time; odometry drift,
+   offline ``FRSlam.process`` (incl. the final LM batch) as a multiple of real time, with the
+   odometry in a worker process (the default) against the sequential run in the same loop (ratio),
+   plus each stage's CPU per scan and the multiple both stages would reach each on a free core
+   (duration / the slower stage's CPU: robust to a shared machine); odometry drift,
    ATE and the time of ``occupancy_grid()``. Medians over ``--runs``. Loop closure off here (this
    measures the core) unless ``--loop-closure``.
 2. **Floor-plan priors** over ``--houses`` simulated houses from the shared R2V plans (a fixed
@@ -38,6 +41,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import resource
 import statistics
 import sys
 import time
@@ -54,6 +58,7 @@ sys.path.insert(0, str(REPO / "tools"))
 from frslam_graph.datasets import Scan  # noqa: E402
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along  # noqa: E402
 
+from frslam_graph import odometry_worker  # noqa: E402
 from frslam_graph.config import FRSlamConfig  # noqa: E402
 from frslam_graph.motion_model import between  # noqa: E402
 from frslam_graph.pipeline import FRSlam  # noqa: E402
@@ -186,8 +191,24 @@ def latency_section(laps: int, runs: int, loop_closure: bool) -> tuple[str, list
         scans = [
             Scan(float(truth[i, 0]), rec[1][i], angles, tuple(rec[4][i]), 10.0) for i in range(len(truth))
         ]
-        res = FRSlam(cfg).process(scans)
-        put("offline process() x real time", res.realtime_factor)
+        res = FRSlam(cfg).process(scans, parallel=False)
+        put("offline process() x real time, sequential", res.realtime_factor)
+        if odometry_worker.available(cfg.odometry):
+            c0, k0 = time.process_time(), resource.getrusage(resource.RUSAGE_CHILDREN)
+            res = FRSlam(cfg).process(scans, parallel=True)
+            k1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            parent_cpu = time.process_time() - c0
+            worker_cpu = (k1.ru_utime + k1.ru_stime) - (k0.ru_utime + k0.ru_stime)
+            put("offline process() x real time", res.realtime_factor)
+            put(
+                "offline: odometry worker / sequential (same run)",
+                res.realtime_factor / rows["offline process() x real time, sequential"][-1],
+            )
+            put("offline: worker CPU ms per scan", 1e3 * worker_cpu / len(scans))
+            put("offline: backend CPU ms per scan", 1e3 * parent_cpu / len(scans))
+            put("offline x real time if both stages had a core (CPU)", duration / max(parent_cpu, worker_cpu))
+        else:
+            put("offline process() x real time", res.realtime_factor)
 
     med = [(name, statistics.median(vals)) for name, vals in rows.items()]
     lines = [
@@ -291,7 +312,7 @@ def house_task(task: dict) -> dict:
                 wrong = WrongRegistrations(WRONG_FRAC, task["seed"])
                 slam = FRSlam(cfg, update_strategy=FloorPlanUpdater(plan, cfg.updates, register_fn=wrong))
             t0 = time.perf_counter()
-            res = slam.process(scans)
+            res = slam.process(scans, parallel=False)  # houses already run in parallel
             wall = time.perf_counter() - t0
             stats, _ = ate(res.trajectory, run.ground_truth)
             row = {

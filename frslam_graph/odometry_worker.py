@@ -1,0 +1,159 @@
+"""Scan odometry in a second process, one stage ahead of the backend (offline runs).
+
+The front end (:class:`~frslam_graph.odometry.ScanOdometry`: KISS-ICP fused with wheel odometry)
+depends on nothing downstream: the graph, loop closure and floor-plan priors never feed back into
+it. Offline, :meth:`FRSlam.process <frslam_graph.pipeline.FRSlam.process>` therefore runs it in a
+forked worker on the second core while the caller's process runs the backend on the results of
+earlier scans, a classic two-stage pipeline. The worker gets scans (stamp, points in base_link,
+wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.OdometryResult` (or
+None for an out-of-order stamp) per scan, in order; the results are bit-identical to running the
+same ScanOdometry in-process. Frames and units are those of :mod:`frslam_graph.odometry`.
+
+An input error raised by the odometry in the worker (e.g. a non-finite stamp) is re-raised in the
+caller after the results of the scans before it, exactly where the in-process run would raise.
+The worker is started with ``fork`` (Linux), so nothing is pickled at start-up and it costs
+milliseconds; :func:`available` tells whether this process can start one.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import sys
+import traceback
+from collections import deque
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import numpy as np
+
+from frslam_graph.config import OdometryConfig
+from frslam_graph.errors import FrslamError
+from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
+
+#: one scan for the worker: stamp (s), points (M, 2) in base_link or their PreparedScan, wheel
+#: pose (x, y, theta) in odom or None
+ScanInput = tuple[float, np.ndarray, Any]
+
+
+def available(config: OdometryConfig) -> bool:
+    """Whether a worker can run here: Linux ``fork``, two or more cores, not inside a daemonic
+    process (which may not have children), and KISS-ICP single-threaded (``num_threads`` 1: a
+    forked child must not inherit a TBB thread pool)."""
+    return (
+        sys.platform.startswith("linux")
+        and "fork" in mp.get_all_start_methods()
+        and (os.cpu_count() or 1) >= 2
+        and not mp.current_process().daemon
+        and config.num_threads == 1
+    )
+
+
+def _serve(config: OdometryConfig, inbox, outbox) -> None:
+    """Worker loop: chunks of ScanInput in, lists of results out; None ends it."""
+    odometry = ScanOdometry(config)
+    while True:
+        chunk = inbox.get()
+        if chunk is None:
+            outbox.put(("done", odometry.stats))
+            return
+        results: list[OdometryResult | None] = []
+        try:
+            for stamp, points, odom in chunk:
+                results.append(odometry.process(stamp, points, odom))
+        except FrslamError as exc:  # bad input: the caller raises it after the earlier results
+            outbox.put(("results", results))
+            outbox.put(("error", exc))
+            return
+        except Exception:  # a bug: report it rather than leave the caller waiting
+            outbox.put(("results", results))
+            outbox.put(("crash", traceback.format_exc()))
+            return
+        outbox.put(("results", results))
+
+
+class OdometryWorker:
+    """A ScanOdometry in a forked process (see module docstring); use as a context manager.
+
+    ``run(items)`` yields ``(item, result)`` for each ``item`` of ``items`` (a ScanInput followed by
+    anything the caller wants back with it), in order, keeping at most ``chunk * window`` scans in
+    flight. ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
+    """
+
+    def __init__(self, config: OdometryConfig, chunk: int = 16, window: int = 4, poll_s: float = 1.0):
+        if chunk < 1 or window < 1:
+            raise ValueError("chunk and window must be >= 1")
+        self.chunk, self.window, self.poll_s = chunk, window, poll_s
+        self.stats: OdometryStats | None = None
+        ctx = mp.get_context("fork")
+        self._inbox, self._outbox = ctx.Queue(), ctx.Queue()
+        self._proc = ctx.Process(
+            target=_serve, args=(config, self._inbox, self._outbox), name="frslam-odometry", daemon=True
+        )
+        self._proc.start()
+
+    def __enter__(self) -> OdometryWorker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the worker (also after an error in the caller) and release its queues."""
+        if self._proc.is_alive():
+            self._proc.terminate()
+        self._proc.join(timeout=5.0)
+        for q in (self._inbox, self._outbox):
+            q.cancel_join_thread()
+            q.close()
+
+    def _receive(self) -> tuple[str, Any]:
+        while True:
+            try:
+                return self._outbox.get(timeout=self.poll_s)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    raise RuntimeError(
+                        f"the odometry worker process exited unexpectedly (exit code {self._proc.exitcode})"
+                    ) from None
+
+    def run(
+        self, items: Iterable[tuple[Any, ...]]
+    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult | None]]:
+        source = iter(items)
+        waiting: deque[tuple[Any, ...]] = deque()  # items sent, results not yet yielded
+        in_flight, exhausted = 0, False
+        while True:
+            while not exhausted and in_flight < self.window:
+                chunk = []
+                for item in source:
+                    waiting.append(item)
+                    chunk.append(item[:3])
+                    if len(chunk) == self.chunk:
+                        break
+                if chunk:
+                    self._inbox.put(chunk)
+                    in_flight += 1
+                if len(chunk) < self.chunk:
+                    exhausted = True
+                    self._inbox.put(None)
+            if in_flight == 0:
+                break
+            kind, payload = self._receive()
+            if kind == "error":
+                raise payload
+            if kind == "crash":
+                raise RuntimeError(f"the odometry worker failed:\n{payload}")
+            in_flight -= 1
+            for result in payload:
+                yield waiting.popleft(), result
+        kind, payload = self._receive()
+        if kind == "error":  # the last chunk ended in an error after all its results
+            raise payload
+        if kind == "crash":
+            raise RuntimeError(f"the odometry worker failed:\n{payload}")
+        self.stats = payload
+
+
+__all__ = ["OdometryWorker", "ScanInput", "available"]

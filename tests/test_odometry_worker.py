@@ -1,0 +1,135 @@
+"""Offline runs with the odometry in a worker process: same results, errors in order, no hang."""
+
+from __future__ import annotations
+
+import os
+import pickle
+
+import numpy as np
+import pytest
+from frslam_graph.datasets import Scan
+from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
+
+from frslam_graph import odometry_worker
+from frslam_graph.config import FRSlamConfig
+from frslam_graph.errors import ConfigError, RecordingError
+from frslam_graph.odometry import PreparedScan, ScanOdometry
+from frslam_graph.pipeline import FRSlam
+
+CFG = {"odometry": {"max_range": 10.0}}
+
+needs_worker = pytest.mark.skipif(
+    not odometry_worker.available(FRSlamConfig.from_dict(CFG).odometry),
+    reason="the odometry worker needs Linux fork, two cores and a non-daemonic process",
+)
+
+
+@pytest.fixture(scope="module")
+def faulty_recording() -> list[Scan]:
+    """One lap of the synthetic room with all-NaN scans, a gap, a wheel jump and a stale stamp."""
+    truth = route(ROOM_LOOP)
+    ranges, amin, inc = scans_along(room_world(), truth)
+    wheel = drifting_odometry(truth)
+    angles = amin + inc * np.arange(len(ranges[0]))
+    scans = []
+    for i in range(len(truth)):
+        r = np.full_like(ranges[i], np.nan) if 100 <= i < 105 else ranges[i]
+        if 200 <= i < 203:
+            continue
+        odom = wheel[i] + (np.array([1.5, 0.0, 0.0]) if i >= 300 else 0.0)
+        scans.append(Scan(float(truth[i, 0]), r, angles, tuple(odom), 10.0, (0.1, 0.0, 0.0)))
+    scans.insert(400, Scan(float(truth[10, 0]), ranges[10], angles, tuple(wheel[10]), 10.0))
+    return scans
+
+
+@needs_worker
+@pytest.mark.parametrize("loop_closure", [False, True])
+def test_parallel_process_equals_the_sequential_one(faulty_recording, loop_closure):
+    cfg = FRSlamConfig.from_dict({**CFG, "loop_closure": {"enabled": loop_closure}})
+    seq = FRSlam(cfg).process(faulty_recording, parallel=False)
+    par_slam = FRSlam(cfg)
+    par = par_slam.process(faulty_recording)  # parallel by default where available
+    assert par.parallel and not seq.parallel
+    np.testing.assert_array_equal(par.trajectory, seq.trajectory)
+    np.testing.assert_array_equal(par.odometry, seq.odometry)
+    np.testing.assert_array_equal(par.keyframes, seq.keyframes)
+    assert par.stats == seq.stats and par_slam.stats == seq.stats
+    assert par.stats.empty_scans == 5 and par.stats.dropped_scans == 3 and par.stats.out_of_order == 1
+    assert [(e.kind, e.stamp) for e in par.log if e.kind != "batch_optimised"] == [
+        (e.kind, e.stamp) for e in seq.log if e.kind != "batch_optimised"
+    ]
+    assert len(par.latencies) == len(faulty_recording) and par.duration == seq.duration
+    # the map from the keyframe scans (kept in this process) is the same
+    seq_slam = FRSlam(cfg)
+    seq_slam.process(faulty_recording, parallel=False)
+    np.testing.assert_array_equal(par_slam.occupancy_grid(0.1).data, seq_slam.occupancy_grid(0.1).data)
+
+
+@needs_worker
+def test_input_error_in_the_worker_is_raised_in_order(faulty_recording):
+    scans = list(faulty_recording[:150])
+    bad = scans[120]
+    scans[120] = Scan(float("nan"), bad.ranges, bad.angles, bad.odom, bad.max_range)
+    for parallel in (False, True):
+        slam = FRSlam(CFG)
+        with pytest.raises(RecordingError, match="stamp must be a finite number") as err:
+            slam.process(scans, parallel=parallel)
+        assert err.value.where == "stamp"
+        assert len(slam.trajectory()) == 120  # every scan before the bad one went through the backend
+
+
+@needs_worker
+def test_a_worker_that_dies_is_reported_not_waited_for(faulty_recording, monkeypatch):
+    real = ScanOdometry.process
+
+    def dies_at_scan_50(self, stamp, points, odom=None):
+        if self.stats.scans == 50:
+            os._exit(3)  # only ever reached in the forked worker
+        return real(self, stamp, points, odom)
+
+    monkeypatch.setattr(ScanOdometry, "process", dies_at_scan_50)
+    with pytest.raises(RuntimeError, match="exit code 3"):
+        FRSlam(CFG).process(faulty_recording[:200], parallel=True)
+
+
+@needs_worker
+def test_after_a_parallel_run_no_more_scans_and_no_second_parallel_run(faulty_recording):
+    slam = FRSlam(CFG)
+    slam.process(faulty_recording[:30], batch=False, parallel=True)
+    s = faulty_recording[30]
+    with pytest.raises(ConfigError, match="worker process") as err:
+        slam.add(s)
+    assert err.value.where == "parallel"
+    with pytest.raises(ConfigError, match="fresh FRSlam"):
+        slam.process(faulty_recording[30:40], parallel=True)
+    # sequential processing may continue a streaming instance
+    streaming = FRSlam(CFG)
+    streaming.process(faulty_recording[:30], batch=False, parallel=False)
+    streaming.process(faulty_recording[30:60], parallel=None)  # not fresh: runs in-process
+    assert len(streaming.trajectory()) == 60
+
+
+def test_prepared_scan_is_stateless_and_lazy():
+    odo = ScanOdometry(FRSlamConfig.from_dict({"odometry": {"scan_matching": False}}).odometry)
+    ang = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    pts = np.column_stack((3 * np.cos(ang), 2 * np.sin(ang)))
+    prep = odo.prepare(pts)
+    assert isinstance(prep, PreparedScan) and prep.source is None and prep.geometry is None
+    full = odo.prepare(pts, icp_inputs=True)
+    assert full.source.shape[1] == 3 and full.geometry.n_normals > 10
+    # without wheel odometry the scan must still be matched: process computes what it needs
+    assert odo.process(0.0, prep) is not None
+    res = odo.process(0.1, odo.prepare(pts + [0.05, 0.0]))
+    assert res is not None and not res.fallback
+    assert abs(res.pose[0] + 0.05) < 0.01  # the walls moved +5 cm: the robot moved -5 cm
+
+
+def test_input_errors_survive_pickling():
+    err = RecordingError("bad line", source="run.clf", where="line 7")
+    back = pickle.loads(pickle.dumps(err))
+    assert type(back) is RecordingError and (back.message, back.source, back.where) == (
+        "bad line",
+        "run.clf",
+        "line 7",
+    )
+    assert str(back) == str(err)
