@@ -154,9 +154,15 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
-    # while none is accepted, a registration that matched but failed the checks is retried once
-    # after this many metres (a fresh map before drift grows; 0 = off)
+    # while none is accepted, a registration that matched but failed the checks is retried after
+    # this many metres (a fresh map before drift grows; 0 = off), up to register_recheck_max
+    # times in a row
     register_recheck_distance: float = Field(3.0, ge=0.0)
+    register_recheck_max: int = Field(1, ge=0)
+    # with a registration accepted, register again after this many metres without an attempt (at
+    # most register_refine_max times; 0 = off)
+    register_refine_distance: float = Field(0.0, ge=0.0)
+    register_refine_max: int = Field(3, ge=0)
     # every other retry registers on the map of the keyframes of the last this many metres (the
     # whole map may have drifted too far to match)
     local_map_distance: float = Field(40.0, gt=0.0)
@@ -184,6 +190,14 @@ class UpdatesConfig(_Section):
     # small map can be 0.2-0.3 m off: a regime-C house of tools/bench_backend.py 0.175 -> 0.025 m
     # ATE; no house of regimes A / B / C worse by more than 0.01 m)
     refine_on_agreement: bool = True
+    # "explains as well or better" on: "map" the occupied cells of the map (drawn at estimates the
+    # accepted plan's priors shaped, so biased towards it); "scans" up to refine_scan_samples
+    # keyframe scans spread over the run, each relocalised on its own on both plans (mean soft
+    # score)
+    refine_by: Literal["map", "scans"] = "map"
+    refine_scan_samples: int = Field(24, ge=1)
+    # scan fits closer than this are a tie (the map decides)
+    refine_scan_margin: float = Field(0.005, ge=0.0)
     max_registrations: int = Field(40, ge=1)
     # relocalisation against the registered plan
     reloc_window_xy: float = Field(0.75, gt=0.0)

@@ -13,16 +13,20 @@ geometry, which corrects the drift accumulated along the way.
 - it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
   first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
   ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
-  no registration is accepted (the map changes as it is re-estimated), once
+  no registration is accepted (the map changes as it is re-estimated),
   ``register_recheck_distance`` metres after a match that the checks rejected (before the
-  drift grows further), and when progress is obstructed (no progress for
-  ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
+  drift grows further; up to ``register_recheck_max`` times in a row), every
+  ``register_refine_distance`` metres after one is accepted (at most ``register_refine_max``
+  times: the priors have corrected the map since), and when progress is obstructed (no
+  progress for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
 - a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
   walls explain ``min_map_fit`` of the map's occupied cells, and the current scan relocalises
   against it consistently with the current estimate. A later registration that agrees with the
-  accepted one is only noted; one that disagrees replaces it only when it explains the current
-  map clearly better (then the old plan's priors are removed and the keyframes that had them are
-  relocalised against the new plan);
+  accepted one refines it when it explains the data as well or better (``refine_by``: the map,
+  or keyframe scans each relocalised on its own on both plans, which unlike the map are not
+  shaped by the accepted plan's priors) and is otherwise only noted; one that disagrees
+  replaces it only when it explains the current map clearly better (then the old plan's priors
+  are removed and the keyframes that had them are relocalised against the new plan);
 - after every ``relocation_distance_D`` metres travelled it **relocalises** the current scan
   (:mod:`frslam_graph.relocalisation`) and, when the match is good, unambiguous and passes a
   chi² gate against the current estimate (its marginal covariance plus the drift since the
@@ -116,7 +120,9 @@ class FloorPlanUpdater:
         self._dist_at_attempt = 0.0
         self._kf_dist: list[float] = []  # odometry distance travelled at each keyframe
         self._retries = 0
-        self._recheck = False  # the last attempt matched but was rejected: retry soon, once
+        self._recheck = False  # the last attempt matched but was rejected: retry soon
+        self._recheck_run = 0  # quick retries in a row (register_recheck_max)
+        self._refines = 0  # registrations triggered by register_refine_distance
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
@@ -208,6 +214,16 @@ class FloorPlanUpdater:
                     # the last local_map_distance metres
                     local = self._retries % 2 == 1 and self._dist > cfg.local_map_distance
                     self._retries += 1
+                elif (
+                    self.accepted is not None
+                    and cfg.register_refine_distance > 0.0
+                    and self._refines < cfg.register_refine_max
+                    and self._dist - self._dist_at_attempt >= cfg.register_refine_distance
+                ):
+                    # the priors have corrected the map since: a registration on it may refine
+                    # the accepted one (refine_on_agreement) or show it wrong (retraction)
+                    reason = f"registration accepted; register again after {self._dist - self._dist_at_attempt:.0f} m"
+                    self._refines += 1
                 elif self._inconsistent_run >= 5:
                     reason = (
                         f"{self._inconsistent_run} relocalisations in a row inconsistent with the estimate"
@@ -292,6 +308,7 @@ class FloorPlanUpdater:
         t0 = time.perf_counter()
         self._attempts += 1
         quick, self._recheck = self._recheck, False
+        self._recheck_run = self._recheck_run + 1 if quick else 0
         area = self.mapped_area
         self._area_at_attempt = area
         self._dist_at_attempt = self._dist
@@ -313,9 +330,10 @@ class FloorPlanUpdater:
         verdict = self._judge(slam, keyframe, reg, grid, nums, reason)
         self.timings["register"] += time.perf_counter() - t0
         if verdict is None:
-            # a match the checks rejected (wrong, or right on a map that drifted) gets one quick
-            # retry on a map a few metres larger, before the drift grows any further
-            self._recheck = reg.ok and self.accepted is None and not quick
+            # a match the checks rejected (wrong, or right on a map that drifted) gets a quick
+            # retry on a map a few metres larger, before the drift grows any further (up to
+            # register_recheck_max in a row: each retry is a new draw on a larger map)
+            self._recheck = reg.ok and self.accepted is None and self._recheck_run < cfg.register_recheck_max
             return
         accepted, relocaliser, reloc = verdict
         msg, kind = f"{reason}; accepted", "register"
@@ -455,6 +473,39 @@ class FloorPlanUpdater:
         fit_tol, margin = self._tolerances()
         fit = relocaliser.fit_points(occ, fit_tol)
         nums["map_fit"] = fit
+        acc = self.accepted
+        if acc is not None and cfg.refine_on_agreement and cfg.refine_by == "scans":
+            disp = _matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            nums["disagreement"] = disp
+            if disp <= cfg.agree_tol:
+                # the map was drawn at estimates the accepted plan's priors pulled onto it (its
+                # fit is biased towards that plan): compare the two on the keyframe scans, each
+                # relocalised on its own
+                q_new = self._scan_fit(slam, relocaliser)
+                q_old = self._scan_fit(slam, acc.relocaliser)
+                nums.update(scan_fit=q_new, accepted_scan_fit=q_old)
+                if q_new > q_old + cfg.refine_scan_margin:
+                    better = f"the keyframe scans better ({q_new:.1%} vs {q_old:.1%})"
+                elif q_new >= q_old - cfg.refine_scan_margin:
+                    # the scans cannot tell (each scan absorbs a rigid offset of the plan): the
+                    # map decides, as with refine_by="map"
+                    old_fit = acc.relocaliser.fit_points(occ, fit_tol)
+                    nums["accepted_map_fit"] = old_fit
+                    if fit < old_fit:
+                        return reject(
+                            f"agrees with registration {acc.id} (RMS {disp:.2f} m), explains the keyframe "
+                            f"scans as well ({q_new:.1%} vs {q_old:.1%}) and the map no better "
+                            f"({fit:.0%} vs {old_fit:.0%}); kept"
+                        )
+                    better = f"the keyframe scans as well and the map as well or better ({fit:.0%} vs {old_fit:.0%})"
+                else:
+                    return reject(
+                        f"agrees with registration {acc.id} (RMS {disp:.2f} m) and explains the "
+                        f"keyframe scans worse ({q_new:.1%} vs {q_old:.1%}); kept"
+                    )
+                return self._refine(
+                    slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better
+                )
         if fit < cfg.min_map_fit:
             return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
         crossing = _walls_through_free_space(relocaliser, grid, margin)
@@ -464,30 +515,29 @@ class FloorPlanUpdater:
                 f"{crossing:.0%} of the plan's observed walls cross free space in the map "
                 f"> {cfg.max_walls_in_free_space:.0%}"
             )
-        if self.accepted is not None:
-            disp = _matrix_disagreement(self.plan, self.accepted.registration.matrix, reg.matrix)
-            old_fit = self.accepted.relocaliser.fit_points(occ, fit_tol)
+        if acc is not None:
+            disp = _matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            old_fit = acc.relocaliser.fit_points(occ, fit_tol)
             nums.update(disagreement=disp, accepted_map_fit=old_fit)
             if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
                 if cfg.refine_on_agreement and fit >= old_fit:
-                    # the same placement fitted to a larger map: later relocalisations use it
-                    # (earlier priors stay: they agree within agree_tol)
-                    self._event(
+                    return self._refine(
                         slam,
                         stamp,
-                        "register",
-                        f"{trigger}; agrees with registration {self.accepted.id} (RMS {disp:.2f} m) "
-                        f"and explains the map as well or better ({fit:.0%} vs {old_fit:.0%}); refined",
                         i,
-                        False,
-                        **nums,
+                        reg,
+                        plan_map,
+                        relocaliser,
+                        fit,
+                        nums,
+                        trigger,
+                        disp,
+                        f"the map as well or better ({fit:.0%} vs {old_fit:.0%})",
                     )
-                    self.accepted = _Accepted(self.accepted.id, reg, plan_map, relocaliser, fit)
-                    return None
-                return reject(f"agrees with registration {self.accepted.id} (RMS {disp:.2f} m); kept")
+                return reject(f"agrees with registration {acc.id} (RMS {disp:.2f} m); kept")
             if fit < old_fit + cfg.switch_margin:
                 return reject(
-                    f"disagrees with registration {self.accepted.id} (RMS {disp:.2f} m) and explains "
+                    f"disagrees with registration {acc.id} (RMS {disp:.2f} m) and explains "
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})"
                 )
         points = slam.keyframe_scans()[0][i]
@@ -523,6 +573,36 @@ class FloorPlanUpdater:
         acc = _Accepted(self._next_id, reg, plan_map, relocaliser, fit)
         self._next_id += 1
         return acc, relocaliser, reloc
+
+    def _refine(self, slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better) -> None:
+        """An agreeing registration explains the data as well or better: the same placement fitted
+        to more data; later relocalisations use it (earlier priors stay: they agree within
+        agree_tol)."""
+        acc = self.accepted
+        self._event(
+            slam,
+            stamp,
+            "register",
+            f"{trigger}; agrees with registration {acc.id} (RMS {disp:.2f} m) and explains {better}; refined",
+            i,
+            False,
+            **nums,
+        )
+        self.accepted = _Accepted(acc.id, reg, plan_map, relocaliser, fit)
+
+    def _scan_fit(self, slam, relocaliser: Relocaliser) -> float:
+        """Mean soft score of keyframe scans, each relocalised on its own against the plan (in a
+        window around its estimate): how well the plan explains the scans, unlike the map fit not
+        biased towards the plan whose priors shaped the map."""
+        n = len(self._kf_dist)
+        if n == 0:
+            return 0.0
+        ks = np.unique(np.linspace(0, n - 1, min(n, self.config.refine_scan_samples)).round().astype(np.intp))
+        scans = slam.keyframe_scans()[0]
+        t0 = time.perf_counter()
+        soft = [relocaliser.relocalise(scans[k], slam.keyframe(int(k)).pose_map).soft_score for k in ks]
+        self.timings["relocalise"] += time.perf_counter() - t0
+        return float(np.mean(soft))
 
     def _reanchor(self, slam, previous: _Accepted) -> None:
         """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""

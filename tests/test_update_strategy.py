@@ -383,19 +383,22 @@ def test_late_first_registration_needs_a_second_that_agrees(sim):
     assert next(e for e in upd2.log if e.kind == "register").accepted
 
 
-def test_rejected_match_gets_one_quick_recheck(sim):
+def test_rejected_matches_get_quick_rechecks(sim):
     """A registration that matched but failed the checks (a wrong one, or a right one on a map
-    that drifted) is retried once after register_recheck_distance metres, before the drift grows:
-    the right registration that follows is accepted there. The quick retry happens only once in
-    a row, and not at all with register_recheck_distance = 0 (the other triggers are switched off
-    here: no growth trigger, retries farther apart than the route)."""
+    that drifted) is retried after register_recheck_distance metres, before the drift grows, up
+    to register_recheck_max times in a row (each retry is a new draw on a larger map: a wrong
+    match in a symmetric building need not repeat); not at all with register_recheck_distance = 0
+    (the other triggers are switched off here: no growth trigger, retries farther apart than the
+    route)."""
     plan, run, m = sim
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
     base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
 
-    def run_with(seq, recheck):
+    def run_with(seq, recheck, n=1):
         it = iter(seq + [m] * 40)
-        cfg = CFG.updates.model_copy(update={**base, "register_recheck_distance": recheck})
+        cfg = CFG.updates.model_copy(
+            update={**base, "register_recheck_distance": recheck, "register_recheck_max": n}
+        )
         upd = FloorPlanUpdater(
             plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
         )
@@ -408,7 +411,92 @@ def test_rejected_match_gets_one_quick_recheck(sim):
     kfs = slam.keyframe_array()
     travelled = np.cumsum(np.r_[0.0, np.hypot(*np.diff(kfs[:, 1:3], axis=0).T)])
     assert 3.0 <= travelled[reg[1].keyframe] - travelled[reg[0].keyframe] < 4.0
-    upd, _, reg = run_with([wrong, wrong], 3.0)  # once in a row only
+    upd, _, reg = run_with([wrong, wrong], 3.0)  # register_recheck_max = 1: once in a row
     assert len(reg) == 2 and upd.accepted is None
-    upd, _, reg = run_with([wrong], 0.0)  # off
+    upd, _, reg = run_with([wrong, wrong], 3.0, n=3)  # a second wrong draw, then the right one
+    assert len(reg) == 3 and reg[2].accepted and np.allclose(upd.registration.matrix, m)
+    assert all("retry after 3 m" in e.reason for e in reg[1:])
+    upd, _, reg = run_with([wrong] * 3, 3.0, n=2)  # no more than register_recheck_max in a row
+    assert len(reg) == 3 and upd.accepted is None
+    upd, _, reg = run_with([wrong], 0.0, n=3)  # off
     assert len(reg) == 1 and upd.accepted is None
+
+
+def scaled_about_centre(plan, matrix, factor):
+    """The registration ``matrix`` scaled by ``factor`` about the plan's centre (a non-rigid
+    error a single scan shows, unlike a rigid offset, which relocalisation absorbs)."""
+    c = matrix[:2, :2] @ np.array(plan.bounds).reshape(2, 2).mean(0) + matrix[:2, 2]
+    w = np.eye(3)
+    w[:2, :2] *= factor
+    w[:2, 2] = c - factor * c
+    return w @ matrix
+
+
+def sequence_source(seq, on_call=None):
+    it = iter(seq)
+    calls = []
+
+    def register(plan, grid):
+        calls.append(grid)
+        if on_call is not None:
+            on_call(len(calls), grid)
+        return Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
+
+    register.calls = calls
+    return register
+
+
+def test_accepted_registration_is_registered_again_after_refine_distance(sim):
+    """With register_refine_distance, an accepted registration is registered again every that
+    many metres without an attempt (at most register_refine_max times), so a first registration
+    a few per cent off in scale gets refined by the right one even when the mapped area stops
+    growing; with 0 (off) no second attempt is made and the first is kept."""
+    plan, run, m = sim
+    off = scaled_about_centre(plan, m, 1.03)
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+    for dist, n, expected in ((3.0, 2, m), (0.0, 2, off)):
+        cfg = CFG.updates.model_copy(
+            update={**base, "register_refine_distance": dist, "register_refine_max": n, "refine_by": "scans"}
+        )
+        src = sequence_source([off] + [m] * 40)
+        upd = FloorPlanUpdater(plan, cfg, register_fn=src)
+        run_slam(run, upd)
+        reg = [e for e in upd.log if e.kind == "register"]
+        assert reg[0].accepted and np.allclose(upd.registration.matrix, expected)
+        again = [e for e in reg if "register again" in e.reason]
+        assert len(again) == (n if dist > 0 else 0) and len(reg) == 1 + len(again)
+        if dist > 0:
+            assert again[0].reason.endswith("refined") and "keyframe scans better" in again[0].reason
+            assert again[0].numbers["scan_fit"] > again[0].numbers["accepted_scan_fit"]
+
+
+def test_refinement_by_scans_does_not_depend_on_the_map(sim):
+    """refine_by="scans": whether an agreeing registration refines the accepted one is decided
+    on keyframe scans relocalised each on its own, not on the map's occupied cells (drawn at
+    estimates the accepted plan's priors shaped; here cluttered after the first registration so
+    that no plan explains half of them): the right registration refines a first one 3 % off in
+    scale, where the map criterion keeps the wrong one; a worse one never refines the right one."""
+    plan, run, m = sim
+    off = scaled_about_centre(plan, m, 1.03)
+    rng = np.random.default_rng(0)
+
+    def clutter(n, grid):
+        if n > 1:  # occupied cells scattered over the free space (furniture, people)
+            free = np.flatnonzero(grid.free_mask())
+            grid.data.flat[rng.choice(free, len(free) // 3, replace=False)] = 100
+
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3, "register_refine_distance": 3.0}
+    for by, expected in (("map", off), ("scans", m)):
+        cfg = CFG.updates.model_copy(update={**base, "refine_by": by})
+        upd = FloorPlanUpdater(plan, cfg, register_fn=sequence_source([off] + [m] * 40, clutter))
+        run_slam(run, upd)
+        reg = [e for e in upd.log if e.kind == "register"]
+        assert reg[0].accepted and len(reg) >= 2
+        assert np.allclose(upd.registration.matrix, expected)
+        assert all(e.numbers["map_fit"] < cfg.min_map_fit for e in reg[1:])
+    cfg = CFG.updates.model_copy(update={**base, "refine_by": "scans"})
+    upd = FloorPlanUpdater(plan, cfg, register_fn=sequence_source([m] + [off] * 40))
+    run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind == "register"]
+    assert reg[0].accepted and np.allclose(upd.registration.matrix, m)
+    assert all(e.reason.endswith("kept") and "scans worse" in e.reason for e in reg[1:])
