@@ -21,6 +21,7 @@ import multiprocessing as mp
 import os
 import queue
 import sys
+import time
 import traceback
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -58,10 +59,12 @@ def _serve(config: OdometryConfig, inbox, outbox) -> None:
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
-        results: list[OdometryResult | None] = []
+        results: list[tuple[OdometryResult | None, float]] = []
         try:
             for stamp, points, odom in chunk:
-                results.append(odometry.process(stamp, points, odom))
+                t0 = time.perf_counter()
+                res = odometry.process(stamp, points, odom)
+                results.append((res, time.perf_counter() - t0))
         except FrslamError as exc:  # bad input: the caller raises it after the earlier results
             outbox.put(("results", results))
             outbox.put(("error", exc))
@@ -76,9 +79,9 @@ def _serve(config: OdometryConfig, inbox, outbox) -> None:
 class OdometryWorker:
     """A ScanOdometry in a forked process (see module docstring); use as a context manager.
 
-    ``run(items)`` yields ``(item, result)`` for each ``item`` of ``items`` (a ScanInput followed by
-    anything the caller wants back with it), in order, keeping at most ``chunk * window`` scans in
-    flight. ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
+    ``run(items)`` yields ``(item, result, seconds)`` for each ``item`` of ``items`` (a ScanInput
+    followed by anything the caller wants back with it), in order, keeping at most
+    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it. ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
     """
 
     def __init__(self, config: OdometryConfig, chunk: int = 16, window: int = 4, poll_s: float = 1.0):
@@ -120,7 +123,7 @@ class OdometryWorker:
 
     def run(
         self, items: Iterable[tuple[Any, ...]]
-    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult | None]]:
+    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult | None, float]]:
         source = iter(items)
         waiting: deque[tuple[Any, ...]] = deque()  # items sent, results not yet yielded
         in_flight, exhausted = 0, False
@@ -146,8 +149,8 @@ class OdometryWorker:
             if kind == "crash":
                 raise RuntimeError(f"the odometry worker failed:\n{payload}")
             in_flight -= 1
-            for result in payload:
-                yield waiting.popleft(), result
+            for result, seconds in payload:
+                yield waiting.popleft(), result, seconds
         kind, payload = self._receive()
         if kind == "error":  # the last chunk ended in an error after all its results
             raise payload

@@ -109,7 +109,7 @@ def write_outputs(
         "duration_s": res.duration,
         "wall_time_s": res.wall_time,
         "realtime_factor": res.realtime_factor,
-        # with the odometry in a worker process the latencies are the backend stage's
+        # with the odometry in a worker process a latency is the sum of both stages' times
         "odometry_in_worker": res.parallel,
         "latency_ms": {
             "median": float(np.median(lat)),

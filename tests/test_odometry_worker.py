@@ -59,6 +59,7 @@ def test_parallel_process_equals_the_sequential_one(faulty_recording, loop_closu
         (e.kind, e.stamp) for e in seq.log if e.kind != "batch_optimised"
     ]
     assert len(par.latencies) == len(faulty_recording) and par.duration == seq.duration
+    assert np.all(par.latencies > 0.0)  # odometry (worker) + backend time of each scan
     # the map from the keyframe scans (kept in this process) is the same
     seq_slam = FRSlam(cfg)
     seq_slam.process(faulty_recording, parallel=False)
