@@ -250,7 +250,7 @@ class LoopClosureConfig(_Section):
     search_window_xy: float = Field(2.0, gt=0.0)
     candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
     attempt_every: int = Field(2, ge=1)  # keyframes between attempts
-    max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
+    max_candidates: int = Field(3, ge=1)  # candidates matched per attempt
     retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
     # No search while the keyframe is tied to a keyframe within its search radius by a short path
     # of the graph (at most redundant_travel metres and redundant_turn_deg of turning; accepted
@@ -292,6 +292,14 @@ class LoopClosureConfig(_Section):
     consistency_xy: float = Field(0.3, gt=0.0)
     consistency_theta_deg: float = Field(3.0, gt=0.0)
     pending_keyframes: int = Field(30, ge=1)
+    # A match that agrees with a pending closure (the check above) confirms it with at least this
+    # inlier fraction (the other tests unchanged): two independent matches that agree are the
+    # evidence; alone such a match is rejected (low_inliers). = min_inlier_fraction: off.
+    confirm_min_inlier_fraction: float = Field(0.45, ge=0.0, le=1.0)
+    # When a large correction goes pending, the keyframe this far back (its own query submap, no
+    # shared points) is matched where the closure predicts it: a second, independent check while
+    # the robot may already be leaving the place. 0: off.
+    verify_back_travel: float = Field(2.0, ge=0.0)
     # each attempt first checks where the latest pending closure predicts the robot to be
     hypothesis_window_xy: float = Field(2.0, gt=0.0)  # as wide as a search: ambiguity still tested
     hypothesis_window_theta_deg: float = Field(10.0, gt=0.0)
@@ -303,6 +311,13 @@ class LoopClosureConfig(_Section):
     kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
     kernel_param: float = Field(4.0, gt=0.0)
     batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
+    # After closures enter (and at the end), an accepted closure whose residual at the estimate
+    # exceeds prune_chi2 (squared Mahalanobis norm under its covariance) and prune_xy (m) or
+    # prune_theta_deg is removed, worst first, and the graph re-settled: the odometry and the other
+    # closures disagree with it (an aliased pair that slipped through). prune_chi2 0: off.
+    prune_chi2: float = Field(200.0, ge=0.0)
+    prune_xy: float = Field(0.3, ge=0.0)
+    prune_theta_deg: float = Field(3.0, ge=0.0)
     # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (every
     # attempt_every keyframes); every scan then runs *steps* of the queued work (a submap build,
     # a chunk of the correlative search of at most max_lookups_per_step field look-ups, the ICP

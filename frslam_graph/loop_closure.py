@@ -43,7 +43,19 @@ Gaussians (the graph converges to them with iSAM2, or an LM batch when the corre
 The bounded pull of a robust kernel could not hold such a correction against the stiff odometry
 chain; the pairwise check takes its place as the guard against wrong closures. While a closure is
 pending, each attempt first searches where it predicts the robot to be (same window and
-ambiguity test as any candidate), which is what confirms the large corrections on ACES.
+ambiguity test as any candidate), which is what confirms the large corrections on ACES. The
+keyframe ``verify_back_travel`` metres before the query is checked at once too (its query submap
+shares no points with the pending one's), so the robot need not come back for a second look. A
+match that agrees with a pending closure confirms it with a lower inlier fraction
+(``confirm_min_inlier_fraction``: the agreement of two matches is the evidence); alone it is
+rejected.
+
+Closures already in the graph are re-checked after every addition and at the end
+(:meth:`LoopCloser.flush`): at the converged estimate (an LM batch first), a closure whose residual
+is far outside its covariance (``prune_chi2``, and ``prune_xy`` / ``prune_theta_deg``) is removed,
+worst first: the odometry and the other closures disagree with it (on ACES, an aliased corridor
+match confirmed by an unrelated closure of similar correction). Counted in ``stats.pruned``,
+logged as ``loop_removed``.
 
 Bounded latency (anytime): a keyframe only *plans* (candidates into a queue, about 1 ms); the
 work (query and reference submaps, the correlative search in chunks of at most
@@ -666,6 +678,13 @@ def _gather_cost(slam: FRSlam, lo: int, hi: int) -> float:
     return _MS_GATHER + _MS_PER_POINT_GATHER * n
 
 
+def _between_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a⁻¹ ⊕ b of (K, 3) poses."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.column_stack((c * dx + s * dy, -s * dx + c * dy, _wrap(b[:, 2] - a[:, 2])))
+
+
 def _moved(after: np.ndarray, before: np.ndarray) -> float:
     """Largest xy displacement (m) of the keyframes in both arrays."""
     n = min(len(after), len(before))
@@ -683,6 +702,8 @@ class LoopClosureStats:
     cpu_seconds: float = 0.0  # process CPU time spent in the loop closer
     keyframes: int = 0
     redundant: int = 0  # searches skipped: the keyframe already tied to the region (see config)
+    pruned: int = 0  # accepted closures removed again: the rest of the graph disagreed
+    verifications: int = 0  # earlier keyframes matched to check a pending closure
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -704,6 +725,7 @@ class LoopCloser:
         self._last_closure = -1
         self._tried: dict[tuple[int, int], int] = {}
         self._pending: list[LoopClosure] = []
+        self._factor_of: dict[int, gtsam.BetweenFactorPose2] = {}  # id(closure) -> its factor
         # graph distances of the latest plan: (keyframe, closures, travel, turn)
         self._dist: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
@@ -779,7 +801,9 @@ class LoopCloser:
         """Finish all queued work now (offline, before the final batch)."""
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            return self._work(slam, None, None)
+            added = self._work(slam, None, None)
+            run_steps(self._prune(slam))
+            return added
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
@@ -1072,7 +1096,8 @@ class LoopCloser:
         if m.coarse_score < cfg.min_coarse_score:
             self._reject(slam, i, c, "low_score", **data)
             return []
-        if m.inlier_fraction < cfg.min_inlier_fraction:
+        weak = m.inlier_fraction < cfg.min_inlier_fraction  # only confirms a pending closure
+        if m.inlier_fraction < min(cfg.min_inlier_fraction, cfg.confirm_min_inlier_fraction):
             self._reject(slam, i, c, "low_inliers", **data)
             return []
         if m.ambiguity > cfg.max_ambiguity:
@@ -1091,10 +1116,13 @@ class LoopCloser:
         small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
             cfg.confirm_theta_deg
         )
+        partner = None if small else self._consistent_pending(lc, slam.graph.estimates())
+        if weak and partner is None:
+            self._reject(slam, i, c, "low_inliers", **data)
+            return []
         if small:
             yield from self._add(slam, [lc], settle=False)
             return [lc]
-        partner = self._consistent_pending(lc, slam.graph.estimates())
         if partner is None:
             self._pending.append(lc)
             self.stats.pending += 1
@@ -1106,10 +1134,41 @@ class LoopCloser:
                 correction=corr.tolist(),
                 **data,
             )
+            self._verify_back(slam, lc)
             return []
         self._pending = [q for q in self._pending if q is not partner]
         yield from self._add(slam, [partner, lc], settle=True)
         return [partner, lc]
+
+    def _verify_back(self, slam: FRSlam, lc: LoopClosure) -> None:
+        """Queue (first) a check of the pending ``lc`` from the keyframe ``verify_back_travel``
+        metres before its query: matched against the old keyframe nearest to where ``lc`` puts it.
+        Its query submap shares no points with ``lc``'s, so an agreeing match is a second piece of
+        evidence even when the robot does not come back to the place."""
+        cfg = self.config
+        i = lc.query
+        if cfg.verify_back_travel <= 0.0:
+            return
+        trav = np.asarray(self._travel[: i + 1])
+        back = np.flatnonzero(trav[i] - trav >= cfg.verify_back_travel)
+        if not len(back):
+            return
+        j = int(back[-1])
+        ok = self._eligible(j)
+        if not ok.any():
+            return
+        est = slam.graph.estimates()
+        pred = compose(compose(est[lc.reference], lc.relative), between(est[i], est[j]))
+        d = np.hypot(*(est[: len(ok), :2] - pred[:2]).T)
+        d[~ok] = np.inf
+        c = int(np.argmin(d))
+        if d[c] > cfg.search_window_xy:
+            return
+        window = np.deg2rad(cfg.hypothesis_window_theta_deg)
+        self._jobs.appendleft(
+            _Job(c, j, cfg.hypothesis_window_xy, window, between(est[c], pred), len(self.closures))
+        )
+        self.stats.verifications += 1
 
     def _consistent_pending(self, lc: LoopClosure, est: np.ndarray) -> LoopClosure | None:
         cfg = self.config
@@ -1146,7 +1205,9 @@ class LoopCloser:
         # the same repeated structure) cannot overrule the priors
         anchored = any(h.source.startswith("reloc:") for h in graph.priors())
         for lc in closures:
-            graph.add_factor(self._factor(lc, robust=not settle or anchored), extra_iterations=0)
+            factor = self._factor(lc, robust=not settle or anchored)
+            self._factor_of[id(lc)] = factor
+            graph.add_factor(factor, extra_iterations=0)
         if settle:
             yield from self._settle(graph, 10)
             moved = _moved(graph.estimates(), before)
@@ -1175,6 +1236,70 @@ class LoopCloser:
             )
         if settle:  # neighbouring keyframes may have moved relative to each other
             self._submaps.clear()
+        yield from self._prune(slam)
+
+    def _residual_chi2(self, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (K, 3: x, y, theta of prediction⁻¹ ⊕ measurement) of the accepted closures at
+        ``est`` and their squared Mahalanobis norms (K,) under the closures' covariances."""
+        if not self.closures:
+            return np.zeros((0, 3)), np.zeros(0)
+        ref = est[[lc.reference for lc in self.closures]]
+        qry = est[[lc.query for lc in self.closures]]
+        meas = np.array([lc.relative for lc in self.closures])
+        cov = np.array([lc.covariance for lc in self.closures])
+        pred = _between_rows(ref, qry)
+        r = _between_rows(pred, meas)
+        chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(cov, r[:, :, None])[:, :, 0])
+        return r, chi2
+
+    def _prune(self, slam: FRSlam) -> Steps[None]:
+        """Remove accepted closures the rest of the graph disagrees with (a step generator): while
+        the worst residual exceeds ``prune_chi2`` and ``prune_xy`` / ``prune_theta_deg`` at the
+        converged estimate (an LM batch first), remove that closure and settle again."""
+        cfg = self.config
+        if cfg.prune_chi2 <= 0.0:
+            return
+        graph = slam.graph
+        converged = False
+        while self.closures:
+            r, chi2 = self._residual_chi2(graph.estimates())
+            big = (np.hypot(r[:, 0], r[:, 1]) > cfg.prune_xy) | (
+                np.abs(r[:, 2]) > np.deg2rad(cfg.prune_theta_deg)
+            )
+            chi2 = np.where(big, chi2, 0.0)
+            k = int(np.argmax(chi2))
+            if chi2[k] <= cfg.prune_chi2:
+                return
+            if not converged:  # judge at the optimum, not after a few Gauss-Newton steps
+                yield _MS_PER_KEYFRAME_BATCH * len(graph)
+                graph.optimize_batch()
+                self.stats.batches += 1
+                converged = True
+                continue
+            lc = self.closures.pop(k)
+            yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+            before = graph.estimates()
+            factor = self._factor_of.pop(id(lc), None)
+            idx = graph.factor_index(factor) if factor is not None else -1
+            if idx >= 0:
+                graph.remove_factor(idx, extra_iterations=0)
+            yield from self._settle(graph, 10)
+            if _moved(graph.estimates(), before) >= cfg.batch_on_correction:
+                yield _MS_PER_KEYFRAME_BATCH * len(graph)
+                graph.optimize_batch()
+                self.stats.batches += 1
+            self._dist = None
+            self._submaps.clear()
+            self._last_closure = max((c.query for c in self.closures), default=-1)
+            self.stats.pruned += 1
+            slam.log_event(
+                "loop_removed",
+                f"keyframe {lc.query} on {lc.reference}: the graph disagrees (chi2 {chi2[k]:.0f})",
+                keyframe=lc.query,
+                reference=lc.reference,
+                residual=r[k].tolist(),
+                chi2=float(chi2[k]),
+            )
 
     @staticmethod
     def _settle(graph, max_iterations: int, tol: float = 1e-4) -> Steps[None]:
