@@ -198,6 +198,16 @@ class UpdatesConfig(_Section):
     refine_scan_samples: int = Field(24, ge=1)
     # scan fits closer than this are a tie (the map decides)
     refine_scan_margin: float = Field(0.005, ge=0.0)
+    # every this many metres with a registration accepted, its scale along the plan's two axes is
+    # fitted to keyframe scans (refine_scan_samples, their poses free); the result replaces it
+    # when it explains the scans better by refine_scan_margin (0 = off). Prior sigma of the log
+    # scale factors, and the largest factor change accepted (fraction).
+    scale_refine_distance: float = Field(0.0, ge=0.0)
+    scale_refine_sigma: float = Field(0.05, gt=0.0)
+    scale_refine_max: float = Field(0.1, gt=0.0)
+    # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
+    # with priors on the refined plan
+    scale_reanchor_xy: float = Field(0.05, ge=0.0)
     max_registrations: int = Field(40, ge=1)
     # relocalisation against the registered plan
     reloc_window_xy: float = Field(0.75, gt=0.0)
@@ -250,7 +260,11 @@ class LoopClosureConfig(_Section):
     search_window_xy: float = Field(2.0, gt=0.0)
     candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
     attempt_every: int = Field(2, ge=1)  # keyframes between attempts
-    max_candidates: int = Field(3, ge=1)  # candidates matched per attempt
+    # candidates matched per attempt: 3 (was 2) so that after a long excursion a region the drift
+    # put several metres from the estimate is reached in time (ACES with convergence_criterion
+    # 2e-4: a 6 m loop was missed, relation error 0.10 m; 0.046 m with 3). Costs Intel / FR079 about
+    # +70 / +110 % loop-closure CPU. Only on the wide searches was not enough (missed ACES again).
+    max_candidates: int = Field(3, ge=1)
     retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
     # No search while the keyframe is tied to a keyframe within its search radius by a short path
     # of the graph (at most redundant_travel metres and redundant_turn_deg of turning; accepted

@@ -547,3 +547,116 @@ def test_keyframe_where_the_update_strategy_touched_the_graph_gets_no_closure_wo
         slam.add_scan(truth[i, 0], ranges[i], amin, inc, None)
     assert len(seen) >= 6
     assert all(work == (k % 3 != 0) for k, work in seen)
+
+
+# ------------------------------------------------ independent confirmation and pruning (ACES)
+def _ret(value):
+    """A step generator without steps that returns ``value``."""
+    if False:  # pragma: no cover
+        yield 0.0
+    return value
+
+
+def _line_slam(n: int = 40, step: float = 0.5) -> FRSlam:
+    """A graph of n keyframes ``step`` metres apart along x (stiff odometry)."""
+    slam = FRSlam()
+    slam.graph.add_first(np.zeros(3))
+    for _ in range(n - 1):
+        slam.graph.add_keyframe(np.array([step, 0.0, 0.0]), np.diag([1e-4, 1e-4, 1e-6]))
+    return slam
+
+
+def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
+    """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with a large correction and
+    ``inliers``; with ``pending`` a closure of keyframe 37 on keyframe 0 agrees with it."""
+    import frslam_graph.loop_closure as lcm
+    from frslam_graph.loop_closure import ScanMatch, _Job
+
+    slam = _line_slam()
+    # no pruning: the straight chain cannot fold onto itself as these closures would have it
+    cfg = {"prune_chi2": 0.0, **cfg}
+    closer = LoopCloser(FRSlamConfig.from_dict({"loop_closure": cfg}).loop_closure)
+    for k in range(40):
+        closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
+    m = ScanMatch(np.zeros(3), inliers, 0.3, np.eye(3) * 1e-5, 0.9, 100)
+    monkeypatch.setattr(lcm, "match_scan_steps", lambda *a, **k: _ret(m))
+    closer._query = (39, np.zeros((50, 2)))
+    closer._reference = lambda slam, c, i: _ret(None)
+    if pending:
+        closer._pending.append(LoopClosure(0, 37, np.zeros(3), np.eye(3) * 4e-4, m, np.zeros(3)))
+    out = lcm.run_steps(closer._job(slam, _Job(2, 39, 2.0, 0.2)))
+    return closer, out
+
+
+def test_weak_match_confirms_a_pending_closure_but_is_rejected_alone(monkeypatch):
+    cfg = FRSlamConfig().loop_closure
+    weak = 0.5 * (cfg.confirm_min_inlier_fraction + cfg.min_inlier_fraction)
+    # alone: rejected (and not even queued as pending)
+    closer, out = _weak_match_job(monkeypatch, weak, pending=False)
+    assert out == [] and not closer._pending and closer.stats.reasons == {"low_inliers": 1}
+    # agreeing with a pending closure: the pair enters the graph
+    closer, out = _weak_match_job(monkeypatch, weak, pending=True)
+    assert [(c.reference, c.query) for c in out] == [(0, 37), (2, 39)]
+    assert len(closer.closures) == 2 and not closer._pending
+    # switched off (= min_inlier_fraction): rejected even with the pending closure
+    off = {"confirm_min_inlier_fraction": cfg.min_inlier_fraction}
+    closer, out = _weak_match_job(monkeypatch, weak, pending=True, **off)
+    assert out == [] and closer.stats.reasons == {"low_inliers": 1}
+    # below confirm_min_inlier_fraction: rejected
+    closer, out = _weak_match_job(monkeypatch, cfg.confirm_min_inlier_fraction - 0.05, pending=True)
+    assert out == [] and closer.stats.reasons == {"low_inliers": 1}
+
+
+def test_pending_closure_is_checked_from_the_keyframe_two_metres_back(monkeypatch):
+    # a strong match with a large correction goes pending and queues (first) the check of the
+    # keyframe verify_back_travel before it, where the closure puts that keyframe
+    closer, out = _weak_match_job(monkeypatch, 0.9, pending=False)
+    assert out == [] and len(closer._pending) == 1 and closer.stats.verifications == 1
+    job = closer._jobs[0]
+    # keyframe 35 (2 m before 39) is at -1 m by the closure: nearest old keyframe 0, 1 m behind it
+    assert (job.reference, job.query) == (0, 35)
+    np.testing.assert_allclose(job.predicted, [-1.0, 0.0, 0.0], atol=1e-6)
+    assert job.radius == closer.config.hypothesis_window_xy
+    closer, _ = _weak_match_job(monkeypatch, 0.9, pending=False, verify_back_travel=0.0)
+    assert not closer._jobs and closer.stats.verifications == 0
+
+
+def _closure_pairs(slam: FRSlam) -> set[tuple[int, int]]:
+    """(reference, query) of the between-factors that skip keyframes (loop closures)."""
+    pairs = {
+        (int(gtsam.Symbol(f.keys()[0]).index()), int(gtsam.Symbol(f.keys()[1]).index()))
+        for f in slam.graph._factors
+        if isinstance(f, gtsam.BetweenFactorPose2)
+    }
+    return {(a, b) for a, b in pairs if b - a > 1}
+
+
+@pytest.mark.parametrize("prune", [True, False])
+def test_closure_the_graph_disagrees_with_is_removed(prune):
+    """Two true closures are in the graph; a confirmed but aliased one (1.2 m off along the
+    corridor) enters as a Gaussian: the odometry and the true closures disagree with it, so it
+    is removed and the graph returns to the straight line."""
+    from types import SimpleNamespace
+
+    slam = _line_slam(12, 1.0)
+    closer = LoopCloser(
+        FRSlamConfig.from_dict({"loop_closure": {"prune_chi2": 200.0 if prune else 0.0}}).loop_closure
+    )
+    cov = np.diag([9e-4, 9e-4, 1e-4])
+    match = SimpleNamespace(inlier_fraction=0.9, ambiguity=0.1, coarse_score=0.9)
+    good = [LoopClosure(k, k + 10, np.array([10.0, 0.0, 0.0]), cov, match, np.zeros(3)) for k in (0, 1)]
+    wrong = LoopClosure(2, 9, np.array([8.2, 0.3, 0.0]), cov, match, np.zeros(3))
+    for _ in closer._add(slam, good, settle=True):
+        pass
+    assert closer.stats.pruned == 0  # consistent closures stay
+    for _ in closer._add(slam, [wrong], settle=True):
+        pass
+    est = slam.graph.estimates()
+    if prune:
+        assert closer.closures == good and closer.stats.pruned == 1
+        assert _closure_pairs(slam) == {(0, 10), (1, 11)}
+        assert [e.kind for e in slam.log][-1] == "loop_removed"
+        np.testing.assert_allclose(est[:, 0], np.arange(12.0), atol=0.01)
+    else:
+        assert len(closer.closures) == 3 and (2, 9) in _closure_pairs(slam)
+        assert np.abs(est[:, 0] - np.arange(12.0)).max() > 0.1  # the aliased closure bent it
