@@ -260,11 +260,12 @@ class LoopClosureConfig(_Section):
     search_window_xy: float = Field(2.0, gt=0.0)
     candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
     attempt_every: int = Field(2, ge=1)  # keyframes between attempts
-    # candidates matched per attempt: 3 (was 2) so that after a long excursion a region the drift
-    # put several metres from the estimate is reached in time (ACES with convergence_criterion
-    # 2e-4: a 6 m loop was missed, relation error 0.10 m; 0.046 m with 3). Costs Intel / FR079 about
-    # +70 / +110 % loop-closure CPU. Only on the wide searches was not enough (missed ACES again).
-    max_candidates: int = Field(3, ge=1)
+    max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
+    # ... or this many when nothing is queued (the work keeps up with the budget): after a long
+    # excursion a region the drift put metres from the estimate is reached in time (ACES with
+    # convergence_criterion 2e-4: a 6 m loop was missed with 2, relation error 0.10 m). 3 at every
+    # attempt fell minutes behind on FR079 (queue lag median 11 -> 138 s) and cost +85 % CPU.
+    max_candidates_idle: int = Field(3, ge=1)
     retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
     # No search while the keyframe is tied to a keyframe within its search radius by a short path
     # of the graph (at most redundant_travel metres and redundant_turn_deg of turning; accepted

@@ -922,9 +922,13 @@ class LoopCloser:
             return None
         return c, cfg.hypothesis_window_xy, np.deg2rad(cfg.hypothesis_window_theta_deg), between(est[c], pred)
 
-    def _candidates(self, est: np.ndarray, i: int) -> list[tuple[int, float, float]]:
-        """(keyframe, search radius, heading window) of the candidates to try now."""
+    def _candidates(
+        self, est: np.ndarray, i: int, limit: int | None = None
+    ) -> list[tuple[int, float, float]]:
+        """(keyframe, search radius, heading window) of the candidates to try now (at most
+        ``limit``, default ``max_candidates``)."""
         cfg = self.config
+        limit = cfg.max_candidates if limit is None else limit
         trav, turn = np.asarray(self._travel), np.asarray(self._turn)
         n = i - cfg.min_keyframe_gap + 1
         if n <= 0:
@@ -966,7 +970,7 @@ class LoopCloser:
             picks.remove(first)
             picks = [first, *sorted(picks)]
         out = []
-        for _, _, c, cell in picks[: cfg.max_candidates]:
+        for _, _, c, cell in picks[:limit]:
             window = np.deg2rad(
                 cfg.theta_window_base_deg
                 + cfg.theta_window_per_m_deg * d_rel[c]
@@ -1026,14 +1030,16 @@ class LoopCloser:
 
     def _plan(self, slam: FRSlam, i: int) -> None:
         """Queue the candidates of keyframe i: first where a pending closure predicts the robot
-        to be, then up to ``max_candidates`` in all."""
+        to be, then up to ``max_candidates`` in all (``max_candidates_idle`` when nothing is
+        queued: the work keeps up with the budget)."""
         cfg = self.config
+        limit = max(cfg.max_candidates, cfg.max_candidates_idle) if self.idle else cfg.max_candidates
         # pending closures too old when the previous plan was done
         self._pending = [p for p in self._pending if self._last_plan - p.query <= cfg.pending_keyframes]
         self._last_plan = i
         est = slam.graph.estimates()
         cands: list[tuple[int, float, float, np.ndarray | None]] = [
-            (c, r, w, None) for c, r, w in self._candidates(est, i)
+            (c, r, w, None) for c, r, w in self._candidates(est, i, limit)
         ]
         hyp = self._hypothesis(est, i)
         if hyp is not None and self._tied(i)[hyp[0]]:
@@ -1042,7 +1048,7 @@ class LoopCloser:
             self.stats.redundant += 1
             hyp = None
         if hyp is not None:
-            cands = cands[: cfg.max_candidates - 1]
+            cands = cands[: limit - 1]
         n = len(self.closures)
         self._jobs.extend(_Job(c, i, r, w, pred, n) for c, r, w, pred in cands)
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs

@@ -660,3 +660,17 @@ def test_closure_the_graph_disagrees_with_is_removed(prune):
     else:
         assert len(closer.closures) == 3 and (2, 9) in _closure_pairs(slam)
         assert np.abs(est[:, 0] - np.arange(12.0)).max() > 0.1  # the aliased closure bent it
+
+
+def test_an_idle_closer_plans_an_extra_candidate():
+    """max_candidates_idle regions when nothing is queued (the work keeps up with the budget),
+    max_candidates while older work waits."""
+    from types import SimpleNamespace
+
+    closer, est = _circle_closer(None, max_candidates=2, max_candidates_idle=3, redundant_travel=0.0)
+    slam = SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est))
+    closer._plan(slam, 60)
+    assert len(closer._jobs) == 3  # idle
+    closer._plan(slam, 61)
+    assert len(closer._jobs) == 3 + 2  # three still queued
+    assert all(j.query == 61 for j in list(closer._jobs)[3:])
