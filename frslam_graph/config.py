@@ -198,13 +198,15 @@ class UpdatesConfig(_Section):
     refine_scan_samples: int = Field(24, ge=1)
     # scan fits closer than this are a tie (the map decides)
     refine_scan_margin: float = Field(0.005, ge=0.0)
-    # every this many metres with a registration accepted, its scale along the plan's two axes is
+    # this many metres after a registration is accepted, its scale along the plan's two axes is
     # fitted to keyframe scans (refine_scan_samples, their poses free); the result replaces it
-    # when it explains the scans better by refine_scan_margin (0 = off). Prior sigma of the log
-    # scale factors, and the largest factor change accepted (fraction).
+    # when it explains the scans better by refine_scan_margin (0 = off); the interval doubles
+    # after each fit that changes nothing. Prior sigma of the log scale factors, and the largest
+    # factor change accepted (fraction).
     scale_refine_distance: float = Field(0.0, ge=0.0)
     scale_refine_sigma: float = Field(0.05, gt=0.0)
     scale_refine_max: float = Field(0.1, gt=0.0)
+    scale_refine_min: float = Field(0.002, ge=0.0)  # smaller factor changes are not tried
     # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
     # with priors on the refined plan
     scale_reanchor_xy: float = Field(0.05, ge=0.0)

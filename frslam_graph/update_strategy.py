@@ -31,6 +31,9 @@ geometry, which corrects the drift accumulated along the way.
   (:mod:`frslam_graph.relocalisation`) and, when the match is good, unambiguous and passes a
   chi² gate against the current estimate (its marginal covariance plus the drift since the
   last accepted prior), adds it as a robust floor-plan prior;
+- ``scale_refine_distance`` metres after a registration is accepted it fits the plan's scale
+  along its two axes to keyframe scans (their poses free) and keeps the result when it explains
+  them better; the interval doubles after each fit that changes nothing;
 - it removes priors later proven wrong (chi² of their residual after optimisation above
   ``remove_chi2``).
 
@@ -51,7 +54,7 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.motion_model import tangent_cov, vector_cov
-from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
+from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams, subsample
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 
@@ -63,7 +66,9 @@ class UpdateEvent:
     ``kind``: "register" (a registration was attempted; ``reason`` says accepted / why not),
     "registration_replaced", "relocalise", "prior_added", "prior_rejected", "prior_removed",
     "prior_conflict" (many priors contradicted at once: none removed), "registration_retracted"
-    (the grown map contradicts the accepted registration: its priors are removed), "obstructed".
+    (the grown map contradicts the accepted registration: its priors are removed), "obstructed",
+    "plan_refined" (the accepted plan's scale fitted to keyframe scans; ``accepted`` says whether
+    it replaced the accepted matrix).
     """
 
     stamp: float
@@ -123,6 +128,8 @@ class FloorPlanUpdater:
         self._recheck = False  # the last attempt matched but was rejected: retry soon
         self._recheck_run = 0  # quick retries in a row (register_recheck_max)
         self._refines = 0  # registrations triggered by register_refine_distance
+        self._dist_at_scale = 0.0  # distance at the last scale refinement (or acceptance)
+        self._scale_interval = 0.0  # metres to the next scale refinement (0: scale_refine_distance)
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
@@ -232,7 +239,18 @@ class FloorPlanUpdater:
         if reason is not None:
             self._register(slam, keyframe, reason, local)
         elif self.accepted is not None:
-            if obstructed:
+            if cfg.scale_refine_distance > 0.0 and self._dist - self._dist_at_scale >= max(
+                self._scale_interval, cfg.scale_refine_distance
+            ):
+                self._dist_at_scale = self._dist
+                changed = self._refine_scale(slam, keyframe)
+                # nothing to change: look again later (the map grows, rooms are added)
+                self._scale_interval = (
+                    cfg.scale_refine_distance
+                    if changed
+                    else 2.0 * max(self._scale_interval, cfg.scale_refine_distance)
+                )
+            elif obstructed:
                 self._relocalise_current(slam, keyframe, "obstructed")
             elif self._dist - self._dist_at_reloc >= cfg.relocation_distance_D:
                 self._relocalise_current(slam, keyframe, "relocation distance")
@@ -342,6 +360,8 @@ class FloorPlanUpdater:
         self._event(slam, stamp, kind, msg, i, True, **nums)
         previous = self.accepted
         self.accepted = accepted
+        self._dist_at_scale = self._dist
+        self._scale_interval = 0.0
         if previous is not None:
             self._reanchor(slam, previous)
         self._try_prior(slam, keyframe, reloc, "registration accepted")
@@ -590,23 +610,142 @@ class FloorPlanUpdater:
         )
         self.accepted = _Accepted(acc.id, reg, plan_map, relocaliser, fit)
 
+    def _scan_sample(self) -> np.ndarray:
+        """Indices of up to ``refine_scan_samples`` keyframes spread evenly over the run."""
+        n = len(self._kf_dist)
+        return np.unique(
+            np.linspace(0, n - 1, min(n, self.config.refine_scan_samples)).round().astype(np.intp)
+        )
+
+    def _refine_scale(self, slam, keyframe) -> bool:
+        """Refine the accepted plan's scale along its two axes on keyframe scans.
+
+        The keyframe scans (spread over the run) are relocalised on the accepted plan; then their
+        poses and the plan's two scale factors (about the scans' centroid, in plan axes) are
+        fitted jointly to the plan's distance field (Levenberg-Marquardt, Tukey kernel): a
+        scale error shows inside single scans (two walls of a room cannot both fit), which their
+        poses cannot absorb, unlike a rigid offset. A registration made on a small or drifted map
+        can be a few per cent off in scale; the priors then bend the map onto it, so a
+        registration on the map would repeat the error. The refined plan replaces the accepted
+        one (same id; its priors are relocalised on it when it moves them by more than
+        ``scale_reanchor_xy``) when it explains the scans better (``refine_scan_margin``). Returns
+        whether it did.
+        """
+        cfg = self.config
+        acc = self.accepted
+        t0 = time.perf_counter()
+        rel = acc.relocaliser
+        p = rel.params
+        scans = slam.keyframe_scans()[0]
+        pts, poses, soft = [], [], []
+        for k in self._scan_sample():
+            r = rel.relocalise(scans[k], slam.keyframe(int(k)).pose_map)
+            soft.append(r.soft_score)
+            if r.ok and r.score >= cfg.reloc_min_score:
+                pts.append(subsample(np.asarray(scans[k], float).reshape(-1, 2), p.voxel, p.max_points))
+                poses.append(r.pose)
+        stamp, i = float(keyframe.stamp), keyframe.index
+        if len(poses) < 3:
+            self.timings["relocalise"] += time.perf_counter() - t0
+            self._event(
+                slam, stamp, "plan_refined", f"scale: {len(poses)} scans fit the plan; too few", i, False
+            )
+            return False
+        m = np.asarray(acc.registration.matrix, float)
+        lin, t = m[:2, :2], m[:2, 2]
+        lin_inv = np.linalg.inv(lin)
+        poses = np.asarray(poses)
+        centre = np.mean((poses[:, :2] - t) @ lin_inv.T, axis=0)  # plan units
+        log_s = _fit_scale(rel.field, pts, poses, lin, t, centre, p.truncation, cfg.scale_refine_sigma)
+        f = np.exp(log_s)
+        nums = {"scale_x": f[0], "scale_y": f[1], "scans": len(pts)}
+        if np.max(np.abs(log_s)) > np.log1p(cfg.scale_refine_max):
+            self.timings["relocalise"] += time.perf_counter() - t0
+            self._event(
+                slam,
+                stamp,
+                "plan_refined",
+                f"scale: factors {np.round(f, 4).tolist()} out of range",
+                i,
+                False,
+                **nums,
+            )
+            return False
+        if np.max(np.abs(log_s)) < cfg.scale_refine_min:
+            self.timings["relocalise"] += time.perf_counter() - t0
+            self._event(
+                slam,
+                stamp,
+                "plan_refined",
+                f"scale x{f[0]:.4f} / x{f[1]:.4f}: below {cfg.scale_refine_min:.1%}; kept",
+                i,
+                False,
+                **nums,
+            )
+            return False
+        fix = np.eye(3)
+        fix[:2, :2] = np.diag(f)
+        fix[:2, 2] = centre - f * centre
+        reg = acc.registration
+        new = type(reg).from_matrix(
+            m @ fix, score=reg.score, ambiguity=reg.ambiguity, method=f"{reg.method}+scale", rooms=reg.rooms
+        )
+        try:
+            plan_map = new.apply(self.plan)
+            relocaliser = Relocaliser(plan_map, self.params)
+        except (FrslamError, ValueError) as exc:
+            self.timings["relocalise"] += time.perf_counter() - t0
+            self._event(slam, stamp, "plan_refined", f"scale: refined plan unusable: {exc}", i, False, **nums)
+            return False
+        q_new, q_old = self._scan_fit(slam, relocaliser), float(np.mean(soft))
+        nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
+        self.timings["relocalise"] += time.perf_counter() - t0
+        if q_new <= q_old + cfg.refine_scan_margin:
+            self._event(
+                slam,
+                stamp,
+                "plan_refined",
+                f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans no better ({q_new:.1%} vs {q_old:.1%}); kept",
+                i,
+                False,
+                **nums,
+            )
+            return False
+        self._event(
+            slam,
+            stamp,
+            "plan_refined",
+            f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans better ({q_new:.1%} vs {q_old:.1%}); refined",
+            i,
+            True,
+            **nums,
+        )
+        self.accepted = _Accepted(acc.id, new, plan_map, relocaliser, acc.map_fit)
+        # the priors placed on the old scale are as far off as the change moves their keyframes:
+        # relocalise those keyframes on the refined plan
+        tag = f"reloc:reg{acc.id}"
+        xy = np.asarray([h.pose[:2] for h in slam.graph.priors() if h.source == tag]).reshape(-1, 2)
+        moved = (xy - t) @ lin_inv.T @ (m @ fix)[:2, :2].T + (m @ fix)[:2, 2] - xy
+        if len(xy) and float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy:
+            self._reanchor(slam, acc, f"registration {acc.id} rescaled")
+        return True
+
     def _scan_fit(self, slam, relocaliser: Relocaliser) -> float:
         """Mean soft score of keyframe scans, each relocalised on its own against the plan (in a
         window around its estimate): how well the plan explains the scans, unlike the map fit not
         biased towards the plan whose priors shaped the map."""
-        n = len(self._kf_dist)
-        if n == 0:
+        if not self._kf_dist:
             return 0.0
-        ks = np.unique(np.linspace(0, n - 1, min(n, self.config.refine_scan_samples)).round().astype(np.intp))
+        ks = self._scan_sample()
         scans = slam.keyframe_scans()[0]
         t0 = time.perf_counter()
         soft = [relocaliser.relocalise(scans[k], slam.keyframe(int(k)).pose_map).soft_score for k in ks]
         self.timings["relocalise"] += time.perf_counter() - t0
         return float(np.mean(soft))
 
-    def _reanchor(self, slam, previous: _Accepted) -> None:
+    def _reanchor(self, slam, previous: _Accepted, why: str | None = None) -> None:
         """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""
-        handles = self._remove_priors_of(slam, previous, f"registration {previous.id} replaced")
+        handles = self._remove_priors_of(slam, previous, why or f"registration {previous.id} replaced")
         scans = slam.keyframe_scans()[0]
         for h in handles:
             kf = slam.keyframe(h.keyframe)
@@ -830,6 +969,76 @@ def _walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.
     pts = xy[:, None, :] + steps[None, :, None] * normal[:, None, :]
     through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(steps)).all(axis=1)
     return int(through.sum()) / max(int(observed.sum()), 1)
+
+
+def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations: int = 15) -> np.ndarray:
+    """Log scale factors (plan x, plan y, about ``centre`` in plan units) of the plan whose
+    distance field is ``field`` (plan -> map: ``lin`` @ xy + ``t``) that best fit the scans
+    ``pts`` (list of (Ni, 2) in base_link) with their poses ``poses`` (n, 3) refined jointly.
+
+    A map point w fits the rescaled plan where its image q = lin (centre + (u / f)) + t, with
+    u = lin⁻¹ (w - t) - centre, fits the accepted one. Levenberg-Marquardt on (poses, log f) with
+    a Tukey kernel and a zero-mean prior of ``sigma`` on log f (weakly observed scales stay)."""
+    n = len(pts)
+    sid = np.repeat(np.arange(n), [len(q) for q in pts])
+    xy = np.vstack(pts)
+    poses = np.asarray(poses, float).copy()
+    log_s = np.zeros(2)
+    lin_inv = np.linalg.inv(lin)
+    cols = 3 * sid[:, None] + np.arange(3)[None, :]
+    rows = np.arange(len(xy))[:, None]
+
+    def residuals(poses, log_s):
+        c, s = np.cos(poses[sid, 2]), np.sin(poses[sid, 2])
+        w = np.column_stack((c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1])) + poses[sid, :2]
+        u = (w - t) @ lin_inv.T - centre
+        inv_f = np.exp(-log_s)
+        q = (centre + u * inv_f) @ lin.T + t
+        look = field.lookup(q, outside=-truncation)
+        r, g = look[:, 0], look[:, 1:]
+        ga = g @ (lin @ np.diag(inv_f) @ lin_inv)  # dr/dw
+        dx, dy = w[:, 0] - poses[sid, 0], w[:, 1] - poses[sid, 1]
+        j = np.zeros((len(xy), 3 * n + 2))
+        j[rows, cols] = np.column_stack((ga[:, 0], ga[:, 1], -ga[:, 0] * dy + ga[:, 1] * dx))
+        j[:, -2] = -(g @ lin[:, 0]) * u[:, 0] * inv_f[0]
+        j[:, -1] = -(g @ lin[:, 1]) * u[:, 1] * inv_f[1]
+        return r, j
+
+    prior = np.zeros(3 * n + 2)
+    prior[-2:] = 1.0 / sigma**2
+    lam = 1e-3
+    r, j = residuals(poses, log_s)
+    for it in range(iterations):
+        tau = truncation if it < 3 else 0.5 * truncation
+        w = _tukey(r, tau)
+        if w.sum() < 10:
+            break
+        jw = j * w[:, None]
+        h = jw.T @ j + np.diag(prior)
+        b = jw.T @ r
+        b[-2:] += prior[-2:] * log_s
+        cost0 = float(np.sum(w * r * r) + np.sum(prior[-2:] * log_s**2))
+        step = -np.linalg.solve(h + lam * (np.diag(np.diag(h)) + 1e-9 * np.eye(len(b))), b)
+        step[-2:] = np.clip(step[-2:], -0.01, 0.01)
+        cand_p = poses + step[:-2].reshape(n, 3)
+        cand_s = log_s + step[-2:]
+        r2, j2 = residuals(cand_p, cand_s)
+        cost1 = float(np.sum(w * r2 * r2) + np.sum(prior[-2:] * cand_s**2))
+        if cost1 <= cost0:
+            poses, log_s, r, j = cand_p, cand_s, r2, j2
+            lam = max(lam * 0.3, 1e-6)
+            if it >= 3 and cost0 - cost1 <= 1e-5 * cost0:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e4:
+                break
+    return log_s
+
+
+def _tukey(r: np.ndarray, tau: float) -> np.ndarray:
+    a = np.abs(r) / tau
+    return np.where(a < 1.0, (1.0 - a * a) ** 2, 0.0)
 
 
 def _matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:

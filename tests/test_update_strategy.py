@@ -30,6 +30,7 @@ KINDS = {
     "prior_conflict",
     "registration_retracted",
     "obstructed",
+    "plan_refined",
 }
 
 
@@ -500,3 +501,40 @@ def test_refinement_by_scans_does_not_depend_on_the_map(sim):
     reg = [e for e in upd.log if e.kind == "register"]
     assert reg[0].accepted and np.allclose(upd.registration.matrix, m)
     assert all(e.reason.endswith("kept") and "scans worse" in e.reason for e in reg[1:])
+
+
+def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
+    """With scale_refine_distance, an accepted registration 3 % off in one axis' scale (as a
+    first registration on a small or drifted map can be) is rescaled from keyframe scans, each
+    with its pose free: the refined scale is within 0.3 % of the truth and explains the scans
+    clearly better; a right registration is left as it is (its fitted factors are within 0.2 %
+    of 1), and with 0 (off) the wrong scale stays."""
+    from frslam_graph.registration.result import params_from_matrix
+
+    plan, run, m = sim
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+    true_scale = np.array(params_from_matrix(m)[2:4])
+    c = np.array(plan.bounds).reshape(2, 2).mean(0)
+    off = np.diag([1.03, 1.0, 1.0])
+    off[:2, 2] = c - np.array([1.03, 1.0]) * c
+    for name, start, dist in (("refined", off, 5.0), ("right", np.eye(3), 5.0), ("off", off, 0.0)):
+        cfg = CFG.updates.model_copy(
+            update={**base, "scale_refine_distance": dist, "refine_scan_samples": 12}
+        )
+        upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(m @ start))
+        run_slam(run, upd)
+        scale = np.array(params_from_matrix(upd.registration.matrix)[2:4])
+        events = upd.events("plan_refined")
+        if name == "off":
+            assert not events and np.allclose(upd.registration.matrix, m @ start)
+            continue
+        assert len(events) >= 2 and np.allclose(scale / true_scale, 1.0, atol=0.003)
+        done = [e for e in events if e.accepted]
+        assert len(done) == (1 if name == "refined" else 0)
+        if done:
+            assert done[0].reason.endswith("refined")
+            assert done[0].numbers["scan_fit"] > done[0].numbers["accepted_scan_fit"] + 0.05
+            assert abs(done[0].numbers["scale_x"] * 1.03 - 1.0) < 0.003
+        for e in events[1 if done else 0 :]:
+            assert not e.accepted and e.reason.endswith("kept")
+            assert abs(e.numbers["scale_x"] - 1.0) < 0.002 and abs(e.numbers["scale_y"] - 1.0) < 0.002
