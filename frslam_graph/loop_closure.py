@@ -7,7 +7,8 @@ heading window grow with the travel / turning between the two along the shortest
 graph (accepted closures count as zero length), so a long excursion is searched widely and a
 freshly corrected one narrowly. One candidate per ``candidate_spacing`` cell; per attempt the
 nearest cell not tried recently plus round-robin over the others (a wide area is covered over a
-few keyframes). When the prediction is too uncertain the search is centred on the candidate
+few keyframes); ``max_candidates`` per attempt, ``max_candidates_idle`` when nothing is queued (the
+matching keeps up with the budget). When the prediction is too uncertain the search is centred on the candidate
 itself ("is the robot back there?") instead of on the prediction.
 
 Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
@@ -55,7 +56,8 @@ Closures already in the graph are re-checked after every addition and at the end
 is far outside its covariance (``prune_chi2``, and ``prune_xy`` / ``prune_theta_deg``) is removed,
 worst first: the odometry and the other closures disagree with it (on ACES, an aliased corridor
 match confirmed by an unrelated closure of similar correction). Counted in ``stats.pruned``,
-logged as ``loop_removed``.
+logged as ``loop_removed``. The lower confirmation threshold relies on it: without pruning,
+regime-A houses 00dd / 026f went from 0.155 / 0.546 to 0.42 / 0.66 m ATE (0.04 / 0.05 with it).
 
 Bounded latency (anytime): a keyframe only *plans* (candidates into a queue, about 1 ms); the
 work (query and reference submaps, the correlative search in chunks of at most
