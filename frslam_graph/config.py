@@ -200,13 +200,19 @@ class UpdatesConfig(_Section):
     refine_scan_margin: float = Field(0.005, ge=0.0)
     # this many metres after a registration is accepted, its scale along the plan's two axes is
     # fitted to keyframe scans (refine_scan_samples, their poses free); the result replaces it
-    # when it explains the scans better by refine_scan_margin (0 = off); the interval doubles
+    # when it explains the scans better by scale_refine_margin (0 = off); the interval doubles
     # after each fit that changes nothing. Prior sigma of the log scale factors, and the largest
     # factor change accepted (fraction).
     scale_refine_distance: float = Field(0.0, ge=0.0)
     scale_refine_sigma: float = Field(0.05, gt=0.0)
     scale_refine_max: float = Field(0.1, gt=0.0)
     scale_refine_min: float = Field(0.002, ge=0.0)  # smaller factor changes are not tried
+    scale_refine_margin: float = Field(0.002, ge=0.0)  # scan-fit gain needed (mean soft score)
+    # with each scale refinement, move the plan rigidly so that the first keyframe's scan fits it
+    # at the anchor (the first pose), when it is off by at least these
+    align_to_start: bool = False
+    align_min_xy: float = Field(0.02, ge=0.0)
+    align_min_theta_deg: float = Field(0.2, ge=0.0)
     # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
     # with priors on the refined plan
     scale_reanchor_xy: float = Field(0.05, ge=0.0)

@@ -33,7 +33,9 @@ geometry, which corrects the drift accumulated along the way.
   last accepted prior), adds it as a robust floor-plan prior;
 - ``scale_refine_distance`` metres after a registration is accepted it fits the plan's scale
   along its two axes to keyframe scans (their poses free) and keeps the result when it explains
-  them better; the interval doubles after each fit that changes nothing;
+  them better; the interval doubles after each fit that changes nothing; with ``align_to_start``
+  it then moves the plan rigidly so that the first keyframe's scan fits it at the graph's anchor
+  (a registration made on a drifted map is placed to fit the drift, not the start);
 - it removes priors later proven wrong (chi² of their residual after optimisation above
   ``remove_chi2``).
 
@@ -53,7 +55,7 @@ import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
-from frslam_graph.motion_model import tangent_cov, vector_cov
+from frslam_graph.motion_model import compose, inverse, tangent_cov, to_matrix, vector_cov
 from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams, subsample
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
@@ -67,8 +69,8 @@ class UpdateEvent:
     "registration_replaced", "relocalise", "prior_added", "prior_rejected", "prior_removed",
     "prior_conflict" (many priors contradicted at once: none removed), "registration_retracted"
     (the grown map contradicts the accepted registration: its priors are removed), "obstructed",
-    "plan_refined" (the accepted plan's scale fitted to keyframe scans; ``accepted`` says whether
-    it replaced the accepted matrix).
+    "plan_refined" (the accepted plan's scale fitted to keyframe scans, or the plan moved to fit
+    the first scan at the anchor; ``accepted`` says whether it replaced the accepted matrix).
     """
 
     stamp: float
@@ -244,6 +246,8 @@ class FloorPlanUpdater:
             ):
                 self._dist_at_scale = self._dist
                 changed = self._refine_scale(slam, keyframe)
+                if cfg.align_to_start:
+                    changed = self._align_to_start(slam, keyframe) or changed
                 # nothing to change: look again later (the map grows, rooms are added)
                 self._scale_interval = (
                     cfg.scale_refine_distance
@@ -628,7 +632,7 @@ class FloorPlanUpdater:
         can be a few per cent off in scale; the priors then bend the map onto it, so a
         registration on the map would repeat the error. The refined plan replaces the accepted
         one (same id; its priors are relocalised on it when it moves them by more than
-        ``scale_reanchor_xy``) when it explains the scans better (``refine_scan_margin``). Returns
+        ``scale_reanchor_xy``) when it explains the scans better (``scale_refine_margin``). Returns
         whether it did.
         """
         cfg = self.config
@@ -700,7 +704,7 @@ class FloorPlanUpdater:
         q_new, q_old = self._scan_fit(slam, relocaliser), float(np.mean(soft))
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
         self.timings["relocalise"] += time.perf_counter() - t0
-        if q_new <= q_old + cfg.refine_scan_margin:
+        if q_new <= q_old + cfg.scale_refine_margin:
             self._event(
                 slam,
                 stamp,
@@ -728,6 +732,79 @@ class FloorPlanUpdater:
         moved = (xy - t) @ lin_inv.T @ (m @ fix)[:2, :2].T + (m @ fix)[:2, 2] - xy
         if len(xy) and float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy:
             self._reanchor(slam, acc, f"registration {acc.id} rescaled")
+        return True
+
+    def _align_to_start(self, slam, keyframe) -> bool:
+        """Move the accepted plan rigidly so that the first keyframe's scan fits it at the first
+        keyframe's pose (the graph's anchor: ``map`` is the odom frame of the first pose). A
+        registration made on a drifted map is placed consistently with the drifted map, not with
+        the start; its priors then bend the early trajectory against the anchor. Returns whether
+        the plan moved (its priors are then relocalised on it)."""
+        cfg = self.config
+        acc = self.accepted
+        stamp, i = float(keyframe.stamp), keyframe.index
+        kf0 = slam.keyframe(0)
+        r = acc.relocaliser.relocalise(
+            slam.keyframe_scans()[0][0],
+            kf0.pose_map,
+            cfg.reloc_window_max_xy,
+            np.deg2rad(cfg.reloc_window_max_theta_deg),
+        )
+        d = compose(kf0.pose_map, inverse(r.pose))  # plan-consistent pose -> anchored pose
+        nums = {"dx": d[0], "dy": d[1], "dtheta": d[2], "score": r.score, "ambiguity": r.ambiguity}
+        moved = float(np.hypot(*(compose(d, r.pose)[:2] - r.pose[:2])))
+        if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
+            self._event(
+                slam,
+                stamp,
+                "plan_refined",
+                "start: the first scan does not fit the plan unambiguously; kept",
+                i,
+                False,
+                **nums,
+            )
+            return False
+        if (
+            abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg)
+            and np.hypot(d[0], d[1]) < cfg.align_min_xy
+            and moved < cfg.align_min_xy
+        ):
+            self._event(
+                slam,
+                stamp,
+                "plan_refined",
+                "start: the first scan fits the plan at the anchor; kept",
+                i,
+                False,
+                **nums,
+            )
+            return False
+        reg = acc.registration
+        new = type(reg).from_matrix(
+            to_matrix(d) @ np.asarray(reg.matrix, float),
+            score=reg.score,
+            ambiguity=reg.ambiguity,
+            method=f"{reg.method}+start",
+            rooms=reg.rooms,
+        )
+        try:
+            plan_map = new.apply(self.plan)
+            relocaliser = Relocaliser(plan_map, self.params)
+        except (FrslamError, ValueError) as exc:
+            self._event(slam, stamp, "plan_refined", f"start: moved plan unusable: {exc}", i, False, **nums)
+            return False
+        self._event(
+            slam,
+            stamp,
+            "plan_refined",
+            f"start: plan moved by {np.hypot(d[0], d[1]):.2f} m / {np.rad2deg(d[2]):.2f} deg so that the first "
+            "scan fits it at the anchor",
+            i,
+            True,
+            **nums,
+        )
+        self.accepted = _Accepted(acc.id, new, plan_map, relocaliser, acc.map_fit)
+        self._reanchor(slam, acc, f"registration {acc.id} moved to the start")
         return True
 
     def _scan_fit(self, slam, relocaliser: Relocaliser) -> float:

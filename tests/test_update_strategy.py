@@ -48,6 +48,10 @@ def sim():
     return plan, run, true_matrix
 
 
+# the registration and scale refinements after acceptance off (tests that need one matrix to stay)
+NO_REFINEMENT = {"register_refine_distance": 0.0, "scale_refine_distance": 0.0}
+
+
 def fixed_source(matrix, score=0.9, ambiguity=0.2):
     calls = []
 
@@ -169,8 +173,11 @@ def test_plan_of_another_building_gives_no_priors(sim, baseline):
     )
     b = run.house.bounds
     m = np.array([[1.0, 0, b[0]], [0, 1.0, b[1]], [0, 0, 1]])
-    # let it through the map checks, to the current-scan check
-    cfg = CFG.with_updates(updates={"min_map_fit": 0.0, "max_walls_in_free_space": 1.0})
+    # let it through the map checks, to the current-scan check (alone, that check is not meant to
+    # hold against many quick retries of the same wrong match: one recheck in a row here)
+    cfg = CFG.with_updates(
+        updates={"min_map_fit": 0.0, "max_walls_in_free_space": 1.0, "register_recheck_max": 1}
+    )
     upd = FloorPlanUpdater(other, cfg.updates, register_fn=fixed_source(m, score=0.8))
     slam, res = run_slam(run, upd, config=cfg)
     reg = [e for e in upd.log if e.kind == "register"]
@@ -393,7 +400,7 @@ def test_rejected_matches_get_quick_rechecks(sim):
     route)."""
     plan, run, m = sim
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
-    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3, **NO_REFINEMENT}
 
     def run_with(seq, recheck, n=1):
         it = iter(seq + [m] * 40)
@@ -454,7 +461,7 @@ def test_accepted_registration_is_registered_again_after_refine_distance(sim):
     growing; with 0 (off) no second attempt is made and the first is kept."""
     plan, run, m = sim
     off = scaled_about_centre(plan, m, 1.03)
-    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3, "scale_refine_distance": 0.0}
     for dist, n, expected in ((3.0, 2, m), (0.0, 2, off)):
         cfg = CFG.updates.model_copy(
             update={**base, "register_refine_distance": dist, "register_refine_max": n, "refine_by": "scans"}
@@ -486,7 +493,12 @@ def test_refinement_by_scans_does_not_depend_on_the_map(sim):
             free = np.flatnonzero(grid.free_mask())
             grid.data.flat[rng.choice(free, len(free) // 3, replace=False)] = 100
 
-    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3, "register_refine_distance": 3.0}
+    base = {
+        "register_min_growth_m2": 1e6,
+        "register_retry_distance": 1e3,
+        "register_refine_distance": 3.0,
+        "scale_refine_distance": 0.0,
+    }
     for by, expected in (("map", off), ("scans", m)):
         cfg = CFG.updates.model_copy(update={**base, "refine_by": by})
         upd = FloorPlanUpdater(plan, cfg, register_fn=sequence_source([off] + [m] * 40, clutter))
@@ -512,7 +524,7 @@ def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
     from frslam_graph.registration.result import params_from_matrix
 
     plan, run, m = sim
-    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3}
+    base = {"register_min_growth_m2": 1e6, "register_retry_distance": 1e3, "register_refine_distance": 0.0}
     true_scale = np.array(params_from_matrix(m)[2:4])
     c = np.array(plan.bounds).reshape(2, 2).mean(0)
     off = np.diag([1.03, 1.0, 1.0])
@@ -538,3 +550,35 @@ def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
         for e in events[1 if done else 0 :]:
             assert not e.accepted and e.reason.endswith("kept")
             assert abs(e.numbers["scale_x"] - 1.0) < 0.002 and abs(e.numbers["scale_y"] - 1.0) < 0.002
+
+
+def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
+    """align_to_start: a registration accepted 0.2 m / 2 deg off the start (as one made on a map
+    that drifted before any prior) is moved rigidly, with the scale refinement, so that the first
+    keyframe's scan fits the plan at the graph's anchor: the plan ends within 2 cm of the true
+    placement and the trajectory error falls to that of the right registration; without it the
+    offset stays and bends the trajectory near the start."""
+    from frslam_graph.update_strategy import _matrix_disagreement
+
+    plan, run, m = sim
+    shifted = rotated_about_centre(plan, m, angle=np.deg2rad(2.0), shift=(0.2, -0.1))
+    base = {
+        "register_min_growth_m2": 1e6,
+        "register_retry_distance": 1e3,
+        "register_refine_distance": 0.0,
+        "scale_refine_distance": 5.0,
+    }
+    errors = {}
+    for align in (True, False):
+        cfg = CFG.updates.model_copy(update={**base, "align_to_start": align})
+        upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(shifted))
+        _, res = run_slam(run, upd)
+        errors[align] = ate(res.trajectory, run.ground_truth)[0].rmse
+        moved = [e for e in upd.events("plan_refined") if e.reason.startswith("start")]
+        if align:
+            assert [e.accepted for e in moved][:2] == [True, False]
+            assert _matrix_disagreement(plan, upd.registration.matrix, m) < 0.02
+            assert abs(np.rad2deg(moved[0].numbers["dtheta"]) + 2.0) < 0.3
+        else:
+            assert not moved and np.allclose(upd.registration.matrix, shifted)
+    assert errors[True] < 0.02 < errors[False]
