@@ -104,7 +104,8 @@ class PreparedScan:
 
     ``points``: valid end points (M, 2) in base_link; ``source`` / ``frame_ds``: KISS-ICP's
     voxelised registration source and the thinned frame for its local map, (K, 3) with z = 0;
-    ``geometry``: the point-to-line information. The last three are None when the scan has too
+    ``geometry``: the point-to-line information; ``icp_covariance``: what it gives the ICP step
+    (body-frame covariance, degenerate, fallback, weak axis). The last four are None when the scan has too
     few points or scan matching is off (computed on demand then). Preparing scans apart from the
     sequential registration lets it run in another process (:mod:`frslam_graph.odometry_worker`).
     """
@@ -113,6 +114,7 @@ class PreparedScan:
     source: np.ndarray | None = None
     frame_ds: np.ndarray | None = None
     geometry: ScanGeometry | None = None
+    icp_covariance: tuple[np.ndarray, bool, bool, np.ndarray | None] | None = None
 
 
 def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) -> ScanGeometry:
@@ -248,7 +250,8 @@ class ScanOdometry:
         icp = self._icp
         frame = icp.preprocessor.preprocess(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts, _EYE4)
         source, frame_ds = icp.voxelize(frame)
-        return PreparedScan(pts, source, frame_ds, scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours))
+        geo = scan_geometry(pts, cfg.voxel_size, cfg.normal_neighbours)
+        return PreparedScan(pts, source, frame_ds, geo, self._icp_covariance(geo))
 
     def process(
         self,
@@ -321,7 +324,7 @@ class ScanOdometry:
                 jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
-            R_body, degenerate, fallback, axis = self._icp_covariance(scan.geometry)
+            R_body, degenerate, fallback, axis = scan.icp_covariance
             if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
                 icp_rejected, z = True, np.zeros(3)
             R = vector_cov(z, R_body)
