@@ -75,6 +75,7 @@ def run(scans: list, loop_closure: bool, budget_ms: float | None = None, synchro
     lc = slam.loop_closer
     if lc is not None:
         out["closures"] = lc.stats.accepted
+        out["pruned"] = lc.stats.pruned
         out["attempts"] = lc.stats.attempts
         out["lc_ms_per_kf"] = 1e3 * lc.stats.cpu_seconds / max(lc.stats.keyframes, 1)
     return out
@@ -140,7 +141,7 @@ def main() -> None:
                     f"{1e3 * np.median(res['lat']):.2f} / {1e3 * np.percentile(res['lat'], 99):.1f}"
                     f" / {1e3 * res['lat'].max():.0f}",
                     f"{1e3 * np.median(res['cpu']):.2f} / {1e3 * np.percentile(res['cpu'], 99):.1f}",
-                    f"{res['closures']} / {res['attempts']}" if on else "—",
+                    f"{res['closures']} / {res['pruned']} / {res['attempts']}" if on else "—",
                     f"{res['lc_ms_per_kf']:.1f}" if on else "—",
                 ]
             )
@@ -154,7 +155,7 @@ def main() -> None:
         "× real time wall (CPU)",
         "latency wall median / p99 / max (ms)",
         "CPU median / p99 (ms)",
-        "closures / matched",
+        "closures accepted / later pruned / matched",
         "LC CPU ms / keyframe",
     ]
     print("| " + " | ".join(head) + " |")
