@@ -20,6 +20,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import signal
 import sys
 import time
 import traceback
@@ -51,11 +52,21 @@ def available(config: OdometryConfig) -> bool:
     )
 
 
-def _serve(config: OdometryConfig, inbox, outbox) -> None:
-    """Worker loop: chunks of ScanInput in, lists of results out; None ends it."""
+def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1.0) -> None:
+    """Worker loop: chunks of ScanInput in, lists of results out; None ends it.
+
+    Ctrl-C is the caller's to handle (it stops the worker); a worker whose caller died without
+    stopping it (killed) exits on its own.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     odometry = ScanOdometry(config)
     while True:
-        chunk = inbox.get()
+        try:
+            chunk = inbox.get(timeout=poll_s)
+        except queue.Empty:
+            if os.getppid() != parent:
+                return
+            continue
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
@@ -81,7 +92,8 @@ class OdometryWorker:
 
     ``run(items)`` yields ``(item, result, seconds)`` for each ``item`` of ``items`` (a ScanInput
     followed by anything the caller wants back with it), in order, keeping at most
-    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it. ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
+    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it.
+    ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
     """
 
     def __init__(self, config: OdometryConfig, chunk: int = 16, window: int = 4, poll_s: float = 1.0):
@@ -92,7 +104,10 @@ class OdometryWorker:
         ctx = mp.get_context("fork")
         self._inbox, self._outbox = ctx.Queue(), ctx.Queue()
         self._proc = ctx.Process(
-            target=_serve, args=(config, self._inbox, self._outbox), name="frslam-odometry", daemon=True
+            target=_serve,
+            args=(config, self._inbox, self._outbox, os.getpid(), poll_s),
+            name="frslam-odometry",
+            daemon=True,
         )
         self._proc.start()
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import os
 import pickle
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -91,6 +94,34 @@ def test_a_worker_that_dies_is_reported_not_waited_for(faulty_recording, monkeyp
     monkeypatch.setattr(ScanOdometry, "process", dies_at_scan_50)
     with pytest.raises(RuntimeError, match="exit code 3"):
         FRSlam(CFG).process(faulty_recording[:200], parallel=True)
+
+
+def _exited(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            return any(line.startswith("State:") and "Z" in line.split()[1] for line in fh)
+    except FileNotFoundError:
+        return True
+
+
+@needs_worker
+def test_a_worker_whose_caller_was_killed_exits_on_its_own(tmp_path):
+    """No orphan left computing or waiting forever when the caller dies without stopping it."""
+    script = tmp_path / "caller.py"
+    script.write_text(
+        "import os, sys\n"
+        "from frslam_graph.config import OdometryConfig\n"
+        "from frslam_graph.odometry_worker import OdometryWorker\n"
+        "w = OdometryWorker(OdometryConfig(), poll_s=0.1)\n"
+        "print(w._proc.pid, flush=True)\n"
+        "os._exit(0)\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    pid = int(out.stdout.split()[0])
+    deadline = time.monotonic() + 30.0
+    while not _exited(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _exited(pid)
 
 
 @needs_worker
