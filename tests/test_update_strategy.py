@@ -322,7 +322,7 @@ def test_agreeing_registration_refines_the_accepted_one(sim):
     nudged = rotated_about_centre(plan, m, angle=np.deg2rad(0.3), shift=(0.03, -0.02))
     for refine, expected in ((True, m), (False, nudged)):
         seq = iter([nudged] + [m] * 40)  # a slightly-off first registration, then the right one
-        cfg = CFG.updates.model_copy(update={"refine_on_agreement": refine})
+        cfg = CFG.updates.model_copy(update={"refine_on_agreement": refine, **NO_REFINEMENT})
         upd = FloorPlanUpdater(
             plan,
             cfg,
@@ -531,7 +531,7 @@ def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
     off[:2, 2] = c - np.array([1.03, 1.0]) * c
     for name, start, dist in (("refined", off, 5.0), ("right", np.eye(3), 5.0), ("off", off, 0.0)):
         cfg = CFG.updates.model_copy(
-            update={**base, "scale_refine_distance": dist, "refine_scan_samples": 12}
+            update={**base, "scale_refine_distance": dist, "refine_scan_samples": 12, "align_to_start": False}
         )
         upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(m @ start))
         run_slam(run, upd)
