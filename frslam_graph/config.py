@@ -169,6 +169,9 @@ class UpdatesConfig(_Section):
     # whole map may have drifted too far to match)
     local_map_distance: float = Field(40.0, gt=0.0)
     min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
+    # keyframe scans (refine_scan_samples, each relocalised on its own) must fit a registration
+    # about to be accepted with this mean soft score (0 = off)
+    min_scan_fit: float = Field(0.85, ge=0.0, le=1.0)
     max_walls_in_free_space: float = Field(0.1, ge=0.0, le=1.0)  # observed interior plan walls in free space
     # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
     # free space" farther than free_space_margin from any occupied cell, both growing by

@@ -569,6 +569,16 @@ class FloorPlanUpdater:
         nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
         if not reloc.ok or reloc.score < cfg.reloc_min_score:
             return reject(f"current scan does not fit the registered plan (inliers {reloc.score:.0%})")
+        if cfg.min_scan_fit > 0.0:
+            # the keyframe scans of the whole run, each relocalised on its own: the plan of another
+            # building (or a wrong placement) that the map checks let through by a small margin
+            # explains them poorly
+            q = self._scan_fit(slam, relocaliser)
+            nums["scan_fit"] = q
+            if q < cfg.min_scan_fit:
+                return reject(
+                    f"the keyframe scans do not fit the registered plan ({q:.1%} < {cfg.min_scan_fit:.0%})"
+                )
         if self.accepted is None:
             chi2 = self._gate_chi2(slam, keyframe, reloc)
             nums["chi2"] = chi2

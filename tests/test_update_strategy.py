@@ -582,3 +582,29 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
         else:
             assert not moved and np.allclose(upd.registration.matrix, shifted)
     assert errors[True] < 0.02 < errors[False]
+
+
+def test_keyframe_scans_reject_the_plan_of_another_building(sim):
+    """min_scan_fit: with the map checks let through (as a plan of another building can pass them
+    by a small margin) and quick rechecks, the current-scan check alone lets the other building in
+    at one of the retries; the keyframe scans of the run, relocalised each on its own, do not fit
+    it and keep it out."""
+    _, run, _ = sim
+    other = FloorPlan(
+        rooms=[Room("hall", "corridor", sbox(0, 0, 3, 14)), Room("room", "bedroom", sbox(3, 0, 9, 5))],
+        units="m",
+    )
+    b = run.house.bounds
+    m = np.array([[1.0, 0, b[0]], [0, 1.0, b[1]], [0, 0, 1]])
+    loose = {"min_map_fit": 0.0, "max_walls_in_free_space": 1.0, "register_recheck_max": 3, **NO_REFINEMENT}
+    for min_scan_fit in (0.85, 0.0):
+        cfg = CFG.with_updates(updates={**loose, "min_scan_fit": min_scan_fit})
+        upd = FloorPlanUpdater(other, cfg.updates, register_fn=fixed_source(m, score=0.8))
+        slam, _ = run_slam(run, upd, config=cfg)
+        reg = [e for e in upd.log if e.kind == "register"]
+        if min_scan_fit:
+            assert not any(e.accepted for e in reg) and not slam.graph.priors()
+            rejected = [e for e in reg if "keyframe scans do not fit" in e.reason]
+            assert rejected and all(e.numbers["scan_fit"] < 0.85 for e in rejected)
+        else:
+            assert any(e.accepted for e in reg)
