@@ -235,13 +235,20 @@ class PoseGraph:
 
     def remove_prior(self, handle: PriorHandle, extra_iterations: int = 10) -> None:
         """Remove a prior (or the anchor) from iSAM2 by its factor index."""
-        if not handle.active:
+        self.remove_priors([handle], extra_iterations)
+
+    def remove_priors(self, handles: list[PriorHandle], extra_iterations: int = 10) -> None:
+        """Remove several priors in one iSAM2 update (one settle for all of them)."""
+        live = list({id(h): h for h in handles if h.active}.values())  # each once
+        for h in live:
+            if self._factors[h.factor_index] is None:
+                raise FrslamError(f"prior {h.id} is not in the graph", where="handle")
+        if not live:
             return
-        if self._factors[handle.factor_index] is None:
-            raise FrslamError(f"prior {handle.id} is not in the graph", where="handle")
-        self._update([], remove=[handle.factor_index])
+        self._update([], remove=[h.factor_index for h in live])
         self.settle(extra_iterations)
-        handle.active = False
+        for h in live:
+            h.active = False
 
     def settle(self, max_iterations: int = 10, tol: float = 1e-4) -> int:
         """Extra iSAM2 steps (relinearising) until no pose moves more than ``tol``; returns the count.

@@ -419,10 +419,16 @@ class FRSlam:
 
     def remove_prior(self, handle: PriorHandle, reason: str = "") -> None:
         """Remove a prior proven wrong (logged with the reason)."""
-        self.graph.remove_prior(handle)
-        self.log_event(
-            "prior_removed", reason or f"prior {handle.id} removed", keyframe=handle.keyframe, prior=handle.id
-        )
+        self.remove_priors([handle], reason)
+
+    def remove_priors(self, handles: list[PriorHandle], reason: str = "") -> None:
+        """Remove priors in one graph update (e.g. all of a retracted registration), each logged."""
+        live = list({id(h): h for h in handles if h.active}.values())
+        self.graph.remove_priors(live)
+        for h in live:
+            self.log_event(
+                "prior_removed", reason or f"prior {h.id} removed", keyframe=h.keyframe, prior=h.id
+            )
 
     def transform_map(self, transform: np.ndarray, reason: str = "") -> None:
         """Re-express everything in a new map frame (pose p -> transform ⊕ p); map->odom changes."""

@@ -460,8 +460,8 @@ class FloorPlanUpdater:
     def _remove_priors_of(self, slam, acc: _Accepted, why: str) -> list:
         tag = f"reloc:reg{acc.id}"
         handles = [h for h in slam.graph.priors() if h.source == tag]
+        slam.remove_priors(handles, reason=why)  # one graph update for all of them
         for h in handles:
-            slam.remove_prior(h, reason=why)
             self._event(
                 slam,
                 slam.keyframe(h.keyframe).stamp,
@@ -1065,15 +1065,22 @@ def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations:
 
     A map point w fits the rescaled plan where its image q = lin (centre + (u / f)) + t, with
     u = lin⁻¹ (w - t) - centre, fits the accepted one. Levenberg-Marquardt on (poses, log f) with
-    a Tukey kernel and a zero-mean prior of ``sigma`` on log f (weakly observed scales stay)."""
+    a Tukey kernel and a zero-mean prior of ``sigma`` on log f (weakly observed scales stay).
+    Each point's Jacobian touches only its scan's pose and the two scales, so the normal
+    equations are summed per scan (5 × 5 blocks) rather than from a dense (points × 3n+2) matrix.
+    """
+    keep = [k for k, q in enumerate(pts) if len(q)]
+    pts = [pts[k] for k in keep]
     n = len(pts)
-    sid = np.repeat(np.arange(n), [len(q) for q in pts])
+    counts = np.array([len(q) for q in pts])
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    sid = np.repeat(np.arange(n), counts)
     xy = np.vstack(pts)
-    poses = np.asarray(poses, float).copy()
+    poses = np.asarray(poses, float)[keep].copy()
     log_s = np.zeros(2)
     lin_inv = np.linalg.inv(lin)
-    cols = 3 * sid[:, None] + np.arange(3)[None, :]
-    rows = np.arange(len(xy))[:, None]
+    pidx = 3 * np.arange(n)[:, None] + np.arange(3)[None, :]  # (n, 3) pose columns of each scan
+    sidx = np.array([3 * n, 3 * n + 1])
 
     def residuals(poses, log_s):
         c, s = np.cos(poses[sid, 2]), np.sin(poses[sid, 2])
@@ -1085,11 +1092,29 @@ def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations:
         r, g = look[:, 0], look[:, 1:]
         ga = g @ (lin @ np.diag(inv_f) @ lin_inv)  # dr/dw
         dx, dy = w[:, 0] - poses[sid, 0], w[:, 1] - poses[sid, 1]
-        j = np.zeros((len(xy), 3 * n + 2))
-        j[rows, cols] = np.column_stack((ga[:, 0], ga[:, 1], -ga[:, 0] * dy + ga[:, 1] * dx))
-        j[:, -2] = -(g @ lin[:, 0]) * u[:, 0] * inv_f[0]
-        j[:, -1] = -(g @ lin[:, 1]) * u[:, 1] * inv_f[1]
+        j = np.column_stack(  # per point: d r / d (x, y, theta of its scan, log f_x, log f_y)
+            (
+                ga[:, 0],
+                ga[:, 1],
+                -ga[:, 0] * dy + ga[:, 1] * dx,
+                -(g @ lin[:, 0]) * u[:, 0] * inv_f[0],
+                -(g @ lin[:, 1]) * u[:, 1] * inv_f[1],
+            )
+        )
         return r, j
+
+    def normal_equations(j, w, r):
+        blk = np.add.reduceat((j * w[:, None])[:, :, None] * j[:, None, :], starts, axis=0)  # (n,5,5)
+        vec = np.add.reduceat(j * (w * r)[:, None], starts, axis=0)  # (n, 5)
+        h = np.zeros((3 * n + 2, 3 * n + 2))
+        h[pidx[:, :, None], pidx[:, None, :]] = blk[:, :3, :3]
+        h[pidx[:, :, None], sidx[None, None, :]] = blk[:, :3, 3:]
+        h[sidx[None, :, None], pidx[:, None, :]] = blk[:, 3:, :3]
+        h[3 * n :, 3 * n :] = blk[:, 3:, 3:].sum(axis=0)
+        b = np.zeros(3 * n + 2)
+        b[pidx] = vec[:, :3]
+        b[3 * n :] = vec[:, 3:].sum(axis=0)
+        return h, b
 
     prior = np.zeros(3 * n + 2)
     prior[-2:] = 1.0 / sigma**2
@@ -1100,9 +1125,8 @@ def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations:
         w = _tukey(r, tau)
         if w.sum() < 10:
             break
-        jw = j * w[:, None]
-        h = jw.T @ j + np.diag(prior)
-        b = jw.T @ r
+        h, b = normal_equations(j, w, r)
+        h += np.diag(prior)
         b[-2:] += prior[-2:] * log_s
         cost0 = float(np.sum(w * r * r) + np.sum(prior[-2:] * log_s**2))
         step = -np.linalg.solve(h + lam * (np.diag(np.diag(h)) + 1e-9 * np.eye(len(b))), b)

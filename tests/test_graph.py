@@ -83,6 +83,32 @@ def test_remove_prior_restores_the_estimate():
     g.remove_prior(bad)  # idempotent
 
 
+def test_remove_priors_in_one_update_equals_one_by_one():
+    g1, g2 = chain(kernel="none", drift=0.002), chain(kernel="none", drift=0.002)
+    h1, h2 = add_good_priors(g1), add_good_priors(g2)
+    removals = []
+    real = g2._isam_update
+
+    def counting(graph, values, remove, *args, **kw):
+        if remove:
+            removals.append(list(remove))
+        return real(graph, values, remove, *args, **kw)
+
+    g2._isam_update = counting
+    for h in h1[::2]:
+        g1.remove_prior(h)
+    g2.remove_priors(h2[::2] + [h2[0]])  # a handle listed twice is removed once
+    assert len(removals) == 1 and len(removals[0]) == len(h2[::2])  # one iSAM2 update for all
+    assert all(not h.active for h in h2[::2]) and all(h.active for h in h2[1::2])
+    assert {h.keyframe for h in g2.priors()} == {h.keyframe for h in g1.priors()}
+    g1.optimize_batch()
+    g2.optimize_batch()
+    np.testing.assert_allclose(g2.estimates(), g1.estimates(), atol=1e-6)
+    version = g2.version
+    g2.remove_priors(h2[::2])  # all inactive now: nothing to do
+    assert g2.version == version and len(removals) == 1
+
+
 def test_partial_priors():
     g = chain(n=60, drift=np.deg2rad(0.5), kernel="none")
     h_t = g.add_prior(59, [17.7, 0.0, 0.0], PRIOR_COV, kind="translation")
