@@ -165,14 +165,19 @@ def test_wrong_registrations_are_rejected(sim, baseline, wrong):
         assert np.allclose(res.trajectory, baseline[1].trajectory)
 
 
-def test_plan_of_another_building_gives_no_priors(sim, baseline):
-    _, run, _ = sim
+def _other_building(run):
+    """A two-room plan of another building, placed at the house's corner (plan, matrix)."""
     other = FloorPlan(
         rooms=[Room("hall", "corridor", sbox(0, 0, 3, 14)), Room("room", "bedroom", sbox(3, 0, 9, 5))],
         units="m",
     )
     b = run.house.bounds
-    m = np.array([[1.0, 0, b[0]], [0, 1.0, b[1]], [0, 0, 1]])
+    return other, np.array([[1.0, 0, b[0]], [0, 1.0, b[1]], [0, 0, 1]])
+
+
+def test_plan_of_another_building_gives_no_priors(sim, baseline):
+    _, run, _ = sim
+    other, m = _other_building(run)
     # let it through the map checks, to the current-scan check (alone, that check is not meant to
     # hold against many quick retries of the same wrong match: one recheck in a row here)
     cfg = CFG.with_updates(
@@ -590,12 +595,7 @@ def test_keyframe_scans_reject_the_plan_of_another_building(sim):
     at one of the retries; the keyframe scans of the run, relocalised each on its own, do not fit
     it and keep it out."""
     _, run, _ = sim
-    other = FloorPlan(
-        rooms=[Room("hall", "corridor", sbox(0, 0, 3, 14)), Room("room", "bedroom", sbox(3, 0, 9, 5))],
-        units="m",
-    )
-    b = run.house.bounds
-    m = np.array([[1.0, 0, b[0]], [0, 1.0, b[1]], [0, 0, 1]])
+    other, m = _other_building(run)
     loose = {"min_map_fit": 0.0, "max_walls_in_free_space": 1.0, "register_recheck_max": 3, **NO_REFINEMENT}
     for min_scan_fit in (0.85, 0.0):
         cfg = CFG.with_updates(updates={**loose, "min_scan_fit": min_scan_fit})
