@@ -93,7 +93,7 @@ from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
 from frslam_graph.graph import key
-from frslam_graph.motion_model import between, compose
+from frslam_graph.motion_model import between, between_many, compose
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.pipeline import FRSlam, KeyframeInfo
@@ -680,13 +680,6 @@ def _gather_cost(slam: FRSlam, lo: int, hi: int) -> float:
     return _MS_GATHER + _MS_PER_POINT_GATHER * n
 
 
-def _between_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a⁻¹ ⊕ b of (K, 3) poses."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    return np.column_stack((c * dx + s * dy, -s * dx + c * dy, _wrap(b[:, 2] - a[:, 2])))
-
-
 def _moved(after: np.ndarray, before: np.ndarray) -> float:
     """Largest xy displacement (m) of the keyframes in both arrays."""
     n = min(len(after), len(before))
@@ -1255,8 +1248,8 @@ class LoopCloser:
         qry = est[[lc.query for lc in self.closures]]
         meas = np.array([lc.relative for lc in self.closures])
         cov = np.array([lc.covariance for lc in self.closures])
-        pred = _between_rows(ref, qry)
-        r = _between_rows(pred, meas)
+        pred = between_many(ref, qry)
+        r = between_many(pred, meas)
         chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(cov, r[:, :, None])[:, :, 0])
         return r, chi2
 

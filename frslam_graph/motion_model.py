@@ -53,6 +53,14 @@ def between(a: Pose, b: Pose) -> np.ndarray:
     return np.array([c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2])])
 
 
+def between_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a[i]⁻¹ ⊕ b[i] for (N, 3) arrays a and b (vectorised, row by row)."""
+    a, b = np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(b, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.column_stack((c * dx + s * dy, -s * dx + c * dy, wrap(b[:, 2] - a[:, 2])))
+
+
 def compose_jacobians(a: Pose, b: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of compose(a, b) w.r.t. the vectors a and b (additive perturbations)."""
     c, s = np.cos(a[2]), np.sin(a[2])

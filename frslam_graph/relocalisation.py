@@ -458,7 +458,7 @@ class Relocaliser:
         r, jac = self._residuals(pts, pose)
         for it in range(p.lm_iterations):
             tau = p.truncation if it < 3 else 0.5 * p.truncation
-            w = _tukey(r, tau)
+            w = tukey_weights(r, tau)
             if w.sum() < 3:
                 break
             jw = jac * w[:, None]
@@ -491,7 +491,7 @@ class Relocaliser:
         """σ² H⁻¹ from the inliers at ``pose``, inflated, floored and capped per direction."""
         p = self.params
         r, jac = self._residuals(pts, pose)
-        w = _tukey(r, 0.5 * p.truncation)
+        w = tukey_weights(r, 0.5 * p.truncation)
         h = (jac * w[:, None]).T @ jac
         dof = max(float(w.sum()) - 3.0, 1.0)
         sigma2 = max(float(np.sum(w * r * r)) / dof, p.sensor_sigma**2)
@@ -532,7 +532,8 @@ def subsample(points: np.ndarray, voxel: float, max_points: int) -> np.ndarray:
     return pts
 
 
-def _tukey(r: np.ndarray, tau: float) -> np.ndarray:
+def tukey_weights(r: np.ndarray, tau: float) -> np.ndarray:
+    """Tukey (biweight) weights of residuals ``r`` (zero beyond ``tau``)."""
     a = np.abs(r) / tau
     return np.where(a < 1.0, (1.0 - a * a) ** 2, 0.0)
 

@@ -56,7 +56,13 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.motion_model import compose, inverse, tangent_cov, to_matrix, vector_cov
-from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams, subsample
+from frslam_graph.relocalisation import (
+    Relocalisation,
+    Relocaliser,
+    RelocaliserParams,
+    subsample,
+    tukey_weights,
+)
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 
@@ -1122,7 +1128,7 @@ def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations:
     r, j = residuals(poses, log_s)
     for it in range(iterations):
         tau = truncation if it < 3 else 0.5 * truncation
-        w = _tukey(r, tau)
+        w = tukey_weights(r, tau)
         if w.sum() < 10:
             break
         h, b = normal_equations(j, w, r)
@@ -1145,11 +1151,6 @@ def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations:
             if lam > 1e4:
                 break
     return log_s
-
-
-def _tukey(r: np.ndarray, tau: float) -> np.ndarray:
-    a = np.abs(r) / tau
-    return np.where(a < 1.0, (1.0 - a * a) ** 2, 0.0)
 
 
 def _matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from frslam_graph.motion_model import (
     MotionEKF,
     between,
+    between_many,
     compose,
     compose_jacobians,
     constant_velocity,
@@ -146,3 +147,11 @@ def test_wheel_noise_correlation_length_covers_a_systematic_scale_error():
         wheel_noise(np.array([0.5, 0.0, 0.1]), **dict(kw, correlation_length=0.0)),
         wheel_noise(np.array([0.5, 0.0, 0.1]), **kw),
     )
+
+
+def test_between_many_is_between_row_by_row():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-5, 5, (20, 3))
+    b = rng.uniform(-5, 5, (20, 3))
+    expected = np.array([between(p, q) for p, q in zip(a, b, strict=True)])
+    np.testing.assert_allclose(between_many(a, b), expected, atol=1e-12)
