@@ -237,18 +237,20 @@ class PoseGraph:
         """Remove a prior (or the anchor) from iSAM2 by its factor index."""
         self.remove_priors([handle], extra_iterations)
 
-    def remove_priors(self, handles: list[PriorHandle], extra_iterations: int = 10) -> None:
-        """Remove several priors in one iSAM2 update (one settle for all of them)."""
-        live = list({id(h): h for h in handles if h.active}.values())  # each once
+    def remove_priors(self, handles: list[PriorHandle], extra_iterations: int = 10) -> list[PriorHandle]:
+        """Remove several priors in one iSAM2 update (one settle for all of them); returns those
+        removed (each active handle once; inactive ones are skipped)."""
+        live = list({id(h): h for h in handles if h.active}.values())
         for h in live:
             if self._factors[h.factor_index] is None:
                 raise FrslamError(f"prior {h.id} is not in the graph", where="handle")
         if not live:
-            return
+            return []
         self._update([], remove=[h.factor_index for h in live])
         self.settle(extra_iterations)
         for h in live:
             h.active = False
+        return live
 
     def settle(self, max_iterations: int = 10, tol: float = 1e-4) -> int:
         """Extra iSAM2 steps (relinearising) until no pose moves more than ``tol``; returns the count.

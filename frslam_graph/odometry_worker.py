@@ -126,15 +126,22 @@ class OdometryWorker:
             q.cancel_join_thread()
             q.close()
 
-    def _receive(self) -> tuple[str, Any]:
+    def _receive(self) -> Any:
+        """The next payload ("results" or "done"); a worker's input error or failure is raised."""
         while True:
             try:
-                return self._outbox.get(timeout=self.poll_s)
+                kind, payload = self._outbox.get(timeout=self.poll_s)
+                break
             except queue.Empty:
                 if not self._proc.is_alive():
                     raise RuntimeError(
                         f"the odometry worker process exited unexpectedly (exit code {self._proc.exitcode})"
                     ) from None
+        if kind == "error":
+            raise payload
+        if kind == "crash":
+            raise RuntimeError(f"the odometry worker failed:\n{payload}")
+        return payload
 
     def run(
         self, items: Iterable[tuple[Any, ...]]
@@ -158,20 +165,11 @@ class OdometryWorker:
                     self._inbox.put(None)
             if in_flight == 0:
                 break
-            kind, payload = self._receive()
-            if kind == "error":
-                raise payload
-            if kind == "crash":
-                raise RuntimeError(f"the odometry worker failed:\n{payload}")
+            results = self._receive()
             in_flight -= 1
-            for result, seconds in payload:
+            for result, seconds in results:
                 yield waiting.popleft(), result, seconds
-        kind, payload = self._receive()
-        if kind == "error":  # the last chunk ended in an error after all its results
-            raise payload
-        if kind == "crash":
-            raise RuntimeError(f"the odometry worker failed:\n{payload}")
-        self.stats = payload
+        self.stats = self._receive()  # or the error that ended the last chunk after its results
 
 
 __all__ = ["OdometryWorker", "ScanInput", "available"]

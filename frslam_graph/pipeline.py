@@ -19,8 +19,9 @@ The decision log (``slam.log``) is a list of :class:`DecisionEvent`; nothing is 
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -172,17 +173,20 @@ class FRSlam:
         sensor_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> tuple[float, float, float]:
         """Add planar end points (M, 2) in the sensor frame; return base_link in map."""
+        self._check_own_odometry()
+        pts, off = _body_points(points, sensor_offset)
+        self._accept(stamp, self.odometry.process(stamp, pts, odom), pts, off)
+        return self.pose()
+
+    # ------------------------------------------------------------ internals
+    def _check_own_odometry(self) -> None:
         if self._odometry_elsewhere:
             raise ConfigError(
                 "this FRSlam ran process() with its odometry in a worker process and cannot take "
                 "more scans; use process(..., parallel=False) to keep streaming afterwards",
                 where="parallel",
             )
-        pts, off = _body_points(points, sensor_offset)
-        self._accept(stamp, self.odometry.process(stamp, pts, odom), pts, off)
-        return self.pose()
 
-    # ------------------------------------------------------------ internals
     def _accept(self, stamp: float, res: OdometryResult | None, pts: np.ndarray, off: np.ndarray) -> None:
         """Take one scan's odometry result into the backend (None: out-of-order stamp)."""
         if res is None:
@@ -423,9 +427,7 @@ class FRSlam:
 
     def remove_priors(self, handles: list[PriorHandle], reason: str = "") -> None:
         """Remove priors in one graph update (e.g. all of a retracted registration), each logged."""
-        live = list({id(h): h for h in handles if h.active}.values())
-        self.graph.remove_priors(live)
-        for h in live:
+        for h in self.graph.remove_priors(handles):
             self.log_event(
                 "prior_removed", reason or f"prior {h.id} removed", keyframe=h.keyframe, prior=h.id
             )
@@ -486,29 +488,21 @@ class FRSlam:
         lat = []
         t_start = time.perf_counter()
         first = last = None
-        if parallel:
-
-            def inputs():  # the stateless part of the odometry (prepare) stays in this process
-                for scan in recording:
-                    pts, off = _body_points(scan.points, scan.sensor_offset)
-                    yield scan.stamp, self.odometry.prepare(pts), scan.odom, pts, off
-
-            with odometry_worker.OdometryWorker(self.config.odometry) as worker:
+        with contextlib.ExitStack() as stack:
+            if parallel:
+                worker = stack.enter_context(odometry_worker.OdometryWorker(self.config.odometry))
                 self._odometry_elsewhere = True
-                for (stamp, _, _, pts, off), res, odometry_s in worker.run(inputs()):
-                    t0 = time.perf_counter()
-                    self._accept(stamp, res, pts, off)
-                    lat.append(odometry_s + time.perf_counter() - t0)
-                    first = stamp if first is None else first
-                    last = stamp
-                self.odometry.stats = worker.stats
-        else:
-            for scan in recording:
+                staged = self._odometry_in_worker(recording, worker)
+            else:
+                staged = self._odometry_here(recording)
+            for stamp, res, pts, off, odometry_s in staged:
                 t0 = time.perf_counter()
-                self.add(scan)
-                lat.append(time.perf_counter() - t0)
-                first = scan.stamp if first is None else first
-                last = scan.stamp
+                self._accept(stamp, res, pts, off)
+                lat.append(odometry_s + time.perf_counter() - t0)
+                first = stamp if first is None else first
+                last = stamp
+            if parallel:
+                self.odometry.stats = worker.stats
         if batch:
             self.finish()
         wall = time.perf_counter() - t_start
@@ -524,6 +518,27 @@ class FRSlam:
             float(last - first) if first is not None else 0.0,
             bool(parallel),
         )
+
+    def _odometry_here(self, recording: Iterable[Any]) -> Iterator[tuple]:
+        """(stamp, odometry result, base_link points, sensor offset, seconds) per scan, in-process."""
+        for scan in recording:
+            self._check_own_odometry()
+            t0 = time.perf_counter()
+            pts, off = _body_points(scan.points, scan.sensor_offset)
+            res = self.odometry.process(scan.stamp, pts, scan.odom)
+            yield scan.stamp, res, pts, off, time.perf_counter() - t0
+
+    def _odometry_in_worker(self, recording: Iterable[Any], worker) -> Iterator[tuple]:
+        """The same from an :class:`~frslam_graph.odometry_worker.OdometryWorker`; the stateless
+        part of the odometry (prepare) stays in this process."""
+
+        def inputs():
+            for scan in recording:
+                pts, off = _body_points(scan.points, scan.sensor_offset)
+                yield scan.stamp, self.odometry.prepare(pts), scan.odom, pts, off
+
+        for (stamp, _, _, pts, off), res, seconds in worker.run(inputs()):
+            yield stamp, res, pts, off, seconds
 
 
 def _body_points(points: np.ndarray, sensor_offset: Any) -> tuple[np.ndarray, np.ndarray]:
