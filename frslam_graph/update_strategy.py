@@ -665,12 +665,14 @@ class FloorPlanUpdater:
                 pts.append(subsample(np.asarray(scans[k], float).reshape(-1, 2), p.voxel, p.max_points))
                 poses.append(r.pose)
         stamp, i = float(keyframe.stamp), keyframe.index
-        if len(poses) < 3:
+
+        def kept(why: str, **data) -> bool:
             self.timings["relocalise"] += time.perf_counter() - t0
-            self._event(
-                slam, stamp, "plan_refined", f"scale: {len(poses)} scans fit the plan; too few", i, False
-            )
+            self._event(slam, stamp, "plan_refined", why, i, False, **data)
             return False
+
+        if len(poses) < 3:
+            return kept(f"scale: {len(poses)} scans fit the plan; too few")
         m = np.asarray(acc.registration.matrix, float)
         lin, t = m[:2, :2], m[:2, 2]
         lin_inv = np.linalg.inv(lin)
@@ -680,29 +682,9 @@ class FloorPlanUpdater:
         f = np.exp(log_s)
         nums = {"scale_x": f[0], "scale_y": f[1], "scans": len(pts)}
         if np.max(np.abs(log_s)) > np.log1p(cfg.scale_refine_max):
-            self.timings["relocalise"] += time.perf_counter() - t0
-            self._event(
-                slam,
-                stamp,
-                "plan_refined",
-                f"scale: factors {np.round(f, 4).tolist()} out of range",
-                i,
-                False,
-                **nums,
-            )
-            return False
+            return kept(f"scale: factors {np.round(f, 4).tolist()} out of range", **nums)
         if np.max(np.abs(log_s)) < cfg.scale_refine_min:
-            self.timings["relocalise"] += time.perf_counter() - t0
-            self._event(
-                slam,
-                stamp,
-                "plan_refined",
-                f"scale x{f[0]:.4f} / x{f[1]:.4f}: below {cfg.scale_refine_min:.1%}; kept",
-                i,
-                False,
-                **nums,
-            )
-            return False
+            return kept(f"scale x{f[0]:.4f} / x{f[1]:.4f}: below {cfg.scale_refine_min:.1%}; kept", **nums)
         fix = np.eye(3)
         fix[:2, :2] = np.diag(f)
         fix[:2, 2] = centre - f * centre
@@ -714,23 +696,18 @@ class FloorPlanUpdater:
             plan_map = new.apply(self.plan)
             relocaliser = Relocaliser(plan_map, self.params)
         except (FrslamError, ValueError) as exc:
-            self.timings["relocalise"] += time.perf_counter() - t0
-            self._event(slam, stamp, "plan_refined", f"scale: refined plan unusable: {exc}", i, False, **nums)
-            return False
+            return kept(f"scale: refined plan unusable: {exc}", **nums)
+        t_fit = time.perf_counter()
         q_new, q_old = self._scan_fit(slam, relocaliser), float(np.mean(soft))
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
-        self.timings["relocalise"] += time.perf_counter() - t0
+        t0 += time.perf_counter() - t_fit  # _scan_fit counted its own time
         if q_new <= q_old + cfg.scale_refine_margin:
-            self._event(
-                slam,
-                stamp,
-                "plan_refined",
-                f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans no better ({q_new:.1%} vs {q_old:.1%}); kept",
-                i,
-                False,
+            return kept(
+                f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans no better "
+                f"({q_new:.1%} vs {q_old:.1%}); kept",
                 **nums,
             )
-            return False
+        self.timings["relocalise"] += time.perf_counter() - t0
         self._event(
             slam,
             stamp,
