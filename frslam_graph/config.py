@@ -254,6 +254,9 @@ class UpdatesConfig(_Section):
     # newest first) are relocalised on the plan too, this many per keyframe
     backfill: bool = True
     backfill_per_keyframe: int = Field(2, ge=1)
+    # relocalisation, prior and prior check (and each backfill) run as separate steps on the
+    # scans after the keyframe (FRSlam.defer): same decisions, no scan pays for all of them
+    spread_over_scans: bool = True
 
 
 class LoopClosureConfig(_Section):

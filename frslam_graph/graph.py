@@ -12,6 +12,7 @@ prior applies; odometry itself is never changed.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import gtsam
@@ -206,11 +207,7 @@ class PoseGraph:
         if not 0 <= keyframe < self._n:
             raise FrslamError(f"no keyframe {keyframe} (graph has {self._n})", where="keyframe")
         if extra_iterations is None:
-            d = np.asarray(pose, float) - self.estimate(int(keyframe))
-            near = float(np.hypot(d[0], d[1])) <= cfg.prior_settle_near_xy and (
-                kind == "translation" or abs(float(wrap(d[2]))) <= np.deg2rad(cfg.prior_settle_near_theta_deg)
-            )
-            extra_iterations = cfg.prior_settle_near_iterations if near else 10
+            extra_iterations = self.prior_settle_iterations(int(keyframe), pose, kind)
         kernel = kernel or cfg.prior_kernel
         param = kernel_param if kernel_param is not None else cfg.prior_kernel_param
         fxy, fth = cfg.prior_sigma_floor_xy, np.deg2rad(cfg.prior_sigma_floor_theta_deg)
@@ -232,6 +229,16 @@ class PoseGraph:
         self._priors[handle.id] = handle
         self._next_prior += 1
         return handle
+
+    def prior_settle_iterations(self, keyframe: int, pose: np.ndarray, kind: PriorKind = "full") -> int:
+        """Relinearising iterations a new prior gets (:meth:`add_prior`'s default): few when it
+        agrees with the keyframe's current estimate (``prior_settle_near_*``), else 10."""
+        cfg = self.config
+        d = np.asarray(pose, float) - self.estimate(int(keyframe))
+        near = float(np.hypot(d[0], d[1])) <= cfg.prior_settle_near_xy and (
+            kind == "translation" or abs(float(wrap(d[2]))) <= np.deg2rad(cfg.prior_settle_near_theta_deg)
+        )
+        return cfg.prior_settle_near_iterations if near else 10
 
     def remove_prior(self, handle: PriorHandle, extra_iterations: int = 10) -> None:
         """Remove a prior (or the anchor) from iSAM2 by its factor index."""
@@ -259,17 +266,24 @@ class PoseGraph:
         trajectory far, a few more are needed to converge. These force relinearisation (the
         streaming updates relinearise only every ``relinearize_skip`` steps).
         """
+        return sum(1 for _ in self.settle_steps(max_iterations, tol))
+
+    def settle_steps(self, max_iterations: int = 10, tol: float = 1e-4) -> Iterator[None]:
+        """:meth:`settle` as a generator: it yields before each iteration, so a caller can run
+        them one at a time (one per scan). Keyframes added in between are fine: iSAM2 takes them
+        in its own updates; convergence is judged on the keyframes that were there before."""
         prev = self.estimates()
-        it = -1
-        for it in range(max_iterations):  # noqa: B007
+        for _ in range(max_iterations):
+            yield
             self._isam_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], True)
             cur = self.estimates()
-            moved = float(np.abs(cur - prev).max()) if len(cur) else 0.0
+            n = min(len(cur), len(prev))
+            moved = float(np.abs(cur[:n] - prev[:n]).max()) if n else 0.0
             prev = cur
+            if len(cur):
+                self._latest = cur[-1].copy()
             if moved < tol:
                 break
-        self._latest = prev[-1].copy() if len(prev) else self._latest
-        return it + 1 if max_iterations else 0
 
     def add_factor(self, factor: gtsam.NonlinearFactor, extra_iterations: int = 10) -> int:
         """Add a factor between existing keyframes (e.g. a loop closure); returns its iSAM2 index.

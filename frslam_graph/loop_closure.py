@@ -1304,18 +1304,9 @@ class LoopCloser:
 
     @staticmethod
     def _settle(graph, max_iterations: int, tol: float = 1e-4) -> Steps[None]:
-        """:meth:`PoseGraph.settle` one relinearising iteration per step (keyframes added in
-        between are fine: iSAM2 takes them in its own updates)."""
-        prev = graph.estimates()
-        for _ in range(max_iterations):
+        """:meth:`PoseGraph.settle_steps` with this module's cost estimate for each step."""
+        for _ in graph.settle_steps(max_iterations, tol):
             yield _MS_PER_KEYFRAME_UPDATE * len(graph)
-            graph.settle(1, tol)
-            cur = graph.estimates()
-            n = min(len(cur), len(prev))
-            moved = float(np.abs(cur[:n] - prev[:n]).max()) if n else 0.0
-            prev = cur
-            if moved < tol:
-                break
 
     @staticmethod
     def _residual_large(graph, closures: list[LoopClosure]) -> bool:

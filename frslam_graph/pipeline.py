@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -122,6 +123,7 @@ class FRSlam:
         self._angles_cache: tuple[float, float, int, tuple[np.ndarray, np.ndarray]] | None = None
         self._odometry_elsewhere = False  # process() ran the odometry in a worker process
         self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
+        self._deferred: deque[Iterator[Any]] = deque()  # see defer()
         # loop closure (frslam_graph.loop_closure), run on each keyframe after the update strategy
         from frslam_graph.loop_closure import LoopCloser
 
@@ -196,6 +198,39 @@ class FRSlam:
         else:
             self._record(res, pts, off)
 
+    def defer(self, steps: Iterator[Any]) -> None:
+        """Run a hook's work as ``steps`` (a generator: the work between two yields is one step)
+        on the following scans instead of this one.
+
+        One step runs per scan (that scan then does no loop-closure work), jobs in the order they
+        were deferred; :meth:`run_deferred` runs all that are pending (a hook calls it before work
+        that needs them done; :meth:`finish` and :meth:`process` call it). The schedule depends
+        only on the sequence of scans, so results are deterministic whatever the timing. A
+        floor-plan relocalisation, its prior, each relinearising iteration after it and the
+        prior check are such steps: no single scan pays for all of them.
+        """
+        self._deferred.append(steps)
+
+    @property
+    def deferred_jobs(self) -> int:
+        """Number of deferred jobs not finished yet (see :meth:`defer`)."""
+        return len(self._deferred)
+
+    def run_deferred(self) -> None:
+        """Run every pending deferred step now."""
+        while self._deferred:
+            self._step_deferred()
+
+    def _step_deferred(self) -> bool:
+        """Run the next deferred step; True when there was one."""
+        if not self._deferred:
+            return False
+        try:
+            next(self._deferred[0])
+        except StopIteration:
+            self._deferred.popleft()
+        return True
+
     def _angles(self, angle_min: float, inc: float, n: int) -> tuple[np.ndarray, np.ndarray]:
         """cos and sin of the beam angles (cached: the layout rarely changes)."""
         c = self._angles_cache
@@ -245,8 +280,9 @@ class FRSlam:
         self._scan_kf.append(res.keyframe)
         self._scan_rel.append(res.relative)
         self._scan_odom.append(res.pose)
+        stepped = self._step_deferred()  # a hook's deferred work: one step per scan
         if not res.is_keyframe:
-            if self.loop_closer is not None:  # queued loop-closure work, a few steps per scan
+            if self.loop_closer is not None and not stepped:  # queued loop-closure work
                 self.loop_closer.on_scan(self)
             return
         if res.keyframe == 0:
@@ -258,12 +294,13 @@ class FRSlam:
         self._kf_points.append(kf.points)
         self._kf_origins.append(kf.sensor_origin)
         info = self.keyframe(res.keyframe)
-        busy = False
+        busy = stepped
         if self.update_strategy is not None:
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
             version = self.graph.version
             hook(self, info)
-            busy = self.graph.version != version  # priors added / removed: this scan's budget is spent
+            # priors added / removed, or work deferred to the next scans: this scan's budget is spent
+            busy = busy or self.graph.version != version or bool(self._deferred)
         if self.loop_closer is not None:  # uses the keyframe's index and odometry pose only
             self.loop_closer.on_keyframe(self, info, work=not busy)
 
@@ -386,9 +423,12 @@ class FRSlam:
         kind: str = "full",
         kernel: str | None = None,
         info: dict | None = None,
+        extra_iterations: int | None = None,
     ) -> PriorHandle:
         """Add a robust prior: ``pose`` (x, y, theta) of base_link in map at a keyframe (int) or at
-        the scan with that stamp (float; moved onto its keyframe through the odometry)."""
+        the scan with that stamp (float; moved onto its keyframe through the odometry).
+        ``extra_iterations``: relinearising iSAM2 iterations after it (default: see
+        :meth:`PoseGraph.add_prior`)."""
         if isinstance(stamp_or_keyframe, int | np.integer):
             kf, rel = int(stamp_or_keyframe), np.zeros(3)
             stamp = self._kfs[kf].stamp if 0 <= kf < len(self._kfs) else float("nan")
@@ -410,7 +450,9 @@ class FRSlam:
                 ad = np.asarray(gtsam.Pose2(*rel).AdjointMap())
                 cov = ad @ cov @ ad.T
             p = kf_pose
-        handle = self.graph.add_prior(kf, p, cov, kind=kind, kernel=kernel, source=source, info=info)
+        handle = self.graph.add_prior(
+            kf, p, cov, kind=kind, kernel=kernel, source=source, info=info, extra_iterations=extra_iterations
+        )
         self.log_event(
             "prior_added",
             f"{kind} prior from {source} on keyframe {kf}",
@@ -444,6 +486,7 @@ class FRSlam:
     # ---------------------------------------------------------------- offline
     def finish(self) -> np.ndarray:
         """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`."""
+        self.run_deferred()
         if self.loop_closer is not None:  # loop-closure work still queued
             self.loop_closer.flush(self)
         if self._kfs:
@@ -503,6 +546,7 @@ class FRSlam:
                 last = stamp
             if parallel:
                 self.odometry.stats = worker.stats
+        self.run_deferred()  # the last keyframes' steps (also without the batch)
         if batch:
             self.finish()
         wall = time.perf_counter() - t_start

@@ -46,7 +46,7 @@ nothing is printed.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -245,11 +245,13 @@ class FloorPlanUpdater:
                     )
                     self._inconsistent_run = 0
         if reason is not None:
+            self._finish_steps(slam)
             self._register(slam, keyframe, reason, local)
         elif self.accepted is not None:
             if cfg.scale_refine_distance > 0.0 and self._dist - self._dist_at_scale >= max(
                 self._scale_interval, cfg.scale_refine_distance
             ):
+                self._finish_steps(slam)
                 self._dist_at_scale = self._dist
                 changed = self._refine_scale(slam, keyframe)
                 if cfg.align_to_start:
@@ -266,8 +268,8 @@ class FloorPlanUpdater:
                 self._relocalise_current(slam, keyframe, "relocation distance")
             elif self._turn - self._turn_at_reloc >= np.deg2rad(cfg.relocation_angle_deg):
                 self._relocalise_current(slam, keyframe, "relocation angle")
-        if self.accepted is not None and self._backfill:
-            self._run_backfill(slam, cfg.backfill_per_keyframe)
+        if self.accepted is not None and self._backfill and not getattr(slam, "deferred_jobs", 0):
+            self._run_backfill(slam, cfg.backfill_per_keyframe)  # as fast as the steps get done
 
     # ------------------------------------------------------------------ events
     def _event(
@@ -428,18 +430,19 @@ class FloorPlanUpdater:
         self._backfill_anchor = here
 
     def _run_backfill(self, slam, n: int) -> None:
-        scans = slam.keyframe_scans()[0]
-        for _ in range(n):
-            if not self._backfill:
-                return
-            k = self._backfill.pop(0)
-            kf = slam.keyframe(k)
-            t0 = time.perf_counter()
-            reloc = self.accepted.relocaliser.relocalise(scans[k], kf.pose_map)
-            self.timings["relocalise"] += time.perf_counter() - t0
-            drift = max(self._backfill_anchor - self._kf_dist[k], 0.0)
-            if self._try_prior(slam, kf, reloc, "backfill", drift=drift, backfill=True):
-                self._backfill_anchor = self._kf_dist[k]
+        """Relocalise the next ``n`` queued keyframes and add their priors (as steps)."""
+        for _ in range(min(n, len(self._backfill))):
+            self._later(slam, self._backfill_steps(slam, self._backfill.pop(0)))
+
+    def _backfill_steps(self, slam, k: int) -> Iterator[None]:
+        kf = slam.keyframe(k)  # its estimate when the step runs
+        t0 = time.perf_counter()
+        reloc = self.accepted.relocaliser.relocalise(slam.keyframe_scans()[0][k], kf.pose_map)
+        self.timings["relocalise"] += time.perf_counter() - t0
+        yield
+        drift = max(self._backfill_anchor - self._kf_dist[k], 0.0)
+        if (yield from self._prior_steps(slam, kf, reloc, "backfill", drift=drift, backfill=True)):
+            self._backfill_anchor = self._kf_dist[k]
 
     def _local_grid(self, slam):
         """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
@@ -823,8 +826,26 @@ class FloorPlanUpdater:
             self._try_prior(slam, kf, reloc, "re-anchored on the new registration", drift=self._dist)
 
     # ------------------------------------------------------------------ relocalisation
+    @staticmethod
+    def _finish_steps(slam) -> None:
+        """Run the steps still pending (before work that changes the plan or needs them done)."""
+        run = getattr(slam, "run_deferred", None)
+        if run is not None:
+            run()
+
+    def _later(self, slam, steps: Iterator[Any]) -> None:
+        """Run a step generator: one step per following scan (``slam.defer``) with
+        ``spread_over_scans``, else all of it now."""
+        defer = getattr(slam, "defer", None) if self.config.spread_over_scans else None
+        if defer is None:
+            for _ in steps:
+                pass
+        else:
+            defer(steps)
+
     def _relocalise_current(self, slam, keyframe, why: str) -> None:
-        t0 = time.perf_counter()
+        """Relocalise the keyframe's scan (its pose and points as they are now), then gate and
+        add its prior, settle the graph and check the priors, as steps (:meth:`_later`)."""
         points = slam.keyframe_scans()[0][keyframe.index]
         cfg = self.config
         # the search window covers the drift since the last accepted prior (3 sigma of the gate's
@@ -835,12 +856,30 @@ class FloorPlanUpdater:
             max(cfg.reloc_window_theta_deg, 3.0 * cfg.gate_drift_deg_per_m * travelled),
             cfg.reloc_window_max_theta_deg,
         )
-        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map, wxy, np.deg2rad(wth))
-        self.timings["relocalise"] += time.perf_counter() - t0
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
-        self._try_prior(slam, keyframe, reloc, why)
+        self._finish_steps(slam)  # the previous relocalisation's, if any: a bounded backlog
+        self._later(slam, self._relocalise_steps(slam, keyframe, points, wxy, np.deg2rad(wth), why))
+
+    def _relocalise_steps(self, slam, keyframe, points, wxy: float, wth: float, why: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map, wxy, wth)
+        self.timings["relocalise"] += time.perf_counter() - t0
+        yield
+        yield from self._prior_steps(slam, keyframe, reloc, why)
+        yield
         self._check_priors(slam, keyframe.stamp)
+
+    def _prior_steps(
+        self, slam, keyframe, reloc, why: str, drift: float | None = None, backfill: bool = False
+    ):
+        """:meth:`_try_prior`, then the graph's relinearising iterations one per step; returns
+        whether the prior was added."""
+        n = slam.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
+        added = self._try_prior(slam, keyframe, reloc, why, drift, backfill, settle=False)
+        if added:
+            yield from slam.graph.settle_steps(n)
+        return added
 
     def _gate_chi2(self, slam, keyframe, reloc: Relocalisation, drift: float | None = None) -> float:
         """chi² of (relocalised - estimated) pose under reloc + marginal + drift covariances."""
@@ -866,7 +905,10 @@ class FloorPlanUpdater:
         why: str,
         drift: float | None = None,
         backfill: bool = False,
+        settle: bool = True,
     ) -> bool:
+        """Gate a relocalisation and add it as a prior (logged either way); True when added.
+        Without ``settle`` the graph's relinearising iterations are the caller's."""
         cfg = self.config
         stamp, i = float(keyframe.stamp), keyframe.index
         est = np.asarray(keyframe.pose_map, float)
@@ -911,6 +953,7 @@ class FloorPlanUpdater:
             source=f"reloc:reg{self.accepted.id}",
             kind=cfg.prior_kind,
             info={"score": reloc.score, "ambiguity": reloc.ambiguity},
+            extra_iterations=None if settle else 0,
         )
         if not backfill:
             self._dist_at_prior = self._dist

@@ -243,3 +243,34 @@ def test_prior_that_agrees_with_the_estimate_gets_a_short_settle():
     assert calls == [GraphConfig().prior_settle_near_iterations, 10, 10, 4]
     assert GraphConfig().prior_settle_near_iterations < 10
     assert abs(g.estimate(50)[0] - (g.estimate(49)[0] + 0.3)) < 0.1  # the far prior still converged
+
+
+def test_settle_steps_are_settle_one_iteration_at_a_time():
+    """settle_steps yields before each relinearising iteration (nothing happens until the caller
+    asks for the step) and, run to the end, gives exactly settle()'s estimates; keyframes added
+    between steps are fine."""
+    a, b = chain(n=60, drift=0.002), chain(n=60, drift=0.002)
+    for g in (a, b):
+        g.add_prior(50, g.estimate(50) + [0.4, 0.0, 0.0], PRIOR_COV, source="plan", extra_iterations=0)
+    assert a.prior_settle_iterations(50, a.estimate(50) + [0.4, 0.0, 0.0]) == 10
+    assert a.prior_settle_iterations(50, a.estimate(50)) == GraphConfig().prior_settle_near_iterations
+    n = a.settle(10)
+    steps = b.settle_steps(10)
+    before, version = b.estimates(), b.version
+    next(steps)  # up to the first yield: no iteration yet
+    assert b.version == version
+    np.testing.assert_array_equal(b.estimates(), before)
+    done = 1 + sum(1 for _ in steps)
+    assert done == n and b.version == version + n
+    np.testing.assert_array_equal(b.estimates(), a.estimates())
+    # a keyframe added between two steps: the iterations go on over the longer graph
+    c = chain(n=60, drift=0.002)
+    c.add_prior(50, c.estimate(50) + [0.4, 0.0, 0.0], PRIOR_COV, source="plan", extra_iterations=0)
+    steps = c.settle_steps(10)
+    next(steps)
+    next(steps)
+    c.add_keyframe(np.array([0.3, 0.0, 0.0]), np.diag([1e-4, 1e-4, 1e-5]))
+    for _ in steps:
+        pass
+    assert len(c) == 61
+    assert abs(c.estimate(50)[0] - (c.estimate(49)[0] + 0.3)) < 0.1

@@ -1,0 +1,160 @@
+"""Deferred steps (FRSlam.defer): a hook's work split over the following scans, one step per
+scan, in order, deterministic; the floor-plan updater's relocalisations use them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
+from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
+
+from frslam_graph import odometry_worker
+from frslam_graph.config import FRSlamConfig
+from frslam_graph.motion_model import to_matrix
+from frslam_graph.pipeline import FRSlam
+from frslam_graph.registration import Registration
+from frslam_graph.update_strategy import FloorPlanUpdater
+
+ROOM_CFG = {"odometry": {"max_range": 10.0}}
+
+
+@pytest.fixture(scope="module")
+def room():
+    truth = route(ROOM_LOOP)
+    ranges, amin, inc = scans_along(room_world(), truth)
+    return truth[:200], ranges[:200], amin, inc, drifting_odometry(truth)[:200]
+
+
+class StepHook:
+    """At keyframes 3 and 4 defers a job of three steps; records (job, step, scan count)."""
+
+    def __init__(self):
+        self.done: list[tuple[int, int, int]] = []
+
+    def job(self, slam, k):
+        for step in range(3):
+            self.done.append((k, step, len(slam)))
+            if step < 2:
+                yield
+
+    def on_keyframe(self, slam, kf):
+        if kf.index in (3, 4):
+            slam.defer(self.job(slam, kf.index))
+
+
+def feed(slam, room, n):
+    truth, ranges, amin, inc, wheel = room
+    for i in range(n):
+        slam.add_scan(truth[i, 0], ranges[i], amin, inc, wheel[i])
+
+
+def test_one_deferred_step_per_scan_in_order_without_loop_closure_work(room):
+    hook = StepHook()
+    slam = FRSlam({**ROOM_CFG, "loop_closure": {"enabled": True}}, update_strategy=hook)
+    lc_scans = []
+    on_scan = slam.loop_closer.on_scan
+    slam.loop_closer.on_scan = lambda s: lc_scans.append(len(s)) or on_scan(s)
+    feed(slam, room, 150)
+    assert len(hook.done) == 6 and slam.deferred_jobs == 0
+    assert [(k, s) for k, s, _ in hook.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
+    scans = [n for _, _, n in hook.done]
+    # each step on its own scan, after the keyframe that deferred it; job 4 after job 3
+    assert scans == sorted(scans) and len(set(scans)) == 6
+    kf3 = slam.keyframe(3).scan_index
+    assert scans[0] == kf3 + 2  # the next scan (len(slam) counts the scan being added)
+    assert not set(scans) & set(lc_scans)  # a scan that ran a step did no loop-closure work
+    assert lc_scans  # ... the others did
+
+
+def test_pending_steps_run_in_finish_process_and_on_request(room):
+    truth, ranges, amin, inc, wheel = room
+    hook = StepHook()
+    slam = FRSlam(ROOM_CFG, update_strategy=hook)
+    feed(slam, room, 200)
+    # stop right after keyframe 4 deferred its job: nothing is lost
+    hook2 = StepHook()
+    slam2 = FRSlam(ROOM_CFG, update_strategy=hook2)
+    feed(slam2, room, slam.keyframe(4).scan_index + 1)
+    assert slam2.deferred_jobs >= 1
+    slam2.run_deferred()
+    assert slam2.deferred_jobs == 0 and len(hook2.done) == 6
+    hook3 = StepHook()
+    slam3 = FRSlam(ROOM_CFG, update_strategy=hook3)
+    feed(slam3, room, slam.keyframe(4).scan_index + 1)
+    slam3.finish()
+    assert len(hook3.done) == 6
+    from frslam_graph.datasets import Scan
+
+    angles = amin + inc * np.arange(len(ranges[0]))
+    scans = [
+        Scan(float(truth[i, 0]), ranges[i], angles, tuple(wheel[i]), 10.0)
+        for i in range(slam.keyframe(4).scan_index + 1)
+    ]
+    hook4 = StepHook()
+    FRSlam(ROOM_CFG, update_strategy=hook4).process(scans, batch=False, parallel=False)
+    assert [(k, s) for k, s, _ in hook4.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
+
+
+# --------------------------------------------------------------------- floor-plan updater
+
+
+@pytest.fixture(scope="module")
+def house():
+    plan = five_room_plan()
+    opts = SimulationOptions(length=12.0, beams=360, fov_deg=360.0, max_range=12.0, scan_rate=4.0)
+    run = simulate_run(plan, seed=3, options=opts)
+    true_matrix = (
+        to_matrix(run.odom_poses[0])
+        @ np.linalg.inv(to_matrix(run.true_poses[0]))
+        @ run.house.distortion.matrix
+    )
+    return plan, run, true_matrix
+
+
+def run_plan(house, spread: bool, parallel: bool = False):
+    plan, run, m = house
+    cfg = FRSlamConfig().with_updates(loop_closure={"enabled": False}, updates={"spread_over_scans": spread})
+    upd = FloorPlanUpdater(
+        plan, cfg.updates, register_fn=lambda p, g: Registration.from_matrix(m, score=0.9, ambiguity=0.2)
+    )
+    slam = FRSlam(cfg, update_strategy=upd)
+    added = []  # (keyframe's scan index, scan count when the prior went in)
+    add = slam.add_floorplan_prior
+    slam.add_floorplan_prior = lambda kf, *a, **k: (
+        added.append((slam.keyframe(kf).scan_index, len(slam), k.get("extra_iterations"))) or add(kf, *a, **k)
+    )
+    res = slam.process(run.scans, parallel=parallel)
+    return upd, slam, res, added
+
+
+def test_relocalisation_priors_go_in_on_later_scans_with_the_same_decisions(house):
+    upd_now, _, res_now, added_now = run_plan(house, spread=False)
+    upd, slam, res, added = run_plan(house, spread=True)
+    # without spreading every prior goes in on its keyframe's scan (len(slam) counts that scan)
+    assert all(n == i + 1 for i, n, _ in added_now)
+    # spread: the relocalisation on the next scan, the prior on the one after, then one
+    # relinearising iteration per scan (extra_iterations 0 here); the last one in process()'s end
+    reloc = [(i, n) for i, n, it in added[1:]]
+    assert len(reloc) >= 5 and all(it == 0 for _, _, it in added[1:])
+    assert all(n == i + 3 for i, n in reloc[:-1]) and reloc[-1][1] <= reloc[-1][0] + 3
+    # the same decisions on the same keyframes (nothing else changed the graph in between here)
+    assert [(e.kind, e.keyframe) for e in upd.log] == [(e.kind, e.keyframe) for e in upd_now.log]
+    assert slam.deferred_jobs == 0
+    # the trajectory barely differs (settled a few scans later)
+    err = np.abs(res.trajectory[:, 1:3] - res_now.trajectory[:, 1:3]).max()
+    assert err < 0.02, err
+    # deterministic: the schedule depends on the scans only
+    _, _, again, _ = run_plan(house, spread=True)
+    np.testing.assert_array_equal(again.trajectory, res.trajectory)
+
+
+@pytest.mark.skipif(
+    not odometry_worker.available(FRSlamConfig().odometry),
+    reason="the odometry worker needs Linux fork, two cores and a non-daemonic process",
+)
+def test_spread_steps_give_the_same_run_with_the_odometry_worker(house):
+    _, _, seq, _ = run_plan(house, spread=True, parallel=False)
+    upd, _, par, _ = run_plan(house, spread=True, parallel=True)
+    assert par.parallel
+    np.testing.assert_array_equal(par.trajectory, seq.trajectory)
+    assert any(e.kind == "prior_added" for e in upd.log)
