@@ -221,6 +221,8 @@ class UpdatesConfig(_Section):
     align_to_start: bool = True
     align_min_xy: float = Field(0.02, ge=0.0)
     align_min_theta_deg: float = Field(0.2, ge=0.0)
+    # ... and only when the first scan's soft fit at the anchor improves by this much
+    align_min_gain: float = Field(0.002, ge=0.0)
     # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
     # with priors on the refined plan
     scale_reanchor_xy: float = Field(0.05, ge=0.0)

@@ -739,14 +739,18 @@ class FloorPlanUpdater:
         cfg = self.config
         acc = self.accepted
         stamp, i = float(keyframe.stamp), keyframe.index
-        kf0 = slam.keyframe(0)
+        # the anchor prior's pose, not keyframe 0's estimate: the plan's priors pull that
+        # estimate, so fitting the plan to it would chase its own pull (the plan moving back
+        # and forth at every check, each time re-anchoring all its priors)
+        anchor = slam.graph.anchor
+        start = anchor.pose if anchor is not None and anchor.active else slam.keyframe(0).pose_map
         r = acc.relocaliser.relocalise(
             slam.keyframe_scans()[0][0],
-            kf0.pose_map,
+            start,
             cfg.reloc_window_max_xy,
             np.deg2rad(cfg.reloc_window_max_theta_deg),
         )
-        d = compose(kf0.pose_map, inverse(r.pose))  # plan-consistent pose -> anchored pose
+        d = compose(start, inverse(r.pose))  # plan-consistent pose -> anchored pose
         nums = {"dx": d[0], "dy": d[1], "dtheta": d[2], "score": r.score, "ambiguity": r.ambiguity}
         moved = float(np.hypot(*(compose(d, r.pose)[:2] - r.pose[:2])))
         if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
@@ -760,11 +764,14 @@ class FloorPlanUpdater:
                 **nums,
             )
             return False
-        if (
-            abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg)
-            and np.hypot(d[0], d[1]) < cfg.align_min_xy
-            and moved < cfg.align_min_xy
-        ):
+        # d's translation includes the lever arm of its rotation about the map origin: judge the
+        # move by its rotation and by how far the scan's pose moves; and move only when the fit
+        # at the anchor gets clearly better (a centimetre of matching noise must not flip the
+        # plan back and forth at every check)
+        nums["gain"] = r.soft_score - acc.relocaliser.evaluate(slam.keyframe_scans()[0][0], start)[1]
+        if (abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg) and moved < cfg.align_min_xy) or nums[
+            "gain"
+        ] < cfg.align_min_gain:
             self._event(
                 slam,
                 stamp,

@@ -589,6 +589,35 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
     assert errors[True] < 0.02 < errors[False]
 
 
+def test_plan_within_matching_noise_of_the_start_is_not_moved(sim):
+    """align_to_start moves the plan only when the first scan's fit at the anchor clearly gains
+    (align_min_gain): a placement a few millimetres / 0.1 deg off is within the relocalisation's
+    noise, and moving it at every check flipped the plan back and forth (each time re-anchoring
+    all its priors). Without the gain and size thresholds it moves at every check."""
+    plan, run, m = sim
+    close = rotated_about_centre(plan, m, angle=np.deg2rad(0.1), shift=(0.004, 0.0))
+    base = {
+        "register_min_growth_m2": 1e6,
+        "register_retry_distance": 1e3,
+        "register_refine_distance": 0.0,
+        "scale_refine_distance": 2.0,
+    }
+    moves = {}
+    for name, extra in (
+        ("default", {}),
+        ("no thresholds", {"align_min_gain": 0.0, "align_min_xy": 0.0, "align_min_theta_deg": 0.0}),
+    ):
+        cfg = CFG.updates.model_copy(update={**base, **extra})
+        upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(close))
+        run_slam(run, upd)
+        start = [e for e in upd.events("plan_refined") if e.reason.startswith("start")]
+        assert len(start) >= 2, name
+        moves[name] = sum(bool(e.accepted) for e in start)
+        if name == "default":
+            assert all(e.numbers["gain"] < cfg.align_min_gain for e in start)
+    assert moves["default"] == 0 and moves["no thresholds"] >= 2
+
+
 def test_keyframe_scans_reject_the_plan_of_another_building(sim):
     """min_scan_fit: with the map checks let through (as a plan of another building can pass them
     by a small margin) and quick rechecks, the current-scan check alone lets the other building in
