@@ -202,8 +202,9 @@ class FRSlam:
         """Run a hook's work as ``steps`` (a generator: the work between two yields is one step)
         on the following scans instead of this one.
 
-        One step runs per scan (that scan then does no loop-closure work), jobs in the order they
-        were deferred; :meth:`run_deferred` runs all that are pending (a hook calls it before work
+        One step runs per scan that is not a keyframe (keyframe scans have the graph update and
+        the hooks; a scan with a step does no loop-closure work), jobs in the order they were
+        deferred; :meth:`run_deferred` runs all that are pending (a hook calls it before work
         that needs them done; :meth:`finish` and :meth:`process` call it). The schedule depends
         only on the sequence of scans, so results are deterministic whatever the timing. A
         floor-plan relocalisation, its prior, each relinearising iteration after it and the
@@ -280,9 +281,9 @@ class FRSlam:
         self._scan_kf.append(res.keyframe)
         self._scan_rel.append(res.relative)
         self._scan_odom.append(res.pose)
-        stepped = self._step_deferred()  # a hook's deferred work: one step per scan
         if not res.is_keyframe:
-            if self.loop_closer is not None and not stepped:  # queued loop-closure work
+            # a hook's deferred work, one step per scan; else queued loop-closure work
+            if not self._step_deferred() and self.loop_closer is not None:
                 self.loop_closer.on_scan(self)
             return
         if res.keyframe == 0:
@@ -294,7 +295,7 @@ class FRSlam:
         self._kf_points.append(kf.points)
         self._kf_origins.append(kf.sensor_origin)
         info = self.keyframe(res.keyframe)
-        busy = stepped
+        busy = False
         if self.update_strategy is not None:
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
             version = self.graph.version
