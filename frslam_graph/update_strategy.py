@@ -327,6 +327,7 @@ class FloorPlanUpdater:
                 obstructed = True
             self._history = self._history[len(old) - 1 :]
         if obstructed and not self._obstruction_reported:
+            self._finish_steps(slam)  # what it triggers drains them anyway: their events first
             self._event(slam, stamp, "obstructed", "no progress: register and relocalise", keyframe.index)
         self._obstruction_reported = obstructed
         self._obstructed = False
