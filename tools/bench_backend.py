@@ -114,7 +114,7 @@ def bare_kiss(rec, cfg):
     icp = KissICP(
         KISSConfig(
             data=DataConfig(max_range=o.max_range, min_range=o.min_range, deskew=False),
-            mapping=MappingConfig(voxel_size=o.voxel_size),
+            mapping=MappingConfig(voxel_size=o.voxel_size, max_points_per_voxel=o.max_points_per_voxel),
             registration=RegistrationConfig(max_num_threads=o.num_threads),
             adaptive_threshold=AdaptiveThresholdConfig(initial_threshold=o.initial_threshold),
         )
