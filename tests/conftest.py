@@ -29,3 +29,24 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def test_data() -> Path:
     return TEST_DATA
+
+
+@pytest.fixture(scope="session")
+def five_room_sim():
+    """(plan, run, true plan -> map matrix): the five-room plan and a short simulated run in it
+    (12 m, 360 beams, 4 Hz). The SLAM map is the odom frame of the first pose; the simulator's
+    odom frame starts at the true pose."""
+    import numpy as np
+    from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
+
+    from frslam_graph.motion_model import to_matrix
+
+    plan = five_room_plan()
+    opts = SimulationOptions(length=12.0, beams=360, fov_deg=360.0, max_range=12.0, scan_rate=4.0)
+    run = simulate_run(plan, seed=3, options=opts)
+    true_matrix = (
+        to_matrix(run.odom_poses[0])
+        @ np.linalg.inv(to_matrix(run.true_poses[0]))
+        @ run.house.distortion.matrix
+    )
+    return plan, run, true_matrix

@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
 from frslam_graph import odometry_worker
 from frslam_graph.config import FRSlamConfig
-from frslam_graph.motion_model import to_matrix
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
 from frslam_graph.update_strategy import FloorPlanUpdater
@@ -99,16 +97,8 @@ def test_pending_steps_run_in_finish_process_and_on_request(room):
 
 
 @pytest.fixture(scope="module")
-def house():
-    plan = five_room_plan()
-    opts = SimulationOptions(length=12.0, beams=360, fov_deg=360.0, max_range=12.0, scan_rate=4.0)
-    run = simulate_run(plan, seed=3, options=opts)
-    true_matrix = (
-        to_matrix(run.odom_poses[0])
-        @ np.linalg.inv(to_matrix(run.true_poses[0]))
-        @ run.house.distortion.matrix
-    )
-    return plan, run, true_matrix
+def house(five_room_sim):
+    return five_room_sim
 
 
 def run_plan(house, spread: bool, parallel: bool = False):

@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 from shapely.geometry import box as sbox
 
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.floorplan import FloorPlan, Room
 from frslam_graph.metrics import ate
-from frslam_graph.motion_model import to_matrix
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
 from frslam_graph.update_strategy import FloorPlanUpdater, UpdateEvent
@@ -35,17 +33,8 @@ KINDS = {
 
 
 @pytest.fixture(scope="module")
-def sim():
-    plan = five_room_plan()
-    opts = SimulationOptions(length=12.0, beams=360, fov_deg=360.0, max_range=12.0, scan_rate=4.0)
-    run = simulate_run(plan, seed=3, options=opts)
-    # SLAM map = odom frame of the first pose; the simulator's odom frame starts at the true pose
-    true_matrix = (
-        to_matrix(run.odom_poses[0])
-        @ np.linalg.inv(to_matrix(run.true_poses[0]))
-        @ run.house.distortion.matrix
-    )
-    return plan, run, true_matrix
+def sim(five_room_sim):
+    return five_room_sim
 
 
 # the registration and scale refinements after acceptance off (tests that need one matrix to stay)
