@@ -178,6 +178,10 @@ class UpdatesConfig(_Section):
     # keyframe scans (refine_scan_samples, each relocalised on its own) must fit a registration
     # about to be accepted with this mean soft score (0 = off)
     min_scan_fit: float = Field(0.85, ge=0.0, le=1.0)
+    # an ambiguous registration (before any is accepted): the placement that explains the keyframe
+    # scans better than the registration's runner-up placements by this margin (mean soft score)
+    # is taken; 0 = ambiguous registrations are rejected
+    disambiguate_margin: float = Field(0.05, ge=0.0)
     max_walls_in_free_space: float = Field(0.1, ge=0.0, le=1.0)  # observed interior plan walls in free space
     # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
     # free space" farther than free_space_margin from any occupied cell, both growing by

@@ -497,7 +497,10 @@ class FloorPlanUpdater:
         if reg.score < cfg.min_score:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
         if reg.ambiguity > cfg.max_ambiguity:
-            return reject(f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}")
+            picked = self._disambiguate(slam, reg, nums)
+            if picked is None:
+                return reject(f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}")
+            reg = picked
         try:
             plan_map = reg.apply(self.plan)
             relocaliser = Relocaliser(plan_map, self.params)
@@ -583,7 +586,7 @@ class FloorPlanUpdater:
             # the keyframe scans of the whole run, each relocalised on its own: the plan of another
             # building (or a wrong placement) that the map checks let through by a small margin
             # explains them poorly
-            q = self._scan_fit(slam, relocaliser)
+            q = nums["scan_fit"] if "scan_fit" in nums else self._scan_fit(slam, relocaliser)
             nums["scan_fit"] = q
             if q < cfg.min_scan_fit:
                 return reject(
@@ -617,6 +620,39 @@ class FloorPlanUpdater:
         acc = _Accepted(self._next_id, reg, plan_map, relocaliser, fit)
         self._next_id += 1
         return acc, relocaliser, reloc
+
+    def _disambiguate(self, slam, reg, nums: dict[str, float]):
+        """An ambiguous registration: its placement and the registration's runner-up placements
+        (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
+        its own (which a drifted map cannot bias). Returns the registration of the placement that
+        explains them clearly best (by ``disambiguate_margin``, and at least ``min_scan_fit``),
+        else None; ``nums`` get the two best fits."""
+        cfg = self.config
+        alts = [np.asarray(a["matrix"], float) for a in (reg.details or {}).get("alternatives", [])]
+        if cfg.disambiguate_margin <= 0.0 or not alts or self.accepted is not None:
+            return None
+        matrices = [np.asarray(reg.matrix, float), *alts]
+        fits = []
+        for m in matrices:
+            try:
+                relocaliser = Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params)
+            except (FrslamError, ValueError):
+                fits.append(0.0)
+                continue
+            fits.append(self._scan_fit(slam, relocaliser))
+        order = np.argsort(fits)[::-1]
+        best, second = float(fits[order[0]]), float(fits[order[1]])
+        nums.update(ambiguous_scan_fit=best, runner_up_scan_fit=second, placement=int(order[0]))
+        if best < max(cfg.min_scan_fit, second + cfg.disambiguate_margin):
+            return None
+        nums["scan_fit"] = best
+        return type(reg).from_matrix(
+            matrices[order[0]],
+            score=reg.score,
+            ambiguity=second / max(best, 1e-9),
+            method=f"{reg.method}+scans",
+            rooms=reg.rooms,
+        )
 
     def _refine(self, slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better) -> None:
         """An agreeing registration explains the data as well or better: the same placement fitted

@@ -227,6 +227,22 @@ def test_recovers_simulated_lidar_map(plan):
     assert reg.details["delta_m"] == pytest.approx(0.06, abs=0.02)
 
 
+def test_runner_up_placements_are_reported(plan):
+    """details["alternatives"]: MFR's runner-up placements (map frame), each a different
+    placement from the best and from each other, scored relative to the best."""
+    from frslam_graph.registration.evaluation import iou_a as _iou
+
+    truth = truth_matrix(False, 0.0)
+    reg = register(plan, ring_map(plan, truth, EXPLORED))
+    alts = reg.details["alternatives"]
+    assert 1 <= len(alts) <= 2
+    for a in alts:
+        m = np.asarray(a["matrix"], float)
+        assert m.shape == (3, 3) and 0.0 < a["relative_score"] <= 1.0 + 1e-9
+        assert _iou(plan, m, truth) < 0.9  # not the true placement again
+    assert reg.to_dict()["details"]["alternatives"][0]["matrix"]  # JSON-ready
+
+
 # ------------------------------------------------------------------------- resolution and origin
 def test_invariant_to_map_resolution(plan):
     truth = truth_matrix(False, 90.0)

@@ -607,6 +607,49 @@ def test_plan_within_matching_noise_of_the_start_is_not_moved(sim):
     assert moves["default"] == 0 and moves["no thresholds"] >= 2
 
 
+def ambiguous_source(best, alternatives, ambiguity=0.97):
+    """A registration source whose match is ambiguous, with MFR-style runner-up placements."""
+
+    def register(plan, grid):
+        alts = [{"relative_score": 0.99, "matrix": np.asarray(a, float)} for a in alternatives]
+        return Registration.from_matrix(
+            best, score=0.9, ambiguity=ambiguity, method="fake", details={"alternatives": alts}
+        )
+
+    return register
+
+
+def test_ambiguous_registration_is_resolved_by_the_keyframe_scans(sim):
+    """An ambiguous registration (a near-symmetric flat on a drifted map) whose best placement is
+    the wrong one (mirrored): the keyframe scans, each relocalised on its own, explain the right
+    runner-up placement clearly better, so that one is accepted. When the placements cannot be
+    told apart (the same one twice), or with disambiguate_margin 0, it stays rejected."""
+    from frslam_graph.update_strategy import _matrix_disagreement
+
+    plan, run, m = sim
+    mirrored = rotated_about_centre(plan, m, mirror=True)
+    cases = {
+        "resolved": ({}, ambiguous_source(mirrored, [m])),
+        "cannot tell": ({}, ambiguous_source(m, [m])),
+        "off": ({"disambiguate_margin": 0.0}, ambiguous_source(mirrored, [m])),
+    }
+    for name, (extra, source) in cases.items():
+        cfg = CFG.updates.model_copy(update={**NO_REFINEMENT, **extra})
+        upd = FloorPlanUpdater(plan, cfg, register_fn=source)
+        _, res = run_slam(run, upd)
+        regs = upd.events("register")
+        if name == "resolved":
+            assert upd.registration is not None and upd.registration.method == "fake+scans"
+            assert _matrix_disagreement(plan, upd.registration.matrix, m) < 0.05
+            first = next(e for e in regs if e.accepted)
+            assert first.numbers["placement"] == 1
+            assert first.numbers["ambiguous_scan_fit"] > first.numbers["runner_up_scan_fit"] + 0.05
+            assert ate(res.trajectory, run.ground_truth)[0].rmse < 0.05
+        else:
+            assert upd.registration is None and not any(e.accepted for e in regs)
+            assert all("ambiguous" in e.reason for e in regs)
+
+
 def test_keyframe_scans_reject_the_plan_of_another_building(sim):
     """min_scan_fit: with the map checks let through (as a plan of another building can pass them
     by a small margin) and quick rechecks, the current-scan check alone lets the other building in

@@ -901,6 +901,7 @@ DEFAULTS: dict[str, Any] = {
     "min_score": 0.25,  # below this IoU x structure precision x recall: no match (another building)
     "min_recall": 0.5,  # share of the map's walls the placed plan must explain
     "ambiguous_at": 0.9,  # details["ambiguous"] when the ambiguity reaches this
+    "alternatives": 2,  # details["alternatives"]: up to this many runner-up placements
     "min_area_m2": 2.0,
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
     "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
@@ -1040,6 +1041,17 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     if rest:  # unrefined placements: their coarse key relative to the best's coarse key
         second = max(second, best.quick * max(rest) / max(best.key, 1e-9))
     ambiguity = float(min(1.0, second / best.quick)) if best.quick > 0 else 1.0
+    # the runner-up placements (each different from the best and from each other), for a caller
+    # that can tell them apart with other data (e.g. the robot's scans)
+    alternatives: list[dict[str, Any]] = []
+    placed = [r0.matrix]
+    for h in chosen[1:]:
+        if len(alternatives) >= opts["alternatives"] or h.quick <= 0.0:
+            break
+        if any(_same_placement(h.refined.matrix, m, obs) for m in placed):
+            continue
+        placed.append(h.refined.matrix)
+        alternatives.append({"relative_score": h.quick / best.quick, "matrix": obs.to_map @ h.refined.matrix})
     t_fine = time.perf_counter()
 
     matrix = obs.to_map @ r.matrix
@@ -1050,6 +1062,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         cov = rot3 @ cov @ rot3.T
     details = {
         "ambiguous": bool(ambiguity >= opts["ambiguous_at"]),
+        "alternatives": alternatives,
         "quality": float(quality),
         "precision": prec,
         "recall": rec,
