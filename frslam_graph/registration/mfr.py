@@ -27,8 +27,10 @@ Steps
    is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
    two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
    the rooms it places on the footprint; ``ambiguity`` = best re-score of a different placement
-   (or unrefined coarse key, scaled) / the best's; failure when IoU × precision × recall or the
-   recall is too low.
+   (or unrefined coarse key, scaled) / the best's; ``details["alternatives"]`` hold up to
+   ``alternatives`` runner-up placements (relative score, plan -> map matrix) for a caller that
+   can tell them apart with other data; failure when IoU × precision × recall or the recall is
+   too low.
 """
 
 from __future__ import annotations
