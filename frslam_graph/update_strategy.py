@@ -37,7 +37,13 @@ geometry, which corrects the drift accumulated along the way.
   it then moves the plan rigidly so that the first keyframe's scan fits it at the graph's anchor
   (a registration made on a drifted map is placed to fit the drift, not the start);
 - it removes priors later proven wrong (chi² of their residual after optimisation above
-  ``remove_chi2``).
+  ``remove_chi2``);
+- with ``spread_over_scans`` a relocalisation, its prior, each relinearising iteration after it
+  and the check of the priors (and each backfill) are steps run on the following scans
+  (:meth:`FRSlam.defer`), so no scan pays for all of them; what is pending is finished before a
+  registration, a scale fit or the next relocalisation;
+- an ambiguous registration before any is accepted is judged with MFR's runner-up placements on
+  the keyframe scans (``disambiguate_margin``).
 
 Every decision is an :class:`UpdateEvent` in ``updater.log`` (also mirrored into ``slam.log``);
 nothing is printed.
@@ -46,7 +52,7 @@ nothing is printed.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -903,11 +909,16 @@ class FloorPlanUpdater:
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
         self._finish_steps(slam)  # the previous relocalisation's, if any: a bounded backlog
-        self._later(slam, self._relocalise_steps(slam, keyframe, points, wxy, np.deg2rad(wth), why))
+        steps = self._relocalise_steps(
+            slam, keyframe, points, wxy, np.deg2rad(wth), why, self.accepted.relocaliser
+        )
+        self._later(slam, steps)
 
-    def _relocalise_steps(self, slam, keyframe, points, wxy: float, wth: float, why: str) -> Iterator[None]:
+    def _relocalise_steps(
+        self, slam, keyframe, points, wxy: float, wth: float, why: str, relocaliser: Relocaliser
+    ) -> Iterator[None]:
         t0 = time.perf_counter()
-        reloc = self.accepted.relocaliser.relocalise(points, keyframe.pose_map, wxy, wth)
+        reloc = relocaliser.relocalise(points, keyframe.pose_map, wxy, wth)
         self.timings["relocalise"] += time.perf_counter() - t0
         yield
         yield from self._prior_steps(slam, keyframe, reloc, why)
@@ -916,7 +927,7 @@ class FloorPlanUpdater:
 
     def _prior_steps(
         self, slam, keyframe, reloc, why: str, drift: float | None = None, backfill: bool = False
-    ):
+    ) -> Generator[None, None, bool]:
         """:meth:`_try_prior`, then the graph's relinearising iterations one per step; returns
         whether the prior was added."""
         n = slam.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
