@@ -301,7 +301,7 @@ class FRSlam:
             version = self.graph.version
             hook(self, info)
             # priors added / removed, or work deferred to the next scans: this scan's budget is spent
-            busy = busy or self.graph.version != version or bool(self._deferred)
+            busy = self.graph.version != version or bool(self._deferred)
         if self.loop_closer is not None:  # uses the keyframe's index and odometry pose only
             self.loop_closer.on_keyframe(self, info, work=not busy)
 
