@@ -210,6 +210,11 @@ class FRSlam:
         floor-plan relocalisation, its prior, each relinearising iteration after it and the
         prior check are such steps: no single scan pays for all of them.
         """
+        if not isinstance(steps, Iterator):
+            raise TypeError(
+                f"defer() takes the steps as a generator (call the generator function), got "
+                f"{type(steps).__name__}"
+            )
         self._deferred.append(steps)
 
     @property

@@ -154,3 +154,15 @@ def test_spread_steps_give_the_same_run_with_the_odometry_worker(house):
     assert par.parallel
     np.testing.assert_array_equal(par.trajectory, seq.trajectory)
     assert any(e.kind == "prior_added" for e in upd.log)
+
+
+def test_defer_takes_a_generator_not_a_function(room):
+    slam = FRSlam(ROOM_CFG)
+
+    def job():
+        yield
+
+    with pytest.raises(TypeError, match="generator"):
+        slam.defer(job)  # the function, not its generator
+    slam.defer(job())
+    assert slam.deferred_jobs == 1
