@@ -796,35 +796,22 @@ class FloorPlanUpdater:
         d = compose(start, inverse(r.pose))  # plan-consistent pose -> anchored pose
         nums = {"dx": d[0], "dy": d[1], "dtheta": d[2], "score": r.score, "ambiguity": r.ambiguity}
         moved = float(np.hypot(*(compose(d, r.pose)[:2] - r.pose[:2])))
-        if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
-            self._event(
-                slam,
-                stamp,
-                "plan_refined",
-                "start: the first scan does not fit the plan unambiguously; kept",
-                i,
-                False,
-                **nums,
-            )
+
+        def kept(why: str) -> bool:
+            self._event(slam, stamp, "plan_refined", f"start: {why}", i, False, **nums)
             return False
+
+        if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
+            return kept("the first scan does not fit the plan unambiguously; kept")
         # d's translation includes the lever arm of its rotation about the map origin: judge the
         # move by its rotation and by how far the scan's pose moves; and move only when the fit
         # at the anchor gets clearly better (a centimetre of matching noise must not flip the
         # plan back and forth at every check)
-        nums["gain"] = r.soft_score - acc.relocaliser.evaluate(slam.keyframe_scans()[0][0], start)[1]
-        if (abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg) and moved < cfg.align_min_xy) or nums[
-            "gain"
-        ] < cfg.align_min_gain:
-            self._event(
-                slam,
-                stamp,
-                "plan_refined",
-                "start: the first scan fits the plan at the anchor; kept",
-                i,
-                False,
-                **nums,
-            )
-            return False
+        gain = r.soft_score - acc.relocaliser.evaluate(slam.keyframe_scans()[0][0], start)[1]
+        nums["gain"] = gain
+        small = abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg) and moved < cfg.align_min_xy
+        if small or gain < cfg.align_min_gain:
+            return kept("the first scan fits the plan at the anchor; kept")
         reg = acc.registration
         new = type(reg).from_matrix(
             to_matrix(d) @ np.asarray(reg.matrix, float),
@@ -837,8 +824,7 @@ class FloorPlanUpdater:
             plan_map = new.apply(self.plan)
             relocaliser = Relocaliser(plan_map, self.params)
         except (FrslamError, ValueError) as exc:
-            self._event(slam, stamp, "plan_refined", f"start: moved plan unusable: {exc}", i, False, **nums)
-            return False
+            return kept(f"moved plan unusable: {exc}")
         self._event(
             slam,
             stamp,
