@@ -514,7 +514,7 @@ class FRSlam:
         """Run over every Scan of a recording (offline); LM batch at the end when ``batch``.
 
         ``parallel``: run the scan odometry in a worker process, one stage ahead of the backend
-        (:mod:`frslam_graph.odometry_worker`; same results, 1.4x the throughput on two
+        (:mod:`frslam_graph.odometry_worker`; same results, about 1.5x the throughput on two
         cores). None = whenever possible: a fresh instance (no scans yet) where
         :func:`~frslam_graph.odometry_worker.available` holds. Afterwards this instance takes no
         more scans (its own odometry did not run). ``SlamResult.latencies`` are then the sum of

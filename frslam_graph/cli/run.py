@@ -82,7 +82,7 @@ def run(
         False,
         "--sequential",
         help="Run the scan odometry in this process (default: in a second process where possible; "
-        "same results, about 1.4x as fast on two cores).",
+        "same results, about 1.5x as fast on two cores).",
     ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
@@ -121,7 +121,7 @@ def compare(
         False,
         "--sequential",
         help="Run the scan odometry in this process (default: in a second process where possible; "
-        "same results, about 1.4x as fast on two cores).",
+        "same results, about 1.5x as fast on two cores).",
     ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
