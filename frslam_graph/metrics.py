@@ -170,6 +170,39 @@ def interpolate_trajectory(
     return out, ok
 
 
+def relative_poses(
+    trajectory: np.ndarray,
+    t1: np.ndarray,
+    t2: np.ndarray,
+    tolerance: float = 0.01,
+    interpolate: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Relative poses ``x(t1)⁻¹ ⊕ x(t2)`` of ``trajectory`` (N, 4), (K, 3): x, y (m, in the frame
+    of the pose at t1) and θ(t2) - θ(t1) (rad, not wrapped); and which of the K pairs found poses.
+
+    Each stamp takes the nearest pose within ``tolerance`` seconds, or with ``interpolate``
+    (seconds) the pose interpolated between poses at most that far apart (as
+    :func:`relation_error`). Rows of pairs without poses are NaN.
+    """
+    traj = as_trajectory(trajectory)
+    if len(traj) == 0:
+        raise TrajectoryError("empty trajectory", where="trajectory")
+    traj = traj[np.argsort(traj[:, 0], kind="stable")]
+    if interpolate is not None:
+        xi, ok_i = interpolate_trajectory(traj, t1, interpolate)
+        xj, ok_j = interpolate_trajectory(traj, t2, interpolate)
+    else:
+        i, ok_i = nearest_pose(traj[:, 0], t1, tolerance)
+        j, ok_j = nearest_pose(traj[:, 0], t2, tolerance)
+        xi, xj = traj[i], traj[j]
+    ok = ok_i & ok_j
+    c, s = np.cos(xi[:, 3]), np.sin(xi[:, 3])
+    dx, dy = xj[:, 1] - xi[:, 1], xj[:, 2] - xi[:, 2]
+    out = np.column_stack((c * dx + s * dy, -s * dx + c * dy, xj[:, 3] - xi[:, 3]))
+    out[~ok] = np.nan
+    return out, ok
+
+
 def relation_error(
     trajectory: np.ndarray,
     relations: np.ndarray | str | Path,
@@ -194,25 +227,10 @@ def relation_error(
         )
     if len(traj) == 0:
         raise TrajectoryError("empty trajectory", where="trajectory")
-    order = np.argsort(traj[:, 0], kind="stable")
-    traj = traj[order]
-    if interpolate is not None:
-        xi, ok_i = interpolate_trajectory(traj, rel[:, 0], interpolate)
-        xj, ok_j = interpolate_trajectory(traj, rel[:, 1], interpolate)
-        ok = ok_i & ok_j
-        xi, xj, r = xi[ok], xj[ok], rel[ok]
-    else:
-        i, ok_i = nearest_pose(traj[:, 0], rel[:, 0], tolerance)
-        j, ok_j = nearest_pose(traj[:, 0], rel[:, 1], tolerance)
-        ok = ok_i & ok_j
-        i, j, r = i[ok], j[ok], rel[ok]
-        xi, xj = traj[i], traj[j]
-    c, s = np.cos(xi[:, 3]), np.sin(xi[:, 3])
-    dx, dy = xj[:, 1] - xi[:, 1], xj[:, 2] - xi[:, 2]
-    est_x, est_y = c * dx + s * dy, -s * dx + c * dy  # δ* = x_i⁻¹ ⊕ x_j
-    est_th = xj[:, 3] - xi[:, 3]
-    t_err = np.hypot(r[:, 2] - est_x, r[:, 3] - est_y)
-    d_th = r[:, 4] - est_th
+    est, ok = relative_poses(traj, rel[:, 0], rel[:, 1], tolerance, interpolate)
+    est, r = est[ok], rel[ok]
+    t_err = np.hypot(r[:, 2] - est[:, 0], r[:, 3] - est[:, 1])
+    d_th = r[:, 4] - est[:, 2]
     r_err = np.degrees(np.abs(np.arctan2(np.sin(d_th), np.cos(d_th))))
     n = int(ok.sum())
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from frslam_graph.errors import TrajectoryError
-from frslam_graph.metrics import ate, load_relations, load_tum, relation_error, rpe, save_tum
+from frslam_graph.metrics import ate, load_relations, load_tum, relation_error, relative_poses, rpe, save_tum
 
 
 def compose(a, b):
@@ -246,3 +246,11 @@ def test_aces_odometry_against_its_relations(shared_data):
         load_relations(carmen / "aces.relations")[:, 1] - load_relations(carmen / "aces.relations")[:, 0]
     )
     assert res.trans_errors[span > 60].mean() > res.trans_errors[span < 2].mean()
+
+
+def test_relative_poses_in_the_first_pose_frame_and_nan_without_poses():
+    traj = np.array([[0.0, 1.0, 2.0, np.pi / 2], [1.0, 1.0, 3.0, np.pi]])  # 1 m ahead, turned 90°
+    rel, ok = relative_poses(traj, np.array([0.0, 0.0]), np.array([1.0, 5.0]))
+    assert ok.tolist() == [True, False]
+    np.testing.assert_allclose(rel[0], [1.0, 0.0, np.pi / 2], atol=1e-12)
+    assert np.all(np.isnan(rel[1]))

@@ -37,7 +37,7 @@ import numpy as np
 from frslam_graph.datasets import open_recording
 
 from frslam_graph.config import FRSlamConfig
-from frslam_graph.metrics import load_relations, nearest_pose, relation_error
+from frslam_graph.metrics import load_relations, relation_error, relative_poses
 from frslam_graph.pipeline import FRSlam
 
 REPO = Path(__file__).resolve().parents[1]
@@ -109,15 +109,6 @@ def wheel_trajectory(scans: list) -> np.ndarray:
     return np.array([[s.stamp, *s.odom] for s in scans if s.odom is not None])
 
 
-def _along_heading(traj: np.ndarray, rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Along-heading displacement of ``traj`` between each relation's stamps, and which matched."""
-    i, ok_i = nearest_pose(traj[:, 0], rel[:, 0], 0.01)
-    j, ok_j = nearest_pose(traj[:, 0], rel[:, 1], 0.01)
-    a, b = traj[i], traj[j]
-    fwd = np.cos(a[:, 3]) * (b[:, 1] - a[:, 1]) + np.sin(a[:, 3]) * (b[:, 2] - a[:, 2])
-    return fwd, ok_i & ok_j
-
-
 def _on_grid(d: np.ndarray) -> tuple[float, float]:
     """Fractions of ``d`` within 5 mm of 0 and of a non-zero multiple of GRID."""
     k = np.round(d / GRID)
@@ -137,11 +128,11 @@ def reference_check(scans: list, relations: Path, estimate: np.ndarray) -> str:
     """
     rel = load_relations(relations)
     rel = rel[rel[:, 1] - rel[:, 0] < SHORT_S]
-    wheel, ok = _along_heading(wheel_trajectory(scans), rel)
-    est, ok_e = _along_heading(np.asarray(estimate), rel)
+    wheel, ok = relative_poses(wheel_trajectory(scans), rel[:, 0], rel[:, 1])
+    est, ok_e = relative_poses(estimate, rel[:, 0], rel[:, 1])
     ok &= ok_e
-    same, stepped = _on_grid(rel[ok, 2] - wheel[ok])
-    c_same, c_stepped = _on_grid(est[ok] - wheel[ok])
+    same, stepped = _on_grid(rel[ok, 2] - wheel[ok, 0])  # along the heading: x in the first pose's frame
+    c_same, c_stepped = _on_grid(est[ok, 0] - wheel[ok, 0])
     return (
         f"Reference check ({int(ok.sum())} relations < {SHORT_S:g} s), along the heading: "
         f"{100 * same:.0f} % of the reference relations equal the logged wheel odometry within "
