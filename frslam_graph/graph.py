@@ -25,6 +25,7 @@ from frslam_graph.factors.floorplan_prior import (
     KernelName,
     PriorKind,
     floorplan_prior,
+    m_estimator,
     prior_chi2,
     prior_covariance,
     robust_noise,
@@ -382,6 +383,34 @@ class PoseGraph:
         weight = float(noise.robust().weight(np.sqrt(chi2))) if handle.kernel != "none" else 1.0
         return PriorResidual(handle.id, e, chi2, weight, chi2 <= _CHI2_99[dim])
 
+    def prior_residuals(self, handles: list[PriorHandle]) -> list[PriorResidual]:
+        """:meth:`prior_residual` of many priors at once (vectorised over the SE(2) logmap and
+        the Mahalanobis norms; one robust-kernel object per kernel)."""
+        if not handles:
+            return []
+        est = self.estimates()
+        kf = np.array([h.keyframe for h in handles], dtype=np.intp)
+        if kf.min() < 0 or kf.max() >= len(est):
+            raise FrslamError(f"a prior's keyframe is not in the graph (has {self._n})", where="handle")
+        meas = np.array([h.pose for h in handles], dtype=np.float64).reshape(-1, 3)
+        full = _logmap_between(meas, est[kf])  # (n, 3), tangent at the measurement
+        kernels: dict[str, object] = {}
+        out = []
+        for h, e3, x in zip(handles, full, est[kf], strict=True):
+            if h.kind == "translation":
+                e = x[:2] - h.pose[:2]
+            elif h.kind == "rotation":
+                e = e3[2:]
+            else:
+                e = e3
+            chi2 = float(e @ np.linalg.solve(h.covariance, e))
+            if h.kernel not in kernels:
+                kernels[h.kernel] = m_estimator(h.kernel, self.config.prior_kernel_param)
+            est_k = kernels[h.kernel]
+            weight = float(est_k.weight(np.sqrt(chi2))) if est_k is not None else 1.0
+            out.append(PriorResidual(h.id, e, chi2, weight, chi2 <= _CHI2_99[len(e)]))
+        return out
+
     def map_to_odom(self, keyframe: int, odom_pose: np.ndarray) -> np.ndarray:
         """T_map_odom = T_map_base(keyframe) · T_odom_base⁻¹, as (x, y, theta)."""
         return compose(self.estimate(keyframe), inverse(np.asarray(odom_pose, float)))
@@ -468,6 +497,22 @@ def _values_array(values: gtsam.Values, n: int) -> np.ndarray:
     if len(out) != n:  # pragma: no cover - only keyframe Pose2 variables live in the graph
         raise FrslamError(f"graph holds {len(out)} poses, expected {n}", where="values")
     return out
+
+
+def _logmap_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """SE(2) ``Logmap(a⁻¹ · b)`` for (n, 3) poses: (v_x, v_y, θ) as ``gtsam.Pose2.Logmap``."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    tx, ty = c * dx + s * dy, -s * dx + c * dy
+    th = wrap(b[:, 2] - a[:, 2])
+    small = np.abs(th) < 1e-10
+    t = np.where(small, 1.0, th)
+    half = 0.5 * t
+    # V⁻¹ = (θ/2) [[cot(θ/2), 1], [-1, cot(θ/2)]]
+    cot = np.where(small, 0.0, half / np.tan(np.where(small, 1.0, half)))
+    vx = np.where(small, tx, cot * tx + half * ty)
+    vy = np.where(small, ty, -half * tx + cot * ty)
+    return np.column_stack((vx, vy, th))
 
 
 def _full3(handle: PriorHandle) -> np.ndarray:

@@ -261,14 +261,7 @@ class Relocaliser:
         best = self._refine(pts, cands[0])
         best_pose, best_soft = best
         # competitors: separated (greedy non-maximum suppression) candidates, refined
-        comp = []
-        chosen = [cands[0]]
-        for c in cands[1:]:
-            if len(comp) >= p.competitors:
-                break
-            if all(self._separated(c, q) for q in chosen):
-                chosen.append(c)
-                comp.append(self._refine(pts, c))
+        comp = [self._refine(pts, cands[k]) for k in self._spread(np.asarray(cands), p.competitors)]
         comp.sort(key=lambda t: -t[1])
         if comp and comp[0][1] > best_soft + 0.01 and self._separated(comp[0][0], best_pose):
             (best_pose, best_soft), comp[0] = comp[0], (best_pose, best_soft)
@@ -332,6 +325,26 @@ class Relocaliser:
         return bool(
             np.hypot(d[0], d[1]) > self.params.separation_xy or abs(d[2]) > self.params.separation_theta
         )
+
+    def _spread(self, poses: np.ndarray, n: int) -> list[int]:
+        """Greedy non-maximum suppression: indices of up to ``n`` of ``poses[1:]`` (in order),
+        each separated from ``poses[0]`` and from those taken before it."""
+        p = self.params
+
+        def separated_from(k: int) -> np.ndarray:
+            d = poses - poses[k]
+            dth = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+            return (np.hypot(d[:, 0], d[:, 1]) > p.separation_xy) | (dth > p.separation_theta)
+
+        taken: list[int] = []
+        ok = separated_from(0)
+        while len(taken) < n:
+            nxt = np.flatnonzero(ok)
+            if not len(nxt):
+                break
+            taken.append(int(nxt[0]))
+            ok &= separated_from(taken[-1])
+        return taken
 
     @staticmethod
     def _transform(pts: np.ndarray, pose: np.ndarray) -> np.ndarray:

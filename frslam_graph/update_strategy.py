@@ -73,6 +73,37 @@ from frslam_graph.relocalisation import (
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 
 
+class _CoverageCells:
+    """Set of integer cells (kx, ky): sparse 64 × 64 boolean tiles (any extent), with a count."""
+
+    _TILE = 64
+
+    def __init__(self) -> None:
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.count = 0
+
+    def add(self, kx: np.ndarray, ky: np.ndarray) -> None:
+        if not len(kx):
+            return
+        t = self._TILE
+        tx, ty = kx // t, ky // t
+        x0, y0 = int(tx.min()), int(ty.min())
+        ny = int(ty.max()) - y0 + 1
+        local = (tx - x0) * ny + (ty - y0)  # tile index in the batch's bounding box of tiles
+        order = np.argsort(local, kind="stable")
+        ids, starts = np.unique(local[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        for lid, a, b in zip(ids.tolist(), starts.tolist(), ends.tolist(), strict=True):
+            kxt, kyt = x0 + lid // ny, y0 + lid % ny  # a handful of tiles per scan
+            tile = self._tiles.get((kxt, kyt))
+            if tile is None:
+                tile = self._tiles[(kxt, kyt)] = np.zeros((t, t), dtype=bool)
+            sel = order[a:b]
+            before = int(np.count_nonzero(tile))
+            tile[ky[sel] - kyt * t, kx[sel] - kxt * t] = True
+            self.count += int(np.count_nonzero(tile)) - before
+
+
 @dataclass(frozen=True)
 class UpdateEvent:
     """One decision of the update strategy.
@@ -132,7 +163,7 @@ class FloorPlanUpdater:
             sigma_floor_xy=cfg.reloc_sigma_floor_xy,
             sigma_floor_theta=np.deg2rad(cfg.reloc_sigma_floor_theta_deg),
         )
-        self._cover = np.zeros(0, dtype=np.int64)
+        self._cover = _CoverageCells()
         self._dist = 0.0  # metres travelled (odometry)
         self._last_odom: np.ndarray | None = None
         self._area_at_attempt = 0.0
@@ -174,7 +205,7 @@ class FloorPlanUpdater:
     @property
     def mapped_area(self) -> float:
         """Area (m²) of the coverage cells seen so far."""
-        return float(len(self._cover)) * _COVER_CELL**2
+        return float(self._cover.count) * _COVER_CELL**2
 
     def notify_obstructed(self) -> None:
         """The caller's motion is obstructed (paper Alg. 3: d <= 0): register and relocalise at
@@ -313,8 +344,7 @@ class FloorPlanUpdater:
         wy = s * samples[:, 0] + c * samples[:, 1] + pose[1]
         kx = np.floor(wx / _COVER_CELL).astype(np.int64)
         ky = np.floor(wy / _COVER_CELL).astype(np.int64)
-        keys = np.unique(kx * 2_000_003 + ky)
-        self._cover = np.union1d(self._cover, keys)
+        self._cover.add(kx, ky)
 
     def _check_obstruction(self, slam, keyframe) -> bool:
         cfg = self.config
@@ -856,10 +886,15 @@ class FloorPlanUpdater:
         """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""
         handles = self._remove_priors_of(slam, previous, why or f"registration {previous.id} replaced")
         scans = slam.keyframe_scans()[0]
+        added = False
         for h in handles:
             kf = slam.keyframe(h.keyframe)
             reloc = self.accepted.relocaliser.relocalise(scans[h.keyframe], kf.pose_map)
-            self._try_prior(slam, kf, reloc, "re-anchored on the new registration", drift=self._dist)
+            added |= self._try_prior(
+                slam, kf, reloc, "re-anchored on the new registration", drift=self._dist, settle=False
+            )
+        if added:  # one settle for all of them, not up to 10 iterations per prior
+            slam.graph.settle(10)
 
     # ------------------------------------------------------------------ relocalisation
     @staticmethod
@@ -1016,10 +1051,8 @@ class FloorPlanUpdater:
         self._checks += 1
         if self._checks % 10 and len(handles) > 30:  # every time the recent ones, now and then all
             handles = handles[-30:]
-        slam.graph.estimates()  # fills the estimate cache for the residuals
         bad = []
-        for h in handles:
-            res = slam.graph.prior_residual(h)
+        for h, res in zip(handles, slam.graph.prior_residuals(handles), strict=True):
             e = np.asarray(res.error, float)
             far = (len(e) >= 2 and float(np.hypot(e[0], e[1])) > cfg.remove_min_xy) or (
                 len(e) != 2 and abs(float(e[-1])) > np.deg2rad(cfg.remove_min_theta_deg)

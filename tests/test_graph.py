@@ -67,6 +67,26 @@ def test_priors_correct_drift_and_are_consistent():
     assert all(g.prior_residual(h).weight > 0.5 for h in handles)
 
 
+@pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure", "none"])
+def test_prior_residuals_batch_equals_one_by_one(kernel):
+    g = chain(n=120, kernel=kernel, drift=np.deg2rad(0.05))
+    handles = [
+        g.add_prior(30, [9.0, 0.1, 0.02], PRIOR_COV),
+        g.add_prior(60, [18.0, -0.4, 3.1], PRIOR_COV),  # near +pi: the logmap wraps
+        g.add_prior(90, [27.2, 0.3, -0.5], PRIOR_COV, kind="translation"),
+        g.add_prior(119, [35.0, 2.0, 0.0], PRIOR_COV, kind="rotation"),
+        g.add_prior(100, [45.0, 20.0, 1.0], PRIOR_COV),  # gross outlier: tiny weight
+    ]
+    batch = g.prior_residuals(handles)
+    for h, b in zip(handles, batch, strict=True):
+        one = g.prior_residual(h)
+        assert b.handle_id == one.handle_id and b.consistent == one.consistent
+        np.testing.assert_allclose(b.error, one.error, atol=1e-9)
+        assert b.chi2 == pytest.approx(one.chi2, rel=1e-9)
+        assert b.weight == pytest.approx(one.weight, rel=1e-9, abs=1e-15)
+    assert g.prior_residuals([]) == []
+
+
 def test_remove_prior_restores_the_estimate():
     g = chain(kernel="none")  # plain Gaussian: an outlier really bends the graph
     add_good_priors(g)

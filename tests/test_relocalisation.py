@@ -219,3 +219,21 @@ def test_plan_must_be_metric_and_large_plans_get_coarser():
     f = PlanField.from_plan(big, resolution=0.025, max_pixels=1_000_000)
     assert f.frame.height * f.frame.width <= 1_100_000
     assert f.frame.resolution > 0.1
+
+
+def test_competitors_are_greedy_separated_candidates():
+    rel = Relocaliser(two_rooms()[0])  # separation 0.3 m or 8 deg
+    poses = np.array(
+        [
+            [0.0, 0.0, 0.0],  # the winner
+            [0.1, 0.0, 0.0],  # too close to the winner
+            [1.0, 0.0, 0.0],  # taken
+            [1.1, 0.1, 0.0],  # too close to the one taken
+            [0.0, 0.0, np.deg2rad(10.0)],  # turned: taken
+            [0.0, 0.0, 2 * np.pi - 0.01],  # the winner's heading, wrapped: too close
+            [-2.0, 0.0, 0.0],  # would be the third
+        ]
+    )
+    assert rel._spread(poses, 3) == [2, 4, 6]
+    assert rel._spread(poses, 1) == [2]
+    assert rel._spread(poses[:2], 3) == []

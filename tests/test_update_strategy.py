@@ -669,3 +669,21 @@ def test_keyframe_scans_reject_the_plan_of_another_building(sim):
             assert rejected and all(e.numbers["scan_fit"] < 0.85 for e in rejected)
         else:
             assert any(e.accepted for e in reg)
+
+
+def test_coverage_cells_count_each_cell_once_at_any_extent():
+    from frslam_graph.update_strategy import _CoverageCells
+
+    rng = np.random.default_rng(3)
+    cells = _CoverageCells()
+    seen: set[tuple[int, int]] = set()
+    for _ in range(40):  # overlapping batches with repeats, negative cells, tile borders
+        kx, ky = rng.integers(-150, 150, 400), rng.integers(-70, 90, 400)
+        cells.add(kx, ky)
+        seen.update(zip(kx.tolist(), ky.tolist(), strict=True))
+        assert cells.count == len(seen)
+    far = np.array([10**9, -(10**9), 10**9])  # an odometry jump far away: no huge raster
+    cells.add(far, far[::-1])
+    assert cells.count == len(seen) + 2
+    cells.add(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    assert cells.count == len(seen) + 2
