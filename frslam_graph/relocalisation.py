@@ -113,10 +113,11 @@ class PlanField:
         fv = (v - j0)[:, None]
         ok = (i0 >= 0) & (i0 < w - 1) & (j0 >= 0) & (j0 < h - 1)
         base = np.where(ok, j0 * w + i0, 0).astype(np.intp)
-        idx = base[:, None] + np.array([0, 1, w, w + 1], dtype=np.intp)  # (N, 4) corners
-        wts = np.concatenate(((1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv), axis=1)
-        vals = self.data.reshape(-1, 3).take(idx, axis=0)  # (N, 4, 3)
-        out = np.einsum("nk,nkc->nc", wts, vals)
+        flat = self.data.reshape(-1, 3)
+        a, b = flat[base], flat[base + 1]  # the four corners, (N, 3) each
+        c, d = flat[base + w], flat[base + w + 1]
+        out = a + fu * (b - a)
+        out += fv * ((c + fu * (d - c)) - out)
         out[~ok] = (outside, 0.0, 0.0)
         return out
 
@@ -429,11 +430,10 @@ class Relocaliser:
         cc = np.clip(col[:, None, :] + k[None, :, None] + 1, 0, w + 1)  # (T, X, N)
         rr = np.clip(row[:, None, :] + k[None, :, None] + 1, 0, h + 1)  # (T, Y, N)
         flat = rr[:, None, :, :] * (w + 2) + cc[:, :, None, :]  # (T, X, Y, N)
-        d = self._abs_padded(tau).take(flat)
-        cost = np.minimum(d, tau) ** 2
-        lb = np.minimum(np.maximum(d - slack, 0.0), tau) ** 2
+        d = self._abs_padded(tau).take(flat)  # already truncated at tau
+        lb = np.maximum(d - slack, np.float32(0.0))
         n = pts.shape[0] * tau * tau
-        return cost.sum(-1) / n, lb.sum(-1) / n
+        return np.einsum("...n,...n->...", d, d) / n, np.einsum("...n,...n->...", lb, lb) / n
 
     def _abs_padded(self, tau: float) -> np.ndarray:
         """Flat |sdf| (float32) with a one-pixel border of ``tau`` (cached)."""
@@ -452,7 +452,7 @@ class Relocaliser:
         row = np.floor((s * pts[:, 0] + c * pts[:, 1] + poses[:, 1:2] - oy) / res).astype(np.intp)
         flat = np.clip(row + 1, 0, h + 1) * (w + 2) + np.clip(col + 1, 0, w + 1)
         d = self._abs_padded(tau).take(flat)
-        return (d * d).sum(-1) / (pts.shape[0] * tau * tau)
+        return np.einsum("pn,pn->p", d, d) / (pts.shape[0] * tau * tau)
 
     def _residuals(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (N,) and Jacobians (N, 3) wrt (x, y, θ) of the field at the points."""
