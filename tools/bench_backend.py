@@ -478,6 +478,12 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
             lines.append(
                 f"| {name} | " + " | ".join(f"{fn(agg[k]):.3f}" if agg[k] else "—" for k in MODES) + " |"
             )
+        xrt = {m: [r["xrt"] for r in rr if r["mode"] == m] for m in MODES}
+        lines.append(
+            "| median x real time (one core, sequential) | "
+            + " | ".join(f"{statistics.median(xrt[k]):.1f}" if xrt[k] else "—" for k in MODES)
+            + " |"
+        )
         lines += [
             f"| median none / plan | | {statistics.median(ratios):.2f}x | | |" if ratios else "",
             "",
