@@ -26,9 +26,7 @@ from frslam_graph.factors.floorplan_prior import (
     PriorKind,
     floorplan_prior,
     m_estimator,
-    prior_chi2,
     prior_covariance,
-    robust_noise,
 )
 from frslam_graph.motion_model import compose, inverse, wrap
 
@@ -376,16 +374,12 @@ class PoseGraph:
 
     def prior_residual(self, handle: PriorHandle) -> PriorResidual:
         """Residual of a prior at the current estimate: chi2, robust weight, consistency."""
-        est = self.estimate(handle.keyframe)
-        e, chi2 = prior_chi2(est, handle.pose, _full3(handle), handle.kind)
-        dim = len(e)
-        noise = robust_noise(handle.covariance, handle.kernel, self.config.prior_kernel_param)
-        weight = float(noise.robust().weight(np.sqrt(chi2))) if handle.kernel != "none" else 1.0
-        return PriorResidual(handle.id, e, chi2, weight, chi2 <= _CHI2_99[dim])
+        return self.prior_residuals([handle])[0]
 
     def prior_residuals(self, handles: list[PriorHandle]) -> list[PriorResidual]:
-        """:meth:`prior_residual` of many priors at once (vectorised over the SE(2) logmap and
-        the Mahalanobis norms; one robust-kernel object per kernel)."""
+        """:meth:`prior_residual` of many priors at once: the error (tangent at the measurement,
+        as ``factors.floorplan_prior.prior_chi2``; vectorised SE(2) logmap), its Gaussian chi2
+        and the robust kernel's weight (one M-estimator object per kernel)."""
         if not handles:
             return []
         est = self.estimates()
@@ -513,18 +507,6 @@ def _logmap_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     vx = np.where(small, tx, cot * tx + half * ty)
     vy = np.where(small, ty, -half * tx + cot * ty)
     return np.column_stack((vx, vy, th))
-
-
-def _full3(handle: PriorHandle) -> np.ndarray:
-    """The handle's covariance embedded in 3×3 for prior_chi2 (which slices per kind)."""
-    c = np.eye(3)
-    if handle.kind == "full":
-        return handle.covariance
-    if handle.kind == "translation":
-        c[:2, :2] = handle.covariance
-    else:
-        c[2:, 2:] = handle.covariance
-    return c
 
 
 __all__ = ["PoseGraph", "PriorHandle", "PriorResidual", "key", "regularise_covariance"]

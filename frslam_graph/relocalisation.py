@@ -322,29 +322,25 @@ class Relocaliser:
         )
 
     def _separated(self, a: np.ndarray, b: np.ndarray) -> bool:
-        d = _pose_diff(a, b)
-        return bool(
-            np.hypot(d[0], d[1]) > self.params.separation_xy or abs(d[2]) > self.params.separation_theta
-        )
+        return bool(self._separated_from(np.asarray(a, float).reshape(1, 3), b)[0])
+
+    def _separated_from(self, poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """Which of ``poses`` (N, 3) are farther than the separation distances from ``ref``."""
+        d = poses - np.asarray(ref, float)
+        dth = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+        return (np.hypot(d[:, 0], d[:, 1]) > self.params.separation_xy) | (dth > self.params.separation_theta)
 
     def _spread(self, poses: np.ndarray, n: int) -> list[int]:
         """Greedy non-maximum suppression: indices of up to ``n`` of ``poses[1:]`` (in order),
         each separated from ``poses[0]`` and from those taken before it."""
-        p = self.params
-
-        def separated_from(k: int) -> np.ndarray:
-            d = poses - poses[k]
-            dth = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
-            return (np.hypot(d[:, 0], d[:, 1]) > p.separation_xy) | (dth > p.separation_theta)
-
         taken: list[int] = []
-        ok = separated_from(0)
+        ok = self._separated_from(poses, poses[0])
         while len(taken) < n:
             nxt = np.flatnonzero(ok)
             if not len(nxt):
                 break
             taken.append(int(nxt[0]))
-            ok &= separated_from(taken[-1])
+            ok &= self._separated_from(poses, poses[taken[-1]])
         return taken
 
     @staticmethod

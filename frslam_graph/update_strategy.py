@@ -893,8 +893,8 @@ class FloorPlanUpdater:
             added |= self._try_prior(
                 slam, kf, reloc, "re-anchored on the new registration", drift=self._dist, settle=False
             )
-        if added:  # one settle for all of them, not up to 10 iterations per prior
-            slam.graph.settle(10)
+        if added:  # one settle for all of them, not one per prior
+            slam.graph.settle()
 
     # ------------------------------------------------------------------ relocalisation
     @staticmethod

@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 from frslam_graph.factors.between import between_factor, regularise_covariance
-from frslam_graph.factors.floorplan_prior import floorplan_prior, m_estimator
+from frslam_graph.factors.floorplan_prior import floorplan_prior, m_estimator, prior_chi2, robust_noise
 
 from frslam_graph.config import FRSlamConfig, GraphConfig
 from frslam_graph.errors import ConfigError, FrslamError
@@ -78,12 +78,21 @@ def test_prior_residuals_batch_equals_one_by_one(kernel):
         g.add_prior(100, [45.0, 20.0, 1.0], PRIOR_COV),  # gross outlier: tiny weight
     ]
     batch = g.prior_residuals(handles)
+    est = g.estimates()
     for h, b in zip(handles, batch, strict=True):
+        # the reference: gtsam's Pose2 logmap (prior_chi2) and robust noise model, one prior at a time
+        cov3 = np.eye(3)
+        sl = {"full": slice(0, 3), "translation": slice(0, 2), "rotation": slice(2, 3)}[h.kind]
+        cov3[sl, sl] = h.covariance
+        e, chi2 = prior_chi2(est[h.keyframe], h.pose, cov3, h.kind)
+        noise = robust_noise(h.covariance, kernel, g.config.prior_kernel_param)
+        weight = float(noise.robust().weight(np.sqrt(chi2))) if kernel != "none" else 1.0
         one = g.prior_residual(h)
-        assert b.handle_id == one.handle_id and b.consistent == one.consistent
-        np.testing.assert_allclose(b.error, one.error, atol=1e-9)
-        assert b.chi2 == pytest.approx(one.chi2, rel=1e-9)
-        assert b.weight == pytest.approx(one.weight, rel=1e-9, abs=1e-15)
+        assert b.handle_id == one.handle_id == h.id and b.consistent == one.consistent
+        np.testing.assert_allclose(b.error, e, atol=1e-9)
+        np.testing.assert_allclose(one.error, e, atol=1e-9)
+        assert b.chi2 == pytest.approx(chi2, rel=1e-9)
+        assert b.weight == pytest.approx(weight, rel=1e-9, abs=1e-15)
     assert g.prior_residuals([]) == []
 
 
