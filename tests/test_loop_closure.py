@@ -674,3 +674,35 @@ def test_an_idle_closer_plans_an_extra_candidate():
     closer._plan(slam, 61)
     assert len(closer._jobs) == 3 + 2  # three still queued
     assert all(j.query == 61 for j in list(closer._jobs)[3:])
+
+
+def test_submap_is_each_keyframe_scan_moved_into_the_centre_frame():
+    # _submap transforms all keyframes at once: it must equal moving each keyframe's in-range
+    # points by its own relative pose, keyframe by keyframe, in order (and skip far/empty ones)
+    rng = np.random.default_rng(3)
+    n = 8
+    est = np.column_stack((rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-3, 3, n)))
+    pts = [rng.uniform(-20, 20, (int(m), 2)).astype(np.float32) for m in rng.integers(0, 60, n)]
+    pts[2] = np.zeros((0, 2), np.float32)
+    origins = [rng.uniform(-0.2, 0.2, 2) for _ in range(n)]
+
+    class _Slam:
+        def keyframe_scans(self):
+            return list(pts), list(origins)
+
+    closer = LoopCloser(FRSlamConfig().loop_closure)
+    closer._travel = [0.0, 1.0, 2.0, 3.0, 4.0, 9.0, 6.0, 7.0]  # keyframe 5 is beyond +-3 m of 4
+    got, scans = closer._submap(_Slam(), est, 4, 0, n - 1, 3.0)
+    want, kept = [], []
+    for k in range(n):
+        if abs(closer._travel[k] - closer._travel[4]) > 3.0 or not len(pts[k]):
+            continue
+        p = pts[k][np.hypot(*(pts[k] - origins[k]).T) <= closer.config.max_point_range]
+        rel = between(est[4], est[k])
+        want.append(transform_points(rel, p))
+        kept.append((transform_points(rel, origins[k][None])[0], want[-1]))
+    assert len(scans) == len(kept) == 5  # keyframes 1, 3, 4, 6, 7 (2 empty; 0 and 5 too far)
+    np.testing.assert_array_equal(got, np.vstack(want))
+    for (o, e), (o2, e2) in zip(scans, kept, strict=True):
+        np.testing.assert_array_equal(o, o2)
+        np.testing.assert_array_equal(e, e2)
