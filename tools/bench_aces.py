@@ -23,7 +23,7 @@ The reference was made on a 5 cm grid seeded with the odometry, so its short rel
 to ±2.5 cm of quantisation, and the raw wheel odometry scores 0.037 m on them, about what
 Cartographer reports over all relations: the published 0.0375 m is at the reference's own noise.
 
-    /work/venv/bin/python tools/bench_aces.py [--logs aces intel fr079] [--no-baseline]
+    .venv/bin/python tools/bench_aces.py [--logs aces intel fr079] [--no-baseline]
         [--budget-ms 8] [--synchronous]
 """
 

@@ -32,8 +32,8 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
 
 Issue-5 targets are printed under each table.
 
-    /work/venv/bin/python tools/bench_backend.py --quick --out /tmp/bench5
-    /work/venv/bin/python tools/bench_backend.py --houses 20 --workers 2 --aces --out /tmp/bench5
+    .venv/bin/python tools/bench_backend.py --quick --out /tmp/bench5
+    .venv/bin/python tools/bench_backend.py --houses 20 --workers 2 --aces --out /tmp/bench5
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ for CARMEN logs, decompressing and splitting every line (the floor of any Python
 for the demo bag, rosbags' own indexed reader deserialising the same messages from a copy whose
 index records were repaired (rosbags cannot read the original).
 
-    /work/venv/bin/python tools/bench_readers.py [--runs 3] [--data ../shared/data]
+    .venv/bin/python tools/bench_readers.py [--runs 3] [--data ../shared/data]
 """
 
 from __future__ import annotations
