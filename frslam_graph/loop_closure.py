@@ -797,13 +797,20 @@ class LoopCloser:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
 
-    def on_scan(self, slam: FRSlam) -> list[LoopClosure]:
-        """A scan that is not a keyframe: continue the queued work within the per-scan budget."""
+    def on_scan(self, slam: FRSlam, budget_ms: float | None = None) -> list[LoopClosure]:
+        """A scan that is not a keyframe: continue the queued work within the per-scan budget.
+        ``budget_ms``: what is left of it after other work on this scan (a deferred step); then
+        only steps that fit run (none may)."""
         if self.idle:
             self.steps_last_call, self.cost_last_call = 0, 0.0
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
+            if budget_ms is not None:
+                wall = self.config.wall_budget_ms
+                if wall is not None:
+                    wall *= min(budget_ms / self.config.budget_ms, 1.0)
+                return self._work(slam, min(budget_ms, self.config.budget_ms), wall, first_free=False)
             return self._work(slam, self.config.budget_ms, self.config.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0
@@ -825,19 +832,27 @@ class LoopCloser:
         """No candidate waiting or being matched."""
         return self._task is None and not self._jobs
 
-    def _work(self, slam: FRSlam, budget: float | None, wall_budget_ms: float | None) -> list[LoopClosure]:
+    def _work(
+        self,
+        slam: FRSlam,
+        budget: float | None,
+        wall_budget_ms: float | None,
+        first_free: bool = True,
+    ) -> list[LoopClosure]:
         """Run steps of the queued jobs while their estimated costs (cost model, ms) fit in
         ``budget`` (None: run everything) and, with ``wall_budget_ms``, while the time spent in
-        this call (``clock``) is below it. The first step always runs, so the queue advances
-        even when a single step is estimated above the budget."""
+        this call (``clock``) is below it. With ``first_free`` the first step always runs, so
+        the queue advances even when a single step is estimated above the budget (the scan's
+        own budget); without it (the rest of a budget other work used) every step must fit."""
         added: list[LoopClosure] = []
         start = self.clock()
         spent, steps = 0.0, 0
         while not self.idle:
             cost = self._next_cost
-            if steps and budget is not None and spent + cost > budget:
+            bounded = steps or not first_free
+            if bounded and budget is not None and spent + cost > budget:
                 break
-            if steps and wall_budget_ms is not None and 1e3 * (self.clock() - start) >= wall_budget_ms:
+            if bounded and wall_budget_ms is not None and 1e3 * (self.clock() - start) >= wall_budget_ms:
                 break
             if self._task is None:
                 self._task = self._job(slam, self._jobs.popleft())
@@ -1010,9 +1025,7 @@ class LoopCloser:
         rels = [between(est[centre], est[k]) for k in ks]
         sizes = [len(p) for p in local]
         # one transform for all keyframes: per point the same scalar products as transform_points
-        rep = np.repeat(
-            np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0
-        )
+        rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
         p = np.concatenate(local)
         x, y, c, s = rep.T
         pts = np.column_stack((x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]))

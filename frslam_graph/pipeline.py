@@ -124,6 +124,8 @@ class FRSlam:
         self._odometry_elsewhere = False  # process() ran the odometry in a worker process
         self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
         self._deferred: deque[Iterator[Any]] = deque()  # see defer()
+        self._deferred_costed: dict[int, bool] = {}  # id(job) -> its last yield gave a cost
+        self._steps_run = 0  # deferred steps run so far (a hook that ran some made its scan busy)
         # loop closure (frslam_graph.loop_closure), run on each keyframe after the update strategy
         from frslam_graph.loop_closure import LoopCloser
 
@@ -203,12 +205,19 @@ class FRSlam:
         on the following scans instead of this one.
 
         One step runs per scan that is not a keyframe (keyframe scans have the graph update and
-        the hooks; a scan with a step does no loop-closure work), jobs in the order they were
-        deferred; :meth:`run_deferred` runs all that are pending (a hook calls it before work
-        that needs them done; :meth:`finish` and :meth:`process` call it). The schedule depends
-        only on the sequence of scans, so results are deterministic whatever the timing. A
-        floor-plan relocalisation, its prior, each relinearising iteration after it and the
-        prior check are such steps: no single scan pays for all of them.
+        the hooks), jobs in the order they were deferred; :meth:`run_deferred` runs all that are
+        pending (a hook calls it before work that needs them done; :meth:`finish` and
+        :meth:`process` call it). The schedule depends only on the sequence of scans, so results
+        are deterministic whatever the timing. A floor-plan relocalisation, its prior, each
+        relinearising iteration after it and the prior check are such steps: no single scan pays
+        for all of them.
+
+        Sharing the scan with loop closure: each ``yield`` may give the estimated cost (ms, a
+        cost model from the sizes involved, never a clock) of the step that ends there; the loop
+        closer then gets the rest of ``loop_closure.budget_ms`` on that scan (only steps that
+        fit). A step that yields None, or a job's last part when its last yield was None, takes
+        the scan's whole budget. A job whose last yield was a number ends with light glue: the
+        next job's step runs on the same scan.
         """
         if not isinstance(steps, Iterator):
             raise TypeError(
@@ -227,15 +236,25 @@ class FRSlam:
         while self._deferred:
             self._step_deferred()
 
-    def _step_deferred(self) -> bool:
-        """Run the next deferred step; True when there was one."""
-        if not self._deferred:
-            return False
-        try:
-            next(self._deferred[0])
-        except StopIteration:
-            self._deferred.popleft()
-        return True
+    def _step_deferred(self) -> float | None:
+        """Run the next deferred step; its estimated cost (ms; inf when unknown), None when no
+        job was pending (see :meth:`defer`)."""
+        while self._deferred:
+            job = self._deferred[0]
+            self._steps_run += 1
+            try:
+                cost = next(job)
+            except StopIteration:
+                self._deferred.popleft()
+                if self._deferred_costed.pop(id(job), False):
+                    continue  # only glue after its last costed step: the next job's step runs
+                return float("inf")
+            if isinstance(cost, int | float) and not isinstance(cost, bool):
+                self._deferred_costed[id(job)] = True
+                return max(float(cost), 0.0)
+            self._deferred_costed.pop(id(job), None)
+            return float("inf")
+        return None
 
     def _angles(self, angle_min: float, inc: float, n: int) -> tuple[np.ndarray, np.ndarray]:
         """cos and sin of the beam angles (cached: the layout rarely changes)."""
@@ -287,9 +306,14 @@ class FRSlam:
         self._scan_rel.append(res.relative)
         self._scan_odom.append(res.pose)
         if not res.is_keyframe:
-            # a hook's deferred work, one step per scan; else queued loop-closure work
-            if not self._step_deferred() and self.loop_closer is not None:
-                self.loop_closer.on_scan(self)
+            # a hook's deferred work, one step per scan; queued loop-closure work in the rest of
+            # the scan's budget
+            spent = self._step_deferred()
+            if self.loop_closer is not None:
+                if spent is None:
+                    self.loop_closer.on_scan(self)
+                elif spent < self.config.loop_closure.budget_ms:
+                    self.loop_closer.on_scan(self, self.config.loop_closure.budget_ms - spent)
             return
         if res.keyframe == 0:
             self.graph.add_first(res.pose)  # map == odom at start
@@ -303,10 +327,12 @@ class FRSlam:
         busy = False
         if self.update_strategy is not None:
             hook = getattr(self.update_strategy, "on_keyframe", self.update_strategy)
-            version = self.graph.version
+            version, steps = self.graph.version, self._steps_run
             hook(self, info)
-            # priors added / removed, or work deferred to the next scans: this scan's budget is spent
-            busy = self.graph.version != version or bool(self._deferred)
+            # priors added / removed, or deferred steps run now (the hook needed them done): this
+            # scan's budget is spent. Work merely deferred to the next scans costs nothing here
+            # (counting it starved loop closure behind a floor plan: queue lag ~120 keyframes).
+            busy = self.graph.version != version or self._steps_run != steps
         if self.loop_closer is not None:  # uses the keyframe's index and odometry pose only
             self.loop_closer.on_keyframe(self, info, work=not busy)
 

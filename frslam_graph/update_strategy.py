@@ -71,6 +71,15 @@ from frslam_graph.relocalisation import (
 )
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
+# Cost model of the deferred steps (ms on one core; sizes, never a clock, so the schedule stays
+# deterministic; right within about a factor of two): each step yields its estimate and the loop
+# closer gets the rest of the scan's budget (FRSlam.defer). Measured on regime-A houses
+# (tools/bench_backend.py): relocalisation median 5.8 / p90 8 ms, the gated prior 1.9 / 2.7,
+# a relinearising iteration 1.4 / 4.9 (~600 keyframes), the prior check 1.0 / 2.4.
+_MS_RELOCALISE = 7.0
+_MS_PRIOR = 2.5
+_MS_PER_KEYFRAME_SETTLE = 0.004
+_MS_CHECK_PRIORS = 2.0
 
 
 class _CoverageCells:
@@ -476,10 +485,12 @@ class FloorPlanUpdater:
         t0 = time.perf_counter()
         reloc = self.accepted.relocaliser.relocalise(slam.keyframe_scans()[0][k], kf.pose_map)
         self.timings["relocalise"] += time.perf_counter() - t0
-        yield
+        yield _MS_RELOCALISE
         drift = max(self._backfill_anchor - self._kf_dist[k], 0.0)
-        if (yield from self._prior_steps(slam, kf, reloc, "backfill", drift=drift, backfill=True)):
+        added, cost = yield from self._prior_steps(slam, kf, reloc, "backfill", drift=drift, backfill=True)
+        if added:
             self._backfill_anchor = self._kf_dist[k]
+        yield cost
 
     def _local_grid(self, slam):
         """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
@@ -941,21 +952,26 @@ class FloorPlanUpdater:
         t0 = time.perf_counter()
         reloc = relocaliser.relocalise(points, keyframe.pose_map, wxy, wth)
         self.timings["relocalise"] += time.perf_counter() - t0
-        yield
-        yield from self._prior_steps(slam, keyframe, reloc, why)
-        yield
+        yield _MS_RELOCALISE
+        _, cost = yield from self._prior_steps(slam, keyframe, reloc, why)
+        yield cost
         self._check_priors(slam, keyframe.stamp)
+        yield _MS_CHECK_PRIORS
 
     def _prior_steps(
         self, slam, keyframe, reloc, why: str, drift: float | None = None, backfill: bool = False
-    ) -> Generator[None, None, bool]:
-        """:meth:`_try_prior`, then the graph's relinearising iterations one per step; returns
-        whether the prior was added."""
+    ) -> Generator[float, None, tuple[bool, float]]:
+        """:meth:`_try_prior`, then the graph's relinearising iterations one per step (each
+        yield ends one, giving its estimated ms); returns whether the prior was added and the
+        estimated cost of the step still open (the caller yields it)."""
         n = slam.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
         added = self._try_prior(slam, keyframe, reloc, why, drift, backfill, settle=False)
+        cost = _MS_PRIOR
         if added:
-            yield from slam.graph.settle_steps(n)
-        return added
+            for _ in slam.graph.settle_steps(n):
+                yield cost
+                cost = _MS_PER_KEYFRAME_SETTLE * len(slam.graph)
+        return added, cost
 
     def _gate_chi2(self, slam, keyframe, reloc: Relocalisation, drift: float | None = None) -> float:
         """chi² of (relocalised - estimated) pose under reloc + marginal + drift covariances."""

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from frslam_graph.datasets.scan import Scan
 
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_aces.py"
@@ -31,7 +30,7 @@ def straight_run(n: int = 200):
     empty = np.zeros(0)
     scans = [
         Scan(float(t), empty, empty, odom=(float(a), float(b), float(c)))
-        for t, a, b, c in zip(stamps, x, y, th)
+        for t, a, b, c in zip(stamps, x, y, th, strict=True)
     ]
     return scans, np.column_stack((stamps, x, y, th))
 

@@ -166,3 +166,54 @@ def test_defer_takes_a_generator_not_a_function(room):
         slam.defer(job)  # the function, not its generator
     slam.defer(job())
     assert slam.deferred_jobs == 1
+
+
+class CostedHook:
+    """At keyframes 3 and 4 defers a job whose steps announce their estimated cost (ms)."""
+
+    COSTS = (3.0, 8.0, 1.0)
+
+    def __init__(self):
+        self.done: list[tuple[int, int, int]] = []
+
+    def job(self, slam, k):
+        for step, cost in enumerate(self.COSTS):
+            self.done.append((k, step, len(slam)))
+            yield cost
+
+    def on_keyframe(self, slam, kf):
+        if kf.index in (3, 4):
+            slam.defer(self.job(slam, kf.index))
+
+
+def test_loop_closure_gets_the_rest_of_the_budget_a_costed_step_leaves(room):
+    hook = CostedHook()
+    slam = FRSlam({**ROOM_CFG, "loop_closure": {"enabled": True, "budget_ms": 8.0}}, update_strategy=hook)
+    budgets: dict[int, float | None] = {}  # scan count -> budget given to the loop closer
+    on_scan = slam.loop_closer.on_scan
+    slam.loop_closer.on_scan = lambda s, b=None: budgets.__setitem__(len(s), b) or on_scan(s, b)
+    feed(slam, room, 150)
+    assert [(k, s) for k, s, _ in hook.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
+    scans = [n for _, _, n in hook.done]
+    assert len(set(scans)) == 6  # one step per scan; job 3's end is glue: job 4 follows at once
+    assert [budgets.get(n, "none") for n in scans] == [5.0, "none", 7.0, 5.0, "none", 7.0]
+    others = [b for n, b in budgets.items() if n not in scans]
+    assert others and all(b is None for b in others)  # scans without a step: the whole budget
+
+
+def test_relocalisation_steps_announce_their_costs(house, monkeypatch):
+    # every step of the updater's deferred work gives a finite estimate, so the loop closer keeps
+    # the rest of those scans' budgets instead of starving while the plan is worked on
+    spent: list[float] = []
+    step = FRSlam._step_deferred
+
+    def record(self):
+        out = step(self)
+        if out is not None:
+            spent.append(out)
+        return out
+
+    monkeypatch.setattr(FRSlam, "_step_deferred", record)
+    _, slam, _, added = run_plan(house, spread=True)
+    assert len(added) >= 5 and len(spent) >= 3 * len(added)
+    assert all(0.0 < s < FRSlamConfig().loop_closure.budget_ms for s in spent), sorted(set(spent))

@@ -706,3 +706,19 @@ def test_submap_is_each_keyframe_scan_moved_into_the_centre_frame():
     for (o, e), (o2, e2) in zip(scans, kept, strict=True):
         np.testing.assert_array_equal(o, o2)
         np.testing.assert_array_equal(e, e2)
+
+
+def test_the_rest_of_a_shared_budget_runs_only_steps_that_fit():
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 8.0}}).loop_closure
+    closer = LoopCloser(cfg)
+    log: list[int] = []
+    closer._job = _fake_job([3.0, 3.0, 6.0, 1.0], log)
+    closer._jobs.append(None)
+    out = []
+    for left in (5.0, 2.0, None, 6.0):  # None: a scan of its own (the first step always runs)
+        before = len(log)
+        closer.on_scan(None, left)
+        out.append(log[before:])
+    # 5 ms left: the glue and step 0 fit, step 1 would not; 2 ms: nothing fits, the queue waits
+    assert out == [[0], [], [1], [2]]
+    assert not closer.idle
