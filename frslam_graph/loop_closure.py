@@ -132,9 +132,12 @@ def _wrap(a):
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (M, 2) given in the frame ``pose`` (x, y, theta) -> the frame ``pose`` lives in."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    p = np.asarray(points, dtype=np.float64)
-    return np.column_stack((pose[0] + c * p[:, 0] - s * p[:, 1], pose[1] + s * p[:, 0] + c * p[:, 1]))
+    return _rigid(pose[0], pose[1], np.cos(pose[2]), np.sin(pose[2]), np.asarray(points, dtype=np.float64))
+
+
+def _rigid(x, y, c, s, p: np.ndarray) -> np.ndarray:
+    """(x, y) + R(c, s) p for points p (M, 2); x, y, c, s scalars or (M,) per point."""
+    return np.column_stack((x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]))
 
 
 def _bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,12 +147,6 @@ def _bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         np.array([points[:, 0].min(), points[:, 1].min()]),
         np.array([points[:, 0].max(), points[:, 1].max()]),
     )
-
-
-def _extent(points: np.ndarray) -> np.ndarray:
-    """``np.ptp(points, axis=0)`` of (M, 2) points, M >= 1 (see :func:`_bounds`)."""
-    lo, hi = _bounds(points)
-    return hi - lo
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -1024,11 +1021,9 @@ class LoopCloser:
         local = [self._in_range(pts_all, origins, k) for k in ks]
         rels = [between(est[centre], est[k]) for k in ks]
         sizes = [len(p) for p in local]
-        # one transform for all keyframes: per point the same scalar products as transform_points
+        # one transform for all keyframes: per point the same products as transform_points
         rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
-        p = np.concatenate(local)
-        x, y, c, s = rep.T
-        pts = np.column_stack((x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]))
+        pts = _rigid(*rep.T, np.concatenate(local))
         ends = np.split(pts, np.cumsum(sizes)[:-1])
         scans = [
             (transform_points(r, origins[k][None])[0], e) for r, k, e in zip(rels, ks, ends, strict=True)
@@ -1061,7 +1056,8 @@ class LoopCloser:
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
             inner = min(margin, max(16.0 * cfg.likelihood_sigma, 2.0))  # see ReferenceSubmap
-            extent = _extent(pts)
+            lo, hi = _bounds(pts)
+            extent = hi - lo
             cells = np.prod((extent + 2.0 * margin) / cfg.resolution + 1.0)
             cells_inner = np.prod((extent + 2.0 * inner) / cfg.resolution + 1.0)
             yield _MS_PER_CELL_FIELD * float(cells_inner) + _MS_PER_CELL_FILL * float(cells)

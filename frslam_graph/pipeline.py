@@ -124,7 +124,7 @@ class FRSlam:
         self._odometry_elsewhere = False  # process() ran the odometry in a worker process
         self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
         self._deferred: deque[Iterator[Any]] = deque()  # see defer()
-        self._deferred_costed: dict[int, bool] = {}  # id(job) -> its last yield gave a cost
+        self._head_costed = False  # the first deferred job's last yield gave a cost
         self._steps_run = 0  # deferred steps run so far (a hook that ran some made its scan busy)
         # loop closure (frslam_graph.loop_closure), run on each keyframe after the update strategy
         from frslam_graph.loop_closure import LoopCloser
@@ -240,20 +240,17 @@ class FRSlam:
         """Run the next deferred step; its estimated cost (ms; inf when unknown), None when no
         job was pending (see :meth:`defer`)."""
         while self._deferred:
-            job = self._deferred[0]
             self._steps_run += 1
             try:
-                cost = next(job)
+                cost = next(self._deferred[0])
             except StopIteration:
                 self._deferred.popleft()
-                if self._deferred_costed.pop(id(job), False):
+                costed, self._head_costed = self._head_costed, False
+                if costed:
                     continue  # only glue after its last costed step: the next job's step runs
                 return float("inf")
-            if isinstance(cost, int | float) and not isinstance(cost, bool):
-                self._deferred_costed[id(job)] = True
-                return max(float(cost), 0.0)
-            self._deferred_costed.pop(id(job), None)
-            return float("inf")
+            self._head_costed = isinstance(cost, int | float) and not isinstance(cost, bool)
+            return max(float(cost), 0.0) if self._head_costed else float("inf")
         return None
 
     def _angles(self, angle_min: float, inc: float, n: int) -> tuple[np.ndarray, np.ndarray]:
