@@ -162,7 +162,8 @@ class UpdatesConfig(_Section):
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
     # while none is accepted, a registration that matched but failed the checks is retried after
     # this many metres (a fresh map before drift grows; 0 = off), up to register_recheck_max
-    # times in a row
+    # times in a row; with one accepted, so is a match that contradicts it (disagreement above
+    # agree_tol: a wrong draw, retried so that the refinement it was meant for is not lost)
     register_recheck_distance: float = Field(3.0, ge=0.0)
     # (3: a house of tools/bench_backend.py regime C whose first two registrations were wrong got
     # its right one at the third, 0.36 -> 0.05 m ATE, before the drift grew)
@@ -229,6 +230,9 @@ class UpdatesConfig(_Section):
     # and refine_by="scans": mean ATE with the plan 0.023 -> 0.014 m, with 25 % wrong registrations
     # 0.080 -> 0.046 m, within 10 % of the clean run 14 -> 16 houses; another building unchanged)
     align_to_start: bool = True
+    # at the end of an offline run (FRSlam.finish), one more registration on the complete map and
+    # the scale refinement, so the final plan depends less on when the run's refinements happened
+    final_refine: bool = True
     align_min_xy: float = Field(0.02, ge=0.0)
     align_min_theta_deg: float = Field(0.2, ge=0.0)
     # ... and only when the first scan's soft fit at the anchor improves by this much

@@ -12,7 +12,9 @@ Seams for the floor-plan update strategy (paper Alg. 3):
   ``slam.occupancy_grid()``, ``slam.keyframes()``, ``slam.graph``; add priors with
   ``slam.add_floorplan_prior(...)``, remove them with ``slam.remove_prior(...)``, re-express the
   map with ``slam.transform_map(...)`` and record decisions with ``slam.log_event(...)``.
-- ``finish()`` runs the final LM batch; ``process(recording)`` is the offline loop.
+- ``finish()`` runs the final LM batch, after the strategy's optional ``on_finish(slam)`` (the end
+  of an offline run: e.g. a last refinement on the complete map); ``process(recording)`` is the
+  offline loop.
 
 The decision log (``slam.log``) is a list of :class:`DecisionEvent`; nothing is printed.
 """
@@ -514,8 +516,15 @@ class FRSlam:
 
     # ---------------------------------------------------------------- offline
     def finish(self) -> np.ndarray:
-        """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`."""
+        """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`.
+
+        Before it, the update strategy's ``on_finish(slam)`` when it has one (the floor-plan
+        updater's final refinement) and the loop closer's queued work."""
         self.run_deferred()
+        on_finish = getattr(self.update_strategy, "on_finish", None)
+        if on_finish is not None:
+            on_finish(self)
+            self.run_deferred()
         if self.loop_closer is not None:  # loop-closure work still queued
             self.loop_closer.flush(self)
         if self._kfs:

@@ -14,8 +14,9 @@ geometry, which corrects the drift accumulated along the way.
   first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
   ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
   no registration is accepted (the map changes as it is re-estimated),
-  ``register_recheck_distance`` metres after a match that the checks rejected (before the
-  drift grows further; up to ``register_recheck_max`` times in a row), every
+  ``register_recheck_distance`` metres after a match that the checks rejected while none is
+  accepted or that contradicts the accepted one (before the drift grows further; up to
+  ``register_recheck_max`` times in a row), every
   ``register_refine_distance`` metres after one is accepted (at most ``register_refine_max``
   times: the priors have corrected the map since), and when progress is obstructed (no
   progress for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
@@ -224,6 +225,30 @@ class FloorPlanUpdater:
     def events(self, kind: str | None = None) -> list[UpdateEvent]:
         return [e for e in self.log if kind is None or e.kind == kind]
 
+    def on_finish(self, slam) -> None:
+        """The end of an offline run (:meth:`FRSlam.finish`, before the final batch): with a
+        registration accepted and ``final_refine`` on, one more registration on the complete map
+        (it refines the accepted one when it agrees and explains the data as well or better, as
+        any later one) and the scale refinement, whenever the schedule last ran them. The plan the
+        run ends with then depends less on when its refinements happened (a rejected wrong draw
+        or an attempt on a small map no longer leaves an unrefined plan behind)."""
+        cfg = self.config
+        if not cfg.enabled or self.plan is None or self.accepted is None or not cfg.final_refine:
+            return
+        if not len(slam.graph):
+            return
+        self._finish_steps(slam)
+        last = slam.keyframe(len(slam.graph) - 1)
+        self._register(slam, last, "end of the run: final refinement")
+        self._finish_steps(slam)
+        if self.accepted is not None and cfg.scale_refine_distance > 0.0:
+            # the run's last word on the scale: any gain on the keyframe scans of the whole run
+            # (the margin keeps a run's plan from changing back and forth; there is no later)
+            self._refine_scale(slam, last, final=True)
+            if cfg.align_to_start:
+                self._align_to_start(slam, last)
+            self._finish_steps(slam)
+
     def on_keyframe(self, slam, keyframe) -> None:
         """Called by FRSlam after each keyframe is in the graph."""
         cfg = self.config
@@ -258,7 +283,6 @@ class FloorPlanUpdater:
                     reason = "progress obstructed"
                 elif (
                     self._recheck
-                    and self.accepted is None
                     and cfg.register_recheck_distance > 0.0
                     and self._dist - self._dist_at_attempt >= cfg.register_recheck_distance
                 ):
@@ -408,8 +432,15 @@ class FloorPlanUpdater:
         if verdict is None:
             # a match the checks rejected (wrong, or right on a map that drifted) gets a quick
             # retry on a map a few metres larger, before the drift grows any further (up to
-            # register_recheck_max in a row: each retry is a new draw on a larger map)
-            self._recheck = reg.ok and self.accepted is None and self._recheck_run < cfg.register_recheck_max
+            # register_recheck_max in a row: each retry is a new draw on a larger map). With one
+            # accepted, so does a match that contradicts it (a wrong draw): the refinement the
+            # attempt was for comes a few metres later instead of one trigger later
+            contradicts = nums.get("disagreement", 0.0) > cfg.agree_tol
+            self._recheck = (
+                reg.ok
+                and (self.accepted is None or contradicts)
+                and self._recheck_run < cfg.register_recheck_max
+            )
             return
         accepted, relocaliser, reloc = verdict
         msg, kind = f"{reason}; accepted", "register"
@@ -724,7 +755,7 @@ class FloorPlanUpdater:
             np.linspace(0, n - 1, min(n, self.config.refine_scan_samples)).round().astype(np.intp)
         )
 
-    def _refine_scale(self, slam, keyframe) -> bool:
+    def _refine_scale(self, slam, keyframe, final: bool = False) -> bool:
         """Refine the accepted plan's scale along its two axes on keyframe scans.
 
         The keyframe scans (spread over the run) are relocalised on the accepted plan; then their
@@ -735,7 +766,9 @@ class FloorPlanUpdater:
         can be a few per cent off in scale; the priors then bend the map onto it, so a
         registration on the map would repeat the error. The refined plan replaces the accepted
         one (same id; its priors are relocalised on it when it moves them by more than
-        ``scale_reanchor_xy``) when it explains the scans better (``scale_refine_margin``). Returns
+        ``scale_reanchor_xy``) when it explains the scans better (``scale_refine_margin``). With
+        ``final`` (the end of the run: no later check) any gain on the scans is enough and all
+        its priors are relocalised on the refined plan. Returns
         whether it did.
         """
         cfg = self.config
@@ -788,7 +821,7 @@ class FloorPlanUpdater:
         q_new, q_old = self._scan_fit(slam, relocaliser), float(np.mean(soft))
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
         t0 += time.perf_counter() - t_fit  # _scan_fit counted its own time
-        if q_new <= q_old + cfg.scale_refine_margin:
+        if q_new <= q_old + (0.0 if final else cfg.scale_refine_margin):
             return kept(
                 f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans no better "
                 f"({q_new:.1%} vs {q_old:.1%}); kept",
@@ -810,7 +843,7 @@ class FloorPlanUpdater:
         tag = f"reloc:reg{acc.id}"
         xy = np.asarray([h.pose[:2] for h in slam.graph.priors() if h.source == tag]).reshape(-1, 2)
         moved = (xy - t) @ lin_inv.T @ (m @ fix)[:2, :2].T + (m @ fix)[:2, 2] - xy
-        if len(xy) and float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy:
+        if len(xy) and (final or float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy):
             self._reanchor(slam, acc, f"registration {acc.id} rescaled")
         return True
 

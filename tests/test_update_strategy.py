@@ -16,7 +16,9 @@ from frslam_graph.registration import Registration
 from frslam_graph.update_strategy import FloorPlanUpdater, UpdateEvent
 
 # Loop closure off: these tests isolate the floor-plan priors from the other source of corrections.
-CFG = FRSlamConfig().with_updates(loop_closure={"enabled": False})
+# The end-of-run refinement (FloorPlanUpdater.on_finish) off: these tests count the decisions of
+# the run's own schedule; it has tests of its own (final_refine).
+CFG = FRSlamConfig().with_updates(loop_closure={"enabled": False}, updates={"final_refine": False})
 
 KINDS = {
     "register",
@@ -424,6 +426,47 @@ def test_rejected_matches_get_quick_rechecks(sim):
     assert len(reg) == 1 and upd.accepted is None
 
 
+def test_a_draw_contradicting_the_accepted_registration_gets_a_quick_recheck(sim):
+    """With a registration accepted, a later attempt (here the refinement after
+    register_refine_distance) whose match contradicts it is retried after
+    register_recheck_distance metres: the refinement the attempt was for comes a few metres
+    later, not one trigger later. A match that agrees with it (refined or kept) is no reason to
+    retry."""
+    plan, run, m = sim
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    base = {
+        "register_min_growth_m2": 1e6,
+        "register_retry_distance": 1e3,
+        "scale_refine_distance": 0.0,
+        "register_refine_distance": 8.0,
+        "register_refine_max": 1,
+        "register_recheck_distance": 3.0,
+        "register_recheck_max": 1,
+    }
+
+    def run_with(seq):
+        it = iter(seq + [m] * 40)
+        upd = FloorPlanUpdater(
+            plan,
+            CFG.updates.model_copy(update=base),
+            register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2),
+        )
+        slam, _ = run_slam(run, upd)
+        kfs = slam.keyframe_array()
+        travelled = np.cumsum(np.r_[0.0, np.hypot(*np.diff(kfs[:, 1:3], axis=0).T)])
+        reg = [e for e in upd.log if e.kind in ("register", "registration_replaced")]
+        return upd, reg, travelled
+
+    upd, reg, travelled = run_with([m, wrong])
+    assert [e.accepted for e in reg[:2]] == [True, False]
+    assert "register again after" in reg[1].reason
+    assert len(reg) == 3 and "the last registration matched but was rejected" in reg[2].reason
+    assert 3.0 <= travelled[reg[2].keyframe] - travelled[reg[1].keyframe] < 4.0
+    assert np.allclose(upd.registration.matrix, m)
+    _, reg, _ = run_with([m, m])  # the refinement agrees: no retry (refine_max = 1: no more)
+    assert len(reg) == 2 and "register again after" in reg[1].reason
+
+
 def scaled_about_centre(plan, matrix, factor):
     """The registration ``matrix`` scaled by ``factor`` about the plan's centre (a non-rigid
     error a single scan shows, unlike a rigid offset, which relocalisation absorbs)."""
@@ -544,6 +587,67 @@ def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
         for e in events[1 if done else 0 :]:
             assert not e.accepted and e.reason.endswith("kept")
             assert abs(e.numbers["scale_x"] - 1.0) < 0.002 and abs(e.numbers["scale_y"] - 1.0) < 0.002
+
+
+def test_final_refinement_fits_the_scale_the_schedule_left(sim):
+    """final_refine: at the end of an offline run (FRSlam.finish, before the final batch) the
+    updater registers once more on the complete map and refits the plan's scale with any gain
+    enough; the refined plan's priors are relocalised on it, so the final trajectory follows. A
+    plan 1.5 % off in one axis that the schedule never refined (scale_refine_distance beyond
+    the route) ends within 0.3 % of the true scale and with a lower ATE (by > 5 %); without final_refine
+    the scale stays and no end-of-run decision is logged."""
+    from frslam_graph.registration.result import params_from_matrix
+
+    plan, run, m = sim
+    true_scale = np.array(params_from_matrix(m)[2:4])
+    c = np.array(plan.bounds).reshape(2, 2).mean(0)
+    off = np.diag([1.015, 1.0, 1.0])
+    off[:2, 2] = c - np.array([1.015, 1.0]) * c
+    base = {
+        **NO_REFINEMENT,
+        "register_min_growth_m2": 1e6,
+        "register_retry_distance": 1e3,
+        "scale_refine_distance": 1e4,
+        "refine_scan_samples": 12,
+        "align_to_start": False,
+    }
+    out = {}
+    for final in (True, False):
+        cfg = CFG.with_updates(updates={**base, "final_refine": final})
+        upd = FloorPlanUpdater(plan, cfg.updates, register_fn=fixed_source(m @ off))
+        slam, res = run_slam(run, upd, config=cfg)
+        last = len(slam.graph) - 1
+        end = [e for e in upd.log if e.keyframe == last and e.kind in ("register", "plan_refined")]
+        out[final] = (upd, ate(res.trajectory, run.ground_truth)[0].rmse, end)
+    upd, err, end = out[True]
+    assert [e.kind for e in end][:2] == ["register", "plan_refined"]
+    assert end[0].reason.startswith("end of the run: final refinement")
+    assert end[1].accepted and end[1].reason.endswith("refined")
+    scale = np.array(params_from_matrix(upd.registration.matrix)[2:4])
+    assert np.allclose(scale / true_scale, 1.0, atol=0.003)
+    assert any(e.kind == "prior_added" and e.keyframe is not None for e in upd.log[upd.log.index(end[1]) :])
+    upd_off, err_off, end_off = out[False]
+    assert not end_off and np.allclose(upd_off.registration.matrix, m @ off)
+    assert err < 0.95 * err_off
+
+
+def test_finish_calls_the_strategys_on_finish_before_the_final_batch(sim):
+    """FRSlam.finish calls an update strategy's optional on_finish(slam) once, before the final
+    LM batch (a strategy without one is fine: plain callables are strategies too)."""
+    _, run, _ = sim
+    calls = []
+
+    class Strategy:
+        def on_keyframe(self, slam, keyframe):
+            pass
+
+        def on_finish(self, slam):
+            calls.append(len(slam.log))
+
+    slam, _ = run_slam(run, hook=Strategy())
+    batch = [k for k, e in enumerate(slam.log) if e.kind == "batch_optimised"]
+    assert len(calls) == 1 and len(batch) == 1 and calls[0] <= batch[0]
+    run_slam(run, hook=lambda slam, kf: None)
 
 
 def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):

@@ -45,13 +45,16 @@ class WrongRegistrations:
         self.rng = np.random.default_rng(seed)
         self.calls = 0
         self.corrupted = 0
+        self.marks: list[bool] = []  # per call: corrupted
 
     def __call__(self, plan, grid):
         reg = register(plan, grid)
         self.calls += 1
         if not reg.ok or self.rng.random() >= self.fraction:
+            self.marks.append(False)
             return reg
         self.corrupted += 1
+        self.marks.append(True)
         m = reg.matrix.copy()
         c = m[:2, :2] @ np.array(plan.bounds).reshape(2, 2).mean(0) + m[:2, 2]  # plan centre in map
         kind = self.rng.integers(3)

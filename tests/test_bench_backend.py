@@ -1,0 +1,63 @@
+"""tools/bench_backend.py's floor-plan table: the 'wrong' mode over several corruption seeds (a
+house counts by its median), and corrupted registrations that were accepted are counted."""
+
+from __future__ import annotations
+
+import importlib.util
+from argparse import Namespace
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_backend.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_backend", TOOL)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def row(mode, ate, **extra):
+    base = {"regime": "C", "house": "h0", "rooms": 5, "route_m": 210.0, "scans": 2000, "mode": mode}
+    base.update(ate=ate, run_s=1.0, xrt=100.0, reg_acc=1, reg_tried=2)
+    base.update(prior_added=10, prior_rejected=0, prior_removed=1)
+    base.update(extra)
+    return base
+
+
+def test_wrong_mode_counts_a_house_by_its_median_over_seeds(bench):
+    clean = [row("none", 0.5), row("plan", 0.010)]
+    # one unlucky seed (1.5x) of three: the house's median ratio is 1.05, within 10 %
+    wrong = [
+        row("wrong", a, corrupted=1, reg_calls=8, wseed=s, leaked=k)
+        for a, s, k in ((0.015, 0, 0), (0.0105, 1000, 0), (0.0098, 2000, 1))
+    ]
+    args = Namespace(length=200.0, speed=1.0, wrong_seeds=3, regimes=["C"])
+    text = bench.priors_section(clean + wrong, [], args)
+    assert "| 0.011 (3/24, 1) | 1.50/1.05/0.98 |" in text  # median ATE 0.0105
+    assert "ATE within 10 % of the clean run: 1/1 houses (median over 3 corruption seeds; single runs 2/3)" in text
+    assert "corrupted registrations accepted: 1 " in text
+    # a single unlucky seed decides alone
+    text = bench.priors_section([*clean, wrong[0]], [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"]))
+    assert "ATE within 10 % of the clean run: 0/1 houses;" in text
+
+
+def test_leaked_pairs_registration_decisions_with_corruption_marks(bench):
+    def event(kind, accepted):
+        return SimpleNamespace(kind=kind, accepted=accepted)
+
+    log = [
+        event("register", False),
+        event("relocalise", True),
+        event("register", True),
+        event("registration_replaced", True),
+        event("prior_added", True),
+    ]
+    upd = SimpleNamespace(log=log)
+    assert bench._leaked(upd, [True, False, True]) == 1  # the replacement was a corrupted one
+    assert bench._leaked(upd, [True, True, False]) == 1
+    assert bench._leaked(upd, [True, False]) == -1  # the log does not pair with the calls
