@@ -268,7 +268,7 @@ class FloorPlanUpdater:
         obstructed = self._check_obstruction(slam, keyframe)
 
         area = self.mapped_area
-        reason, local = None, False
+        reason, local, quick = None, False, False
         if self._attempts < cfg.max_registrations:
             if self._attempts == 0:
                 if area >= cfg.first_register_area_m2:
@@ -290,6 +290,7 @@ class FloorPlanUpdater:
                         f"the last registration matched but was rejected; retry after "
                         f"{self._dist - self._dist_at_attempt:.0f} m"
                     )
+                    quick = True
                 elif (
                     self.accepted is None
                     and self._dist - self._dist_at_attempt >= cfg.register_retry_distance
@@ -316,7 +317,7 @@ class FloorPlanUpdater:
                     self._inconsistent_run = 0
         if reason is not None:
             self._finish_steps(slam)
-            self._register(slam, keyframe, reason, local)
+            self._register(slam, keyframe, reason, local, quick)
         elif self.accepted is not None:
             if cfg.scale_refine_distance > 0.0 and self._dist - self._dist_at_scale >= max(
                 self._scale_interval, cfg.scale_refine_distance
@@ -403,11 +404,14 @@ class FloorPlanUpdater:
         return obstructed
 
     # ------------------------------------------------------------------ registration
-    def _register(self, slam, keyframe, reason: str, local: bool = False) -> None:
+    def _register(self, slam, keyframe, reason: str, local: bool = False, quick: bool = False) -> None:
+        """Register the plan on the map and act on the verdict. ``quick``: this attempt is a
+        quick recheck (``register_recheck_distance``): it counts towards ``register_recheck_max``
+        in a row; any other trigger (the map grew, a retry, a refinement) starts a new run."""
         cfg = self.config
         t0 = time.perf_counter()
         self._attempts += 1
-        quick, self._recheck = self._recheck, False
+        self._recheck = False
         self._recheck_run = self._recheck_run + 1 if quick else 0
         area = self.mapped_area
         self._area_at_attempt = area

@@ -3,22 +3,16 @@ house counts by its median), and corrupted registrations that were accepted are 
 
 from __future__ import annotations
 
-import importlib.util
 from argparse import Namespace
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_backend.py"
+from conftest import load_tool
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_backend", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_backend")
 
 
 def row(mode, ate, **extra):
@@ -39,10 +33,15 @@ def test_wrong_mode_counts_a_house_by_its_median_over_seeds(bench):
     args = Namespace(length=200.0, speed=1.0, wrong_seeds=3, regimes=["C"])
     text = bench.priors_section(clean + wrong, [], args)
     assert "| 0.011 (3/24, 1) | 1.50/1.05/0.98 |" in text  # median ATE 0.0105
-    assert "ATE within 10 % of the clean run: 1/1 houses (median over 3 corruption seeds; single runs 2/3)" in text
+    assert (
+        "ATE within 10 % of the clean run: 1/1 houses (median over 3 corruption seeds; single runs 2/3)"
+        in text
+    )
     assert "corrupted registrations accepted: 1 " in text
     # a single unlucky seed decides alone
-    text = bench.priors_section([*clean, wrong[0]], [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"]))
+    text = bench.priors_section(
+        [*clean, wrong[0]], [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"])
+    )
     assert "ATE within 10 % of the clean run: 0/1 houses;" in text
 
 

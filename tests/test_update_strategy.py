@@ -426,6 +426,40 @@ def test_rejected_matches_get_quick_rechecks(sim):
     assert len(reg) == 1 and upd.accepted is None
 
 
+def test_only_quick_rechecks_count_towards_the_recheck_limit(sim):
+    """register_recheck_max bounds quick rechecks in a row; an attempt another trigger made (here
+    "progress obstructed") between them starts a new run: after it is rejected too, the quick
+    recheck still comes (a right match lost to a wrong draw on the trigger's attempt is not left
+    to the 15 m retry while the drift grows)."""
+    plan, run, m = sim
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    it = iter([wrong, wrong] + [m] * 40)
+    cfg = CFG.updates.model_copy(
+        update={
+            "register_min_growth_m2": 1e6,
+            "register_retry_distance": 1e3,
+            "register_recheck_distance": 3.0,
+            "register_recheck_max": 1,
+            **NO_REFINEMENT,
+        }
+    )
+    upd = FloorPlanUpdater(
+        plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
+    )
+
+    class Obstructed:  # the robot reports it is stuck right after the first attempt
+        def on_keyframe(self, slam, keyframe):
+            if len(upd.events("register")) == 1:
+                upd.notify_obstructed()
+            upd.on_keyframe(slam, keyframe)
+
+    run_slam(run, hook=Obstructed())
+    reg = upd.events("register")
+    assert len(reg) >= 3 and not reg[0].accepted and not reg[1].accepted
+    assert reg[1].reason.startswith("progress obstructed")
+    assert "retry after 3 m" in reg[2].reason and reg[2].accepted
+
+
 def test_a_draw_contradicting_the_accepted_registration_gets_a_quick_recheck(sim):
     """With a registration accepted, a later attempt (here the refinement after
     register_refine_distance) whose match contradicts it is retried after
