@@ -20,7 +20,10 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    >= ``--length`` m at up to ``--speed`` m/s. Per house, ATE RMSE (SE(2)-aligned, evo) without
    the plan, with it (``FRSlam(floor_plan=plan)``), with the plan of another building, and with
    25 % deliberately wrong registrations (``WrongRegistrations`` of ``tools/dev_priors_check.py``
-   as the updater's ``register_fn``). Three regimes, labelled:
+   as the updater's ``register_fn``; ``--wrong-seeds N``: N runs per house, each with its own
+   corruption seed, the house counted by its median: one draw of which registrations are
+   corrupted decides little; corrupted registrations the updater accepted are counted). Three
+   regimes, labelled:
    A) the simulator's default sensor (UTM-30LX-like: 270°, 30 m, 1 cm noise) with loop closure;
    B) a degraded sensor (URG-04LX-like: 240°, 5.6 m, 3 cm noise) without loop closure, where the
    LiDAR odometry drifts and the priors have work to do (the paper's setting);
