@@ -162,8 +162,7 @@ class UpdatesConfig(_Section):
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
     # while none is accepted, a registration that matched but failed the checks is retried after
     # this many metres (a fresh map before drift grows; 0 = off), up to register_recheck_max
-    # times in a row; with one accepted, so is a match that contradicts it (disagreement above
-    # agree_tol: a wrong draw, retried so that the refinement it was meant for is not lost)
+    # quick rechecks in a row (an attempt another trigger made starts a new run)
     register_recheck_distance: float = Field(3.0, ge=0.0)
     # (3: a house of tools/bench_backend.py regime C whose first two registrations were wrong got
     # its right one at the third, 0.36 -> 0.05 m ATE, before the drift grew)

@@ -460,45 +460,35 @@ def test_only_quick_rechecks_count_towards_the_recheck_limit(sim):
     assert "retry after 3 m" in reg[2].reason and reg[2].accepted
 
 
-def test_a_draw_contradicting_the_accepted_registration_gets_a_quick_recheck(sim):
+def test_no_quick_recheck_once_a_registration_is_accepted(sim):
     """With a registration accepted, a later attempt (here the refinement after
-    register_refine_distance) whose match contradicts it is retried after
-    register_recheck_distance metres: the refinement the attempt was for comes a few metres
-    later, not one trigger later. A match that agrees with it (refined or kept) is no reason to
-    retry."""
+    register_refine_distance) whose match contradicts it is not retried quickly: the quick
+    rechecks are for finding a first registration before the drift grows. (Retrying refinements
+    drew more wrong matches and changed the runs more than the refinements gained: regime C of
+    tools/bench_backend.py, 20 houses x 3 corruption seeds, 55 -> 48 of 60 runs within 10 % of
+    the clean run.)"""
     plan, run, m = sim
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
-    base = {
-        "register_min_growth_m2": 1e6,
-        "register_retry_distance": 1e3,
-        "scale_refine_distance": 0.0,
-        "register_refine_distance": 8.0,
-        "register_refine_max": 1,
-        "register_recheck_distance": 3.0,
-        "register_recheck_max": 1,
-    }
-
-    def run_with(seq):
-        it = iter(seq + [m] * 40)
-        upd = FloorPlanUpdater(
-            plan,
-            CFG.updates.model_copy(update=base),
-            register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2),
-        )
-        slam, _ = run_slam(run, upd)
-        kfs = slam.keyframe_array()
-        travelled = np.cumsum(np.r_[0.0, np.hypot(*np.diff(kfs[:, 1:3], axis=0).T)])
-        reg = [e for e in upd.log if e.kind in ("register", "registration_replaced")]
-        return upd, reg, travelled
-
-    upd, reg, travelled = run_with([m, wrong])
-    assert [e.accepted for e in reg[:2]] == [True, False]
-    assert "register again after" in reg[1].reason
-    assert len(reg) == 3 and "the last registration matched but was rejected" in reg[2].reason
-    assert 3.0 <= travelled[reg[2].keyframe] - travelled[reg[1].keyframe] < 4.0
+    it = iter([m, wrong] + [m] * 40)
+    cfg = CFG.updates.model_copy(
+        update={
+            "register_min_growth_m2": 1e6,
+            "register_retry_distance": 1e3,
+            "scale_refine_distance": 0.0,
+            "register_refine_distance": 8.0,
+            "register_refine_max": 1,
+            "register_recheck_distance": 3.0,
+            "register_recheck_max": 1,
+        }
+    )
+    upd = FloorPlanUpdater(
+        plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
+    )
+    run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind in ("register", "registration_replaced")]
+    assert [e.accepted for e in reg] == [True, False]
+    assert "register again after" in reg[1].reason and "plan walls explain" in reg[1].reason
     assert np.allclose(upd.registration.matrix, m)
-    _, reg, _ = run_with([m, m])  # the refinement agrees: no retry (refine_max = 1: no more)
-    assert len(reg) == 2 and "register again after" in reg[1].reason
 
 
 def scaled_about_centre(plan, matrix, factor):
