@@ -426,6 +426,21 @@ def test_rejected_matches_get_quick_rechecks(sim):
     assert len(reg) == 1 and upd.accepted is None
 
 
+def recheck_updater(plan, seq, **updates):
+    """An updater whose registrations come from ``seq``, with one quick recheck 3 m after a
+    rejected match and no growth trigger or 15 m retry within the route."""
+    cfg = CFG.updates.model_copy(
+        update={
+            "register_min_growth_m2": 1e6,
+            "register_retry_distance": 1e3,
+            "register_recheck_distance": 3.0,
+            "register_recheck_max": 1,
+            **updates,
+        }
+    )
+    return FloorPlanUpdater(plan, cfg, register_fn=sequence_source(seq))
+
+
 def test_only_quick_rechecks_count_towards_the_recheck_limit(sim):
     """register_recheck_max bounds quick rechecks in a row; an attempt another trigger made (here
     "progress obstructed") between them starts a new run: after it is rejected too, the quick
@@ -433,19 +448,7 @@ def test_only_quick_rechecks_count_towards_the_recheck_limit(sim):
     to the 15 m retry while the drift grows)."""
     plan, run, m = sim
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
-    it = iter([wrong, wrong] + [m] * 40)
-    cfg = CFG.updates.model_copy(
-        update={
-            "register_min_growth_m2": 1e6,
-            "register_retry_distance": 1e3,
-            "register_recheck_distance": 3.0,
-            "register_recheck_max": 1,
-            **NO_REFINEMENT,
-        }
-    )
-    upd = FloorPlanUpdater(
-        plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
-    )
+    upd = recheck_updater(plan, [wrong, wrong] + [m] * 40, **NO_REFINEMENT)
 
     class Obstructed:  # the robot reports it is stuck right after the first attempt
         def on_keyframe(self, slam, keyframe):
@@ -469,20 +472,12 @@ def test_no_quick_recheck_once_a_registration_is_accepted(sim):
     the clean run.)"""
     plan, run, m = sim
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
-    it = iter([m, wrong] + [m] * 40)
-    cfg = CFG.updates.model_copy(
-        update={
-            "register_min_growth_m2": 1e6,
-            "register_retry_distance": 1e3,
-            "scale_refine_distance": 0.0,
-            "register_refine_distance": 8.0,
-            "register_refine_max": 1,
-            "register_recheck_distance": 3.0,
-            "register_recheck_max": 1,
-        }
-    )
-    upd = FloorPlanUpdater(
-        plan, cfg, register_fn=lambda p, g: Registration.from_matrix(next(it), score=0.9, ambiguity=0.2)
+    upd = recheck_updater(
+        plan,
+        [m, wrong] + [m] * 40,
+        scale_refine_distance=0.0,
+        register_refine_distance=8.0,
+        register_refine_max=1,
     )
     run_slam(run, upd)
     reg = [e for e in upd.log if e.kind in ("register", "registration_replaced")]
