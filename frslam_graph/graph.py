@@ -271,6 +271,8 @@ class PoseGraph:
         """:meth:`settle` as a generator: it yields before each iteration, so a caller can run
         them one at a time (one per scan). Keyframes added in between are fine: iSAM2 takes them
         in its own updates; convergence is judged on the keyframes that were there before."""
+        if max_iterations <= 0:  # nothing to run: no estimates to refresh either
+            return
         prev = self.estimates()
         for _ in range(max_iterations):
             yield
