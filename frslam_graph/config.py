@@ -229,9 +229,6 @@ class UpdatesConfig(_Section):
     # and refine_by="scans": mean ATE with the plan 0.023 -> 0.014 m, with 25 % wrong registrations
     # 0.080 -> 0.046 m, within 10 % of the clean run 14 -> 16 houses; another building unchanged)
     align_to_start: bool = True
-    # at the end of an offline run (FRSlam.finish), one more registration on the complete map and
-    # the scale refinement, so the final plan depends less on when the run's refinements happened
-    final_refine: bool = True
     align_min_xy: float = Field(0.02, ge=0.0)
     align_min_theta_deg: float = Field(0.2, ge=0.0)
     # ... and only when the first scan's soft fit at the anchor improves by this much
@@ -239,6 +236,9 @@ class UpdatesConfig(_Section):
     # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
     # with priors on the refined plan
     scale_reanchor_xy: float = Field(0.05, ge=0.0)
+    # at the end of an offline run (FRSlam.finish), one more registration on the complete map and
+    # the scale refinement, so the final plan depends less on when the run's refinements happened
+    final_refine: bool = True
     max_registrations: int = Field(40, ge=1)
     # relocalisation against the registered plan
     reloc_window_xy: float = Field(0.75, gt=0.0)

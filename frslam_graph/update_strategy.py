@@ -234,9 +234,7 @@ class FloorPlanUpdater:
         or an attempt on a small map no longer leaves an unrefined plan behind)."""
         cfg = self.config
         if not cfg.enabled or self.plan is None or self.accepted is None or not cfg.final_refine:
-            return
-        if not len(slam.graph):
-            return
+            return  # (a registration accepted: the graph has keyframes)
         self._finish_steps(slam)
         last = slam.keyframe(len(slam.graph) - 1)
         self._register(slam, last, "end of the run: final refinement")

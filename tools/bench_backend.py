@@ -431,7 +431,7 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
         "simulator-default odometry drift (2 % of distance, 1°/m, random plan distortion). ATE RMSE in m, "
         "SE(2)-aligned. 'other' = the plan of another building; 'wrong' = the right plan with "
         f"{WRONG_FRAC:.0%} of the registrations deliberately corrupted (rotated / mirrored / shifted; "
-        f"{getattr(args, 'wrong_seeds', 1)} run(s) per house, each with its own corruption seed: the "
+        f"{args.wrong_seeds} run(s) per house, each with its own corruption seed: the "
         "median ATE, corrupted / calls and corrupted ones accepted summed over the runs, the ratio "
         "of each run). Priors: added / rejected / removed.",
         "",
@@ -451,9 +451,10 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
         by_house: dict[str, dict[str, dict]] = {}
         wrongs: dict[str, list[dict]] = {}  # per house, one row per corruption seed
         for r in rr:
-            by_house.setdefault(r["house"], {})[r["mode"]] = r
             if r["mode"] == "wrong":
                 wrongs.setdefault(r["house"], []).append(r)
+            else:
+                by_house.setdefault(r["house"], {})[r["mode"]] = r
         lines += [
             f"### Regime {REGIMES[regime]['label']}",
             "",
@@ -468,8 +469,7 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
             none, plan = m.get("none"), m.get("plan")
             oth, wr = m.get("other"), wrongs.get(house)
             for k, v in m.items():
-                if k != "wrong":
-                    agg[k].append(v["ate"])
+                agg[k].append(v["ate"])
             if wr:
                 agg["wrong"].append(statistics.median(r["ate"] for r in wr))
             ratio = none["ate"] / plan["ate"] if none and plan else float("nan")

@@ -43,17 +43,21 @@ class WrongRegistrations:
     def __init__(self, fraction: float, seed: int = 0):
         self.fraction = fraction
         self.rng = np.random.default_rng(seed)
-        self.calls = 0
-        self.corrupted = 0
         self.marks: list[bool] = []  # per call: corrupted
+
+    @property
+    def calls(self) -> int:
+        return len(self.marks)
+
+    @property
+    def corrupted(self) -> int:
+        return sum(self.marks)
 
     def __call__(self, plan, grid):
         reg = register(plan, grid)
-        self.calls += 1
         if not reg.ok or self.rng.random() >= self.fraction:
             self.marks.append(False)
             return reg
-        self.corrupted += 1
         self.marks.append(True)
         m = reg.matrix.copy()
         c = m[:2, :2] @ np.array(plan.bounds).reshape(2, 2).mean(0) + m[:2, 2]  # plan centre in map
