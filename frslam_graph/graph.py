@@ -313,6 +313,10 @@ class PoseGraph:
     def priors(self, active_only: bool = True) -> list[PriorHandle]:
         return [h for h in self._priors.values() if h.active or not active_only]
 
+    def has_priors(self) -> bool:
+        """Whether any floor-plan prior is in the graph (the anchor does not count)."""
+        return any(h.active for h in self._priors.values())
+
     # -------------------------------------------------------------- estimates
     def estimate(self, i: int | None = None) -> np.ndarray:
         """Pose (x, y, theta) of keyframe i (default: the latest) in map."""

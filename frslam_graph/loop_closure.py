@@ -22,7 +22,10 @@ house by 7 m). Once the travel or turning since the closure grows past these, th
 nearest region first. A queued candidate that a closure accepted after its plan ties already (e.g.
 the keyframe's other candidate) is dropped unmatched, and so is a pending closure's check of a
 place already tied. Counted in ``stats.redundant``. The graph distances are updated incrementally
-while no closure is added.
+while no closure is added. Without a floor plan this is off by default (``redundant_travel`` 0:
+the fewer closures let aliased ones weigh more); once floor-plan priors are in the graph
+``redundant_travel_with_plan`` applies: the priors hold the map to the plan, and most closures of
+a robot re-traversing the plan's rooms would only repeat what the priors already say.
 
 Each candidate is verified by :func:`match_scan`: the *query* submap (the points of the last
 ``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
@@ -743,6 +746,9 @@ class LoopCloser:
         self._jobs: deque[_Job] = deque()
         self._task: Steps[list[LoopClosure]] | None = None  # the job being worked on
         self._last_plan = -(10**9)
+        # redundant_travel, or redundant_travel_with_plan once floor-plan priors are in the graph
+        # (set by each plan)
+        self._redundant_travel = self.config.redundant_travel
         self._next_cost = 0.0  # estimated cost (ms) of the current task's next step
         # steps run by the latest on_keyframe / on_scan / flush and their estimated cost (ms)
         self.steps_last_call, self.cost_last_call = 0, 0.0
@@ -914,7 +920,7 @@ class LoopCloser:
         cfg = self.config
         d = self._dist
         d_rel, r_rel = (d[2], d[3]) if d and d[:2] == (i, len(self.closures)) else self._graph_distances(i)
-        return (d_rel <= cfg.redundant_travel) & (r_rel <= np.deg2rad(cfg.redundant_turn_deg))
+        return (d_rel <= self._redundant_travel) & (r_rel <= np.deg2rad(cfg.redundant_turn_deg))
 
     def _eligible(self, i: int) -> np.ndarray:
         """Mask over keyframes 0..i-min_keyframe_gap far enough back (travel or turn)."""
@@ -1081,6 +1087,9 @@ class LoopCloser:
         # pending closures too old when the previous plan was done
         self._pending = [p for p in self._pending if self._last_plan - p.query <= cfg.pending_keyframes]
         self._last_plan = i
+        self._redundant_travel = (
+            cfg.redundant_travel_with_plan if slam.graph.has_priors() else cfg.redundant_travel
+        )
         est = slam.graph.estimates()
         cands: list[tuple[int, float, float, np.ndarray | None]] = [
             (c, r, w, None) for c, r, w in self._candidates(est, i, limit)

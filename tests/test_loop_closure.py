@@ -349,8 +349,15 @@ def test_padded_reference_equals_the_unpadded_one():
     np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
 
 
-def test_pending_closure_check_goes_ahead_of_queued_candidates():
+def _fake_slam(est: np.ndarray, priors: bool = False):
+    """The part of FRSlam that LoopCloser._plan reads: the estimates and whether floor-plan
+    priors are in the graph."""
     from types import SimpleNamespace
+
+    return SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy(), has_priors=lambda: priors))
+
+
+def test_pending_closure_check_goes_ahead_of_queued_candidates():
 
     from frslam_graph.loop_closure import _Job
 
@@ -359,7 +366,7 @@ def test_pending_closure_check_goes_ahead_of_queued_candidates():
     older = [_Job(5, 36, 2.0, 0.2), _Job(6, 38, 2.0, 0.2)]  # not matched yet
     closer._jobs.extend(older)
     closer._last_plan = 38
-    closer._plan(SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy())), 40)
+    closer._plan(_fake_slam(est), 40)
     first = closer._jobs[0]
     assert (first.reference, first.query) == (3, 40) and first.predicted is not None
     assert list(closer._jobs)[1:3] == older
@@ -489,7 +496,6 @@ def test_queued_candidate_tied_by_a_later_closure_is_dropped_unmatched():
 
 
 def test_pending_check_of_a_tied_place_is_skipped():
-    from types import SimpleNamespace
 
     closer, est = _circle_closer((18, 56))
     # an older pending closure (large correction) predicts keyframe 60 next to keyframe 22,
@@ -497,8 +503,22 @@ def test_pending_check_of_a_tied_place_is_skipped():
     closer._pending.append(LoopClosure(0, 38, np.zeros(3), np.eye(3) * 1e-4, None, np.zeros(3)))
     assert closer._hypothesis(est, 60)[0] == 22
     closer._last_plan = 58
-    closer._plan(SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy())), 60)
+    closer._plan(_fake_slam(est), 60)
     assert all(j.predicted is None and j.reference != 22 for j in closer._jobs)
+
+
+@pytest.mark.parametrize("priors", [False, True])
+def test_redundant_travel_with_plan_applies_once_floor_plan_priors_are_in_the_graph(priors):
+    # no redundancy rule without a plan; with floor-plan priors in the graph the region of
+    # keyframe 22 (tied to 60 through the closure 18-56) is not searched
+    closer, est = _circle_closer((18, 56), redundant_travel=0.0, redundant_travel_with_plan=5.0)
+    closer._last_plan = 58
+    closer._plan(_fake_slam(est, priors), 60)
+    refs = [j.reference for j in closer._jobs]
+    if priors:
+        assert refs == [] and closer.stats.redundant == 1
+    else:
+        assert refs[0] == 22 and closer.stats.redundant == 0
 
 
 def test_graph_distances_are_updated_incrementally_between_closures():
@@ -665,10 +685,9 @@ def test_closure_the_graph_disagrees_with_is_removed(prune):
 def test_an_idle_closer_plans_an_extra_candidate():
     """max_candidates_idle regions when nothing is queued (the work keeps up with the budget),
     max_candidates while older work waits."""
-    from types import SimpleNamespace
 
     closer, est = _circle_closer(None, max_candidates=2, max_candidates_idle=3, redundant_travel=0.0)
-    slam = SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est))
+    slam = _fake_slam(est)
     closer._plan(slam, 60)
     assert len(closer._jobs) == 3  # idle
     closer._plan(slam, 61)
