@@ -372,6 +372,12 @@ class LoopClosureConfig(_Section):
     prune_chi2: float = Field(200.0, ge=0.0)
     prune_xy: float = Field(0.3, ge=0.0)
     prune_theta_deg: float = Field(3.0, ge=0.0)
+    # a confirmed pair (plain Gaussians) that this many older closures disagree with at once is
+    # removed before them: under its pull they show the large residuals, not the pair (regime A
+    # without plan, houses 0-2: ATE 0.0368 / 0.0276 / 0.0311 -> 0.0346 / 0.0251 / 0.0298 m,
+    # 74 / 144 / 177 -> 12 / 2 / 59 closures pruned). With 3, ACES lost a true 7 m correction
+    # that seven recent closures disagreed with (relation error 0.0474 -> 0.0485 m); 10 keeps it.
+    prune_pair_contradictions: int = Field(10, ge=1)
     # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (every
     # attempt_every keyframes); every scan then runs *steps* of the queued work (a submap build,
     # a chunk of the correlative search of at most max_lookups_per_step field look-ups, the ICP

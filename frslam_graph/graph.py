@@ -298,9 +298,16 @@ class PoseGraph:
 
     def remove_factor(self, index: int, extra_iterations: int = 10) -> None:
         """Remove a factor added with :meth:`add_factor` by its iSAM2 index."""
-        if not 0 <= index < len(self._factors) or self._factors[index] is None:
-            raise FrslamError(f"no factor at index {index}", where="index")
-        self._update([], remove=[index])
+        self.remove_factors([index], extra_iterations)
+
+    def remove_factors(self, indices: list[int], extra_iterations: int = 10) -> None:
+        """Remove factors added with :meth:`add_factor` by their iSAM2 indices (one update)."""
+        for index in indices:
+            if not 0 <= index < len(self._factors) or self._factors[index] is None:
+                raise FrslamError(f"no factor at index {index}", where="index")
+        if len(set(indices)) != len(indices):
+            raise FrslamError(f"factor indices repeat: {sorted(indices)}", where="indices")
+        self._update([], remove=list(indices))
         self.settle(extra_iterations)
 
     def factor_index(self, factor: gtsam.NonlinearFactor) -> int:

@@ -1295,7 +1295,7 @@ class LoopCloser:
             )
         if settle:  # neighbouring keyframes may have moved relative to each other
             self._submaps.clear()
-        yield from self._prune(slam)
+        yield from self._prune(slam, closures if settle else None)
 
     def _residual_chi2(self, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (K, 3: x, y, theta of prediction⁻¹ ⊕ measurement) of the accepted closures at
@@ -1311,15 +1311,22 @@ class LoopCloser:
         chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(cov, r[:, :, None])[:, :, 0])
         return r, chi2
 
-    def _prune(self, slam: FRSlam) -> Steps[None]:
+    def _prune(self, slam: FRSlam, suspects: list[LoopClosure] | None = None) -> Steps[None]:
         """Remove accepted closures the rest of the graph disagrees with (a step generator): while
         the worst residual exceeds ``prune_chi2`` and ``prune_xy`` / ``prune_theta_deg`` at the
-        converged estimate (an LM batch first), remove that closure and settle again."""
+        converged estimate (an LM batch first), remove that closure and settle again.
+
+        ``suspects``: a confirmed pair that just entered as plain Gaussians. Under its pull the
+        older, robust closures show the large residuals, so "worst first" would remove them one
+        by one before the pair (a regime-A house: 134 good closures removed, then the aliased
+        pair). When at least ``prune_pair_contradictions`` older closures disagree at once, the
+        pair is removed first."""
         cfg = self.config
         if cfg.prune_chi2 <= 0.0:
             return
         graph = slam.graph
         converged = False
+        suspects = list(suspects or [])
         while self.closures:
             r, chi2 = self._residual_chi2(graph.estimates())
             big = (np.hypot(r[:, 0], r[:, 1]) > cfg.prune_xy) | (
@@ -1335,25 +1342,49 @@ class LoopCloser:
                 self.stats.batches += 1
                 converged = True
                 continue
-            lc = self.closures.pop(k)
-            yield _MS_PER_KEYFRAME_UPDATE * len(graph)
-            before = graph.estimates()
-            factor = self._factor_of.pop(id(lc), None)
-            idx = graph.factor_index(factor) if factor is not None else -1
-            if idx >= 0:
-                graph.remove_factor(idx, extra_iterations=0)
-            yield from self._settle(graph, 10)
-            if _moved(graph.estimates(), before) >= cfg.batch_on_correction:
-                yield _MS_PER_KEYFRAME_BATCH * len(graph)
-                graph.optimize_batch()
-                self.stats.batches += 1
-            self._dist = None
-            self._submaps.clear()
-            self._last_closure = max((c.query for c in self.closures), default=-1)
+            suspect = np.array([any(lc is s for s in suspects) for lc in self.closures])
+            others = int(np.count_nonzero((chi2 > cfg.prune_chi2) & ~suspect))
+            if suspect.any() and others >= cfg.prune_pair_contradictions:
+                worst = np.flatnonzero(suspect)
+                why = f"it contradicts {others} accepted closures"
+            else:
+                worst = np.array([k])
+                why = f"the graph disagrees (chi2 {chi2[k]:.0f})"
+            suspects = []
+            yield from self._remove(slam, worst.tolist(), r, chi2, why)
+
+    def _remove(
+        self, slam: FRSlam, which: list[int], r: np.ndarray, chi2: np.ndarray, why: str
+    ) -> Steps[None]:
+        """Remove the accepted closures at positions ``which`` of ``self.closures`` (residuals
+        ``r`` / ``chi2`` as judged) in one iSAM2 update, then settle (a step generator)."""
+        cfg = self.config
+        graph = slam.graph
+        yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+        before = graph.estimates()
+        removed = [self.closures[k] for k in which]
+        self.closures = [lc for k, lc in enumerate(self.closures) if k not in set(which)]
+        idx = [
+            graph.factor_index(f)
+            for f in (self._factor_of.pop(id(lc), None) for lc in removed)
+            if f is not None
+        ]
+        idx = [i for i in idx if i >= 0]
+        if idx:
+            graph.remove_factors(idx, extra_iterations=0)
+        yield from self._settle(graph, 10)
+        if _moved(graph.estimates(), before) >= cfg.batch_on_correction:
+            yield _MS_PER_KEYFRAME_BATCH * len(graph)
+            graph.optimize_batch()
+            self.stats.batches += 1
+        self._dist = None
+        self._submaps.clear()
+        self._last_closure = max((c.query for c in self.closures), default=-1)
+        for k, lc in zip(which, removed, strict=True):
             self.stats.pruned += 1
             slam.log_event(
                 "loop_removed",
-                f"keyframe {lc.query} on {lc.reference}: the graph disagrees (chi2 {chi2[k]:.0f})",
+                f"keyframe {lc.query} on {lc.reference}: {why}",
                 keyframe=lc.query,
                 reference=lc.reference,
                 residual=r[k].tolist(),

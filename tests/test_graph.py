@@ -138,6 +138,24 @@ def test_remove_priors_in_one_update_equals_one_by_one():
     assert g2.version == version and len(removals) == 1
 
 
+def test_remove_factors_in_one_update_and_bad_indices():
+    """Two loop-closure factors removed in one iSAM2 update leave the chain as before them;
+    a missing or repeated index is refused before anything is removed."""
+    g = chain(40)
+    before = g.estimates()
+    bad = [between_factor(key(k), key(k + 20), [5.0, 0.0, 0.0], ODO_COV) for k in (5, 10)]
+    idx = [g.add_factor(f) for f in bad]
+    assert np.abs(g.estimates() - before).max() > 0.1
+    with pytest.raises(FrslamError, match="repeat"):
+        g.remove_factors([idx[0], idx[0]])
+    with pytest.raises(FrslamError, match="no factor at index 9999"):
+        g.remove_factors([idx[0], 9999])
+    assert [g.factor_index(f) for f in bad] == idx  # nothing removed by the refused calls
+    g.remove_factors(idx)
+    assert [g.factor_index(f) for f in bad] == [-1, -1]
+    np.testing.assert_allclose(g.estimates(), before, atol=1e-6)
+
+
 def test_partial_priors():
     g = chain(n=60, drift=np.deg2rad(0.5), kernel="none")
     h_t = g.add_prior(59, [17.7, 0.0, 0.0], PRIOR_COV, kind="translation")

@@ -682,6 +682,38 @@ def test_closure_the_graph_disagrees_with_is_removed(prune):
         assert np.abs(est[:, 0] - np.arange(12.0)).max() > 0.1  # the aliased closure bent it
 
 
+@pytest.mark.parametrize("rule", [True, False])
+def test_confirmed_pair_contradicting_older_closures_is_removed_before_them(rule):
+    """Robust closures every metre tie a 40 m corridor; an aliased pair (2 m short) is
+    confirmed and enters as plain Gaussians. Under its pull the older closures show the large
+    residuals: "worst first" alone removes many good closures; with the pair rule (default
+    config) the pair goes first and every good closure stays."""
+    from types import SimpleNamespace
+
+    slam = _line_slam(40, 1.0)
+    lc_cfg = {} if rule else {"prune_pair_contradictions": 1000}
+    closer = LoopCloser(FRSlamConfig.from_dict({"loop_closure": lc_cfg}).loop_closure)
+    cov = np.diag([9e-4, 9e-4, 1e-4])
+    match = SimpleNamespace(inlier_fraction=0.9, ambiguity=0.1, coarse_score=0.9)
+    good = [LoopClosure(k, k + 10, np.array([10.0, 0.0, 0.0]), cov, match, np.zeros(3)) for k in range(30)]
+    for lc in good:
+        for _ in closer._add(slam, [lc], settle=False):
+            pass
+    assert closer.stats.pruned == 0
+    pair = [LoopClosure(k, k + 10, np.array([8.0, 0.0, 0.0]), cov, match, np.zeros(3)) for k in (14, 15)]
+    for _ in closer._add(slam, pair, settle=True):
+        pass
+    removed = [e for e in slam.log if e.kind == "loop_removed"]
+    kept = [lc for lc in good if any(lc is c for c in closer.closures)]
+    if rule:
+        assert kept == good and closer.stats.pruned == 2
+        assert [(e.data["reference"], e.keyframe) for e in removed] == [(14, 24), (15, 25)]
+        assert all("contradicts" in e.message for e in removed)
+        np.testing.assert_allclose(slam.graph.estimates()[:, 0], np.arange(40.0), atol=0.01)
+    else:
+        assert len(good) - len(kept) >= 5, len(kept)
+
+
 def test_an_idle_closer_plans_an_extra_candidate():
     """max_candidates_idle regions when nothing is queued (the work keeps up with the budget),
     max_candidates while older work waits."""
