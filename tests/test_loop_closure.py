@@ -682,6 +682,25 @@ def test_closure_the_graph_disagrees_with_is_removed(prune):
         assert np.abs(est[:, 0] - np.arange(12.0)).max() > 0.1  # the aliased closure bent it
 
 
+@pytest.mark.parametrize("settle_small", [0, 1])
+def test_small_closure_takes_settle_small_relinearising_updates(settle_small):
+    """A single closure that agrees with the estimate: its own iSAM2 update, then at most
+    settle_small forced relinearisations (default 0: the keyframe updates relinearise)."""
+    from types import SimpleNamespace
+
+    slam = _line_slam(12, 1.0)
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"settle_small": settle_small}}).loop_closure
+    closer = LoopCloser(cfg)
+    match = SimpleNamespace(inlier_fraction=0.9, ambiguity=0.1, coarse_score=0.9)
+    lc = LoopClosure(0, 10, np.array([10.02, 0.0, 0.0]), np.diag([9e-4, 9e-4, 1e-4]), match, np.zeros(3))
+    before = slam.graph.version
+    for _ in closer._add(slam, [lc], settle=False):
+        pass
+    assert closer.closures == [lc]
+    assert slam.graph.version - before == 1 + settle_small
+    assert FRSlamConfig().loop_closure.settle_small == 0
+
+
 @pytest.mark.parametrize("rule", [True, False])
 def test_confirmed_pair_contradicting_older_closures_is_removed_before_them(rule):
     """Robust closures every metre tie a 40 m corridor; an aliased pair (2 m short) is
