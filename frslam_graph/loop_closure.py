@@ -1266,7 +1266,7 @@ class LoopCloser:
         # with floor-plan priors in the graph, absolute corrections come from the plan: a
         # confirmed pair stays under the robust kernel too, so an aliased pair (two matches of
         # the same repeated structure) cannot overrule the priors
-        anchored = any(h.source.startswith("reloc:") for h in graph.priors())
+        anchored = graph.has_priors()
         for lc in closures:
             factor = self._factor(lc, robust=not settle or anchored)
             self._factor_of[id(lc)] = factor
