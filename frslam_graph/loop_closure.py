@@ -1332,11 +1332,11 @@ class LoopCloser:
         converged = False
         suspects = list(suspects or [])
         while self.closures:
-            r, chi2 = self._residual_chi2(graph.estimates())
+            r, chi2_all = self._residual_chi2(graph.estimates())
             big = (np.hypot(r[:, 0], r[:, 1]) > cfg.prune_xy) | (
                 np.abs(r[:, 2]) > np.deg2rad(cfg.prune_theta_deg)
             )
-            chi2 = np.where(big, chi2, 0.0)
+            chi2 = np.where(big, chi2_all, 0.0)
             k = int(np.argmax(chi2))
             if chi2[k] <= cfg.prune_chi2:
                 return
@@ -1355,7 +1355,7 @@ class LoopCloser:
                 worst = np.array([k])
                 why = f"the graph disagrees (chi2 {chi2[k]:.0f})"
             suspects = []
-            yield from self._remove(slam, worst.tolist(), r, chi2, why)
+            yield from self._remove(slam, worst.tolist(), r, chi2_all, why)
 
     def _remove(
         self, slam: FRSlam, which: list[int], r: np.ndarray, chi2: np.ndarray, why: str
@@ -1367,7 +1367,8 @@ class LoopCloser:
         yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
         removed = [self.closures[k] for k in which]
-        self.closures = [lc for k, lc in enumerate(self.closures) if k not in set(which)]
+        gone = set(which)
+        self.closures = [lc for k, lc in enumerate(self.closures) if k not in gone]
         idx = [
             graph.factor_index(f)
             for f in (self._factor_of.pop(id(lc), None) for lc in removed)
