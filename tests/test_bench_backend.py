@@ -60,3 +60,13 @@ def test_leaked_pairs_registration_decisions_with_corruption_marks(bench):
     assert bench._leaked(upd, [True, False, True]) == 1  # the replacement was a corrupted one
     assert bench._leaked(upd, [True, True, False]) == 1
     assert bench._leaked(upd, [True, False]) == -1  # the log does not pair with the calls
+
+
+@pytest.mark.parametrize(
+    ("worker", "label"),
+    [(True, "odometry worker + backend, one house at a time"), (False, "one core, sequential")],
+)
+def test_real_time_row_says_how_the_runs_were_made(bench, worker, label):
+    rows = [row("none", 0.5, odometry_worker=worker), row("plan", 0.010, odometry_worker=worker)]
+    text = bench.priors_section(rows, [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"]))
+    assert f"| median x real time ({label}) | 100.0 | 100.0 |" in text
