@@ -186,6 +186,9 @@ class FloorPlanUpdater:
         self._dist_at_scale = 0.0  # distance at the last scale refinement (or acceptance)
         self._scale_interval = 0.0  # metres to the next scale refinement (0: scale_refine_distance)
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
+        # while holding (on_finish), re-anchoring waits: [the registration whose priors are in the
+        # graph, the reasons], done once for all the plan's changes
+        self._held_reanchor: list | None = None
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
         self._attempts = 0
@@ -237,15 +240,30 @@ class FloorPlanUpdater:
             return  # (a registration accepted: the graph has keyframes)
         self._finish_steps(slam)
         last = slam.keyframe(len(slam.graph) - 1)
-        self._register(slam, last, "end of the run: final refinement")
-        self._finish_steps(slam)
-        if self.accepted is not None and cfg.scale_refine_distance > 0.0:
-            # the run's last word on the scale: any gain on the keyframe scans of the whole run
-            # (the margin keeps a run's plan from changing back and forth; there is no later)
-            self._refine_scale(slam, last, final=True)
-            if cfg.align_to_start:
-                self._align_to_start(slam, last)
+        # the registration, the scale and the move to the start may each change the plan: its
+        # priors are relocalised once, on the plan the run ends with (each re-anchoring
+        # relocalises every prior: ~7 s on a 200 m run)
+        self._held_reanchor = []
+        try:
+            self._register(slam, last, "end of the run: final refinement")
             self._finish_steps(slam)
+            if self.accepted is not None and cfg.scale_refine_distance > 0.0:
+                # the run's last word on the scale: any gain on the keyframe scans of the whole
+                # run (the margin keeps a run's plan from changing back and forth; no later)
+                self._refine_scale(slam, last, final=True)
+                if cfg.align_to_start:
+                    self._align_to_start(slam, last)
+        finally:
+            held, self._held_reanchor = self._held_reanchor, None
+        if held and self.accepted is not None:
+            # the accepted registration's own priors too: those placed while holding (the
+            # registration's first prior, the pending relocalisations) are on an earlier plan
+            involved = [
+                *held[0],
+                *([self.accepted] if all(p.id != self.accepted.id for p in held[0]) else []),
+            ]
+            self._reanchor(slam, involved, "; ".join(held[1]))
+        self._finish_steps(slam)
 
     def on_keyframe(self, slam, keyframe) -> None:
         """Called by FRSlam after each keyframe is in the graph."""
@@ -925,9 +943,19 @@ class FloorPlanUpdater:
         self.timings["relocalise"] += time.perf_counter() - t0
         return float(np.mean(soft))
 
-    def _reanchor(self, slam, previous: _Accepted, why: str | None = None) -> None:
-        """Remove the replaced registration's priors; relocalise those keyframes on the new plan."""
-        handles = self._remove_priors_of(slam, previous, why or f"registration {previous.id} replaced")
+    def _reanchor(self, slam, previous: _Accepted | list[_Accepted], why: str | None = None) -> None:
+        """Remove the replaced registration's priors (or those of several); relocalise those
+        keyframes on the accepted plan. While on_finish holds re-anchoring, only note it."""
+        prev = previous if isinstance(previous, list) else [previous]
+        why = why or f"registration {prev[0].id} replaced"
+        held = self._held_reanchor
+        if held is not None:  # on_finish: once, at the end, for every registration involved
+            if not held:
+                held[:] = [[], []]
+            held[0].extend(p for p in prev if all(p.id != q.id for q in held[0]))
+            held[1].append(why)
+            return
+        handles = [h for p in prev for h in self._remove_priors_of(slam, p, why)]
         scans = slam.keyframe_scans()[0]
         added = False
         for h in handles:

@@ -650,6 +650,41 @@ def test_final_refinement_fits_the_scale_the_schedule_left(sim):
     assert err < 0.95 * err_off
 
 
+def test_end_of_run_changes_of_the_plan_reanchor_its_priors_once(sim, monkeypatch):
+    """on_finish: the final registration, the scale fit and the move to the start may each
+    change the plan; its priors are relocalised once, on the plan the run ends with."""
+    plan, run, m = sim
+    base = {**NO_REFINEMENT, "scale_refine_distance": 1e4, "final_refine": True}
+    cfg = CFG.with_updates(updates=base)
+    upd = FloorPlanUpdater(plan, cfg.updates, register_fn=fixed_source(m))
+    removals: list[str] = []
+    remove = FloorPlanUpdater._remove_priors_of
+
+    def counted(self, slam, acc, why):
+        removals.append(why)
+        return remove(self, slam, acc, why)
+
+    def changes(name):
+        def change(self, slam, keyframe, final=False):
+            self._reanchor(slam, self.accepted, f"{name} changed")
+            return True
+
+        return change
+
+    monkeypatch.setattr(FloorPlanUpdater, "_remove_priors_of", counted)
+    slam = FRSlam(cfg, update_strategy=upd)
+    for scan in run.scans:
+        slam.add(scan)
+    removals.clear()
+    monkeypatch.setattr(FloorPlanUpdater, "_refine_scale", changes("scale"))
+    monkeypatch.setattr(FloorPlanUpdater, "_align_to_start", changes("start"))
+    n_priors = len(slam.graph.priors())
+    slam.finish()
+    assert removals and all(w.endswith("scale changed; start changed") for w in removals)
+    removed = [e for e in upd.log if e.kind == "prior_removed" and e.reason.endswith("start changed")]
+    assert len(removed) >= n_priors - 1 and len({e.keyframe for e in removed}) == len(removed)
+
+
 def test_finish_calls_the_strategys_on_finish_before_the_final_batch(sim):
     """FRSlam.finish calls an update strategy's optional on_finish(slam) once, before the final
     LM batch (a strategy without one is fine: plain callables are strategies too)."""
