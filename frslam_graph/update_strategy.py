@@ -145,6 +145,20 @@ class _Accepted:
     map_fit: float
 
 
+@dataclass
+class _HeldReanchor:
+    """Re-anchorings noted while on_finish holds them: the registrations whose priors are in the
+    graph and why (done once, at the end)."""
+
+    previous: list[_Accepted] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)
+
+    def note(self, previous: list[_Accepted], why: str | None = None) -> None:
+        self.previous.extend(p for p in previous if all(p.id != q.id for q in self.previous))
+        if why:
+            self.reasons.append(why)
+
+
 class FloorPlanUpdater:
     """Paper Alg. 3 as an ``FRSlam.update_strategy`` (see the module docstring)."""
 
@@ -186,9 +200,8 @@ class FloorPlanUpdater:
         self._dist_at_scale = 0.0  # distance at the last scale refinement (or acceptance)
         self._scale_interval = 0.0  # metres to the next scale refinement (0: scale_refine_distance)
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
-        # while holding (on_finish), re-anchoring waits: [the registration whose priors are in the
-        # graph, the reasons], done once for all the plan's changes
-        self._held_reanchor: list | None = None
+        # while on_finish holds re-anchoring, it is noted here and done once for all the changes
+        self._held_reanchor: _HeldReanchor | None = None
         self._backfill: list[int] = []  # past keyframes to relocalise on the accepted plan
         self._backfill_anchor = 0.0  # distance at the nearest keyframe with a prior (backfill)
         self._attempts = 0
@@ -243,7 +256,7 @@ class FloorPlanUpdater:
         # the registration, the scale and the move to the start may each change the plan: its
         # priors are relocalised once, on the plan the run ends with (each re-anchoring
         # relocalises every prior: ~7 s on a 200 m run)
-        self._held_reanchor = []
+        self._held_reanchor = _HeldReanchor()
         try:
             self._register(slam, last, "end of the run: final refinement")
             self._finish_steps(slam)
@@ -255,14 +268,11 @@ class FloorPlanUpdater:
                     self._align_to_start(slam, last)
         finally:
             held, self._held_reanchor = self._held_reanchor, None
-        if held and self.accepted is not None:
+        if held.reasons and self.accepted is not None:
             # the accepted registration's own priors too: those placed while holding (the
             # registration's first prior, the pending relocalisations) are on an earlier plan
-            involved = [
-                *held[0],
-                *([self.accepted] if all(p.id != self.accepted.id for p in held[0]) else []),
-            ]
-            self._reanchor(slam, involved, "; ".join(held[1]))
+            held.note([self.accepted])
+            self._reanchor(slam, held.previous, "; ".join(held.reasons))
         self._finish_steps(slam)
 
     def on_keyframe(self, slam, keyframe) -> None:
@@ -948,12 +958,8 @@ class FloorPlanUpdater:
         keyframes on the accepted plan. While on_finish holds re-anchoring, only note it."""
         prev = previous if isinstance(previous, list) else [previous]
         why = why or f"registration {prev[0].id} replaced"
-        held = self._held_reanchor
-        if held is not None:  # on_finish: once, at the end, for every registration involved
-            if not held:
-                held[:] = [[], []]
-            held[0].extend(p for p in prev if all(p.id != q.id for q in held[0]))
-            held[1].append(why)
+        if self._held_reanchor is not None:  # on_finish: once, at the end, for all involved
+            self._held_reanchor.note(prev, why)
             return
         handles = [h for p in prev for h in self._remove_priors_of(slam, p, why)]
         scans = slam.keyframe_scans()[0]
