@@ -308,8 +308,7 @@ class FloorPlanUpdater:
                 elif obstructed and grown >= 1.0:
                     reason = "progress obstructed"
                 elif (
-                    self._recheck
-                    and self.accepted is None
+                    self._recheck  # set only while no registration is accepted (_register)
                     and cfg.register_recheck_distance > 0.0
                     and self._dist - self._dist_at_attempt >= cfg.register_recheck_distance
                 ):
