@@ -114,22 +114,25 @@ T = TypeVar("T")
 # light glue (well under a millisecond).
 Steps = Generator[float, None, T]
 
-# Cost model: milliseconds on one core of the development machine (x86, 2020s); only needs to be
-# right within a factor of about two. Measured on ACES (tools/bench_aces.py).
-_MS_PER_LOOKUP = 3e-6  # correlative search: one likelihood-field look-up (gather + mean)
-_MS_PER_CELL_FIELD = 1.4e-5  # reference submap: distance transform with labels + field, per inner cell
-_MS_PER_CELL_FILL = 1e-6  # zero padding of the whole grid
-_MS_PER_CELL_DILATE = 2e-6  # max filter of the field (first use of a step size)
-_MS_PER_CELL_NEAREST = 5e-6  # nearest-point map for ICP, per cell
-_MS_PER_CELL_FREE = 3e-6  # free-space mask, per cell
-_MS_PER_POINT_NORMALS = 1.5e-3  # k-d tree and PCA normals, per reference point
-_MS_ICP = 0.6  # one ICP refinement: fixed part ...
-_MS_PER_POINT_ICP = 2e-4  # ... and per query point and iteration
+# Cost model: milliseconds on one core of the development machine (2-core x86 VM, 2020s); only
+# needs to be right within a factor of about two. Fitted to the measured medians per step on ACES
+# (180 beams) and regime-A houses (720 beams, 30 m; tools/bench_backend.py) as the geometric mean
+# of the two ratios (before: the ICP, field and free-space steps took 2-3.5x their estimate on
+# the houses, so a scan's 8 ms budget ran 15-30 ms of closure work).
+_MS_PER_LOOKUP = 4.3e-6  # correlative search: one likelihood-field look-up (gather + mean)
+_MS_PER_CELL_FIELD = 3.3e-5  # reference submap: distance transform with labels + field, per inner cell
+_MS_PER_CELL_FILL = 2.3e-6  # zero padding of the whole grid
+_MS_PER_CELL_DILATE = 3e-6  # max filter of the field (first use of a step size)
+_MS_PER_CELL_NEAREST = 3.6e-6  # nearest-point map for ICP, per cell
+_MS_PER_CELL_FREE = 6.5e-6  # free-space mask, per cell
+_MS_PER_POINT_NORMALS = 1.8e-3  # k-d tree and PCA normals, per reference point
+_MS_ICP = 1.1  # one ICP refinement: fixed part ...
+_MS_PER_POINT_ICP = 3.7e-4  # ... and per query point and iteration
 _MS_GATHER = 0.2  # submap points: fixed part ...
-_MS_PER_POINT_GATHER = 1.2e-4  # ... and per end point of the keyframes gathered
+_MS_PER_POINT_GATHER = 4.2e-5  # ... and per end point of the keyframes gathered
 _MS_PER_KEYFRAME_UPDATE = 0.01  # one relinearising iSAM2 update, per keyframe of the graph
-_MS_PER_KEYFRAME_BATCH = 0.04  # LM batch and iSAM2 rebuild, per keyframe of the graph
-_MS_FINE = 1.5  # finer level of the correlative search (a few hundred poses)
+_MS_PER_KEYFRAME_BATCH = 0.06  # LM batch and iSAM2 rebuild, per keyframe of the graph
+_MS_FINE = 2.3  # finer level of the correlative search (a few hundred poses)
 
 
 # ----------------------------------------------------------------------------- geometry helpers

@@ -70,3 +70,18 @@ def test_real_time_row_says_how_the_runs_were_made(bench, worker, label):
     rows = [row("none", 0.5, odometry_worker=worker), row("plan", 0.010, odometry_worker=worker)]
     text = bench.priors_section(rows, [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"]))
     assert f"| median x real time ({label}) | 100.0 | 100.0 |" in text
+
+
+def test_latency_rows_summarise_each_runs_per_scan_latency(bench):
+    lat = {"lat_median_ms": 4.0, "lat_p99_ms": 18.0, "lat_max_ms": 90.0, "lat_over_20ms": 12}
+    rows = [
+        row("none", 0.5, **lat),
+        row("none", 0.5, house="h1", **{**lat, "lat_p99_ms": 22.0, "lat_max_ms": 40.0, "lat_over_20ms": 30}),
+        row("plan", 0.010, **{**lat, "lat_max_ms": 700.0}),
+        row("plan", 0.010, house="h1", **lat),
+    ]
+    text = bench.priors_section(rows, [], Namespace(length=200.0, speed=1.0, wrong_seeds=1, regimes=["C"]))
+    assert "| per-scan latency ms, median of the runs' medians | 4.0 | 4.0 | — | — |" in text
+    assert "| per-scan latency ms, median of the runs' p99 | 20.0 | 18.0 | — | — |" in text
+    assert "| per-scan latency ms, worst run's max | 90.0 | 700.0 | — | — |" in text
+    assert "| scans over 20 ms, median of the runs | 21.0 | 12.0 | — | — |" in text

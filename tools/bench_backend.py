@@ -32,6 +32,10 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    Houses run in parallel (``--workers``, ProcessPoolExecutor), each run on one core; with
    ``--workers 1`` one house at a time, each run with the odometry worker on the second core
    (``FRSlam.process``'s offline default), so its × real time is the library's offline figure.
+   Each run also gives the per-scan latency a robot stack's ``add_scan`` would see on these
+   houses (odometry + backend per scan, the final refinement and LM batch excluded): the median
+   and p99 of each run, the worst scan, the scans over 20 ms (section 1's room has no plan and
+   few loop closures; here registrations, relocalisations and closures all run).
 3. **ACES** (``--aces``): relation error of Kümmerle et al. without a floor plan, with and
    without loop closure (``tools/bench_aces.py``'s ``run``), next to the published figures.
 
@@ -336,6 +340,7 @@ def house_task(task: dict) -> dict:
             res = slam.process(scans, parallel=None if task.get("odometry_worker") else False)
             wall = time.perf_counter() - t0
             stats, _ = ate(res.trajectory, run.ground_truth)
+            lat_ms = 1e3 * np.asarray(res.latencies)  # per scan, what add_scan would take
             row = {
                 "regime": regime,
                 "house": task["plan"].stem,
@@ -347,6 +352,10 @@ def house_task(task: dict) -> dict:
                 "run_s": wall,
                 "xrt": float(res.realtime_factor),
                 "odometry_worker": bool(res.parallel),
+                "lat_median_ms": float(np.median(lat_ms)),
+                "lat_p99_ms": float(np.percentile(lat_ms, 99)),
+                "lat_max_ms": float(lat_ms.max()),
+                "lat_over_20ms": int(np.count_nonzero(lat_ms > 20.0)),
             }
             row.update(_updater_counts(slam.update_strategy if mode != "none" else None))
             if wrong is not None:
@@ -538,6 +547,18 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
             + " | ".join(f"{statistics.median(xrt[k]):.1f}" if xrt[k] else "—" for k in MODES)
             + " |"
         )
+        lat = {m: [r for r in rr if r["mode"] == m and "lat_p99_ms" in r] for m in MODES}
+        for name, key, fn in (
+            ("per-scan latency ms, median of the runs' medians", "lat_median_ms", statistics.median),
+            ("per-scan latency ms, median of the runs' p99", "lat_p99_ms", statistics.median),
+            ("per-scan latency ms, worst run's max", "lat_max_ms", max),
+            ("scans over 20 ms, median of the runs", "lat_over_20ms", statistics.median),
+        ):
+            lines.append(
+                f"| {name} | "
+                + " | ".join(f"{fn(r[key] for r in lat[k]):.1f}" if lat[k] else "—" for k in MODES)
+                + " |"
+            )
         lines += [
             f"| median none / plan | | {statistics.median(ratios):.2f}x | | |" if ratios else "",
             "",
