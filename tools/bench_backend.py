@@ -701,7 +701,10 @@ def main() -> None:
         print(text, flush=True)
         parts.append(text)
         for r in rows:
-            for k in ("ate", "route_m", "run_s", "xrt", "prior_added", "prior_rejected", "prior_removed"):
+            for k in (
+                *("ate", "route_m", "run_s", "xrt", "prior_added", "prior_rejected", "prior_removed"),
+                *("lat_median_ms", "lat_p99_ms", "lat_max_ms", "lat_over_20ms"),
+            ):
                 if k in r:
                     mode = r["mode"] if "wseed" not in r else f"wrong/seed {r['wseed']}"
                     csv_rows.append([f"priors/{r['regime']}", r["house"], mode, k, f"{r[k]:.6g}"])
