@@ -131,3 +131,37 @@ def test_usage_errors_exit_2_without_traceback(capsys):
 def test_error_message_with_brackets_is_printed_verbatim(tmp_path, capsys):
     assert main(["map", "show", str(tmp_path / "map[1].yaml")]) == 2
     assert "map[1].yaml" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["run", "compare"])
+def test_bad_ground_truth_or_config_stops_before_the_run(small_log, tmp_path, capsys, monkeypatch, command):
+    """Every input is checked before the (possibly long) run: a malformed ground truth, a
+    missing one or a config with a mistyped field exits 2 naming the file and the line / field,
+    without processing the recording (before, a bad --ground-truth failed after the run and its
+    outputs were lost)."""
+    import frslam_graph.offline as offline
+
+    log, _ = small_log
+    runs = []
+    monkeypatch.setattr(offline, "run_recording", lambda *a, **k: runs.append(1))
+    bad_gt = tmp_path / "bad.tum"
+    bad_gt.write_text("1000.0 1 2\n")
+    bad_cfg = tmp_path / "cfg.yaml"
+    bad_cfg.write_text("odometry:\n  voxel_sise: 0.2\n")
+    room = tmp_path / "room.json"
+    room.write_text(
+        json.dumps({"rooms": [{"id": "r", "type": "office", "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]})
+    )
+    plan = ["--floor-plan", str(room)] if command == "compare" else []
+    cases = [
+        (["--ground-truth", str(bad_gt)], ["bad.tum", "line 1", "expected 8 numbers"]),
+        (["--ground-truth", str(tmp_path / "nothere.tum")], ["nothere.tum", "no such file"]),
+        (["--config", str(bad_cfg)], ["cfg.yaml", "odometry.voxel_sise"]),
+    ]
+    for extra, words in cases:
+        out = tmp_path / f"out{len(runs)}"
+        assert main([command, str(log), *plan, *extra, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), err
+        assert "Traceback" not in err
+    assert not runs

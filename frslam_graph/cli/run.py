@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
@@ -25,11 +24,9 @@ def _progress() -> Progress:
     )
 
 
-def _run_one(recording_path: Path, plan, config, label: str, progress: Progress, sequential: bool = False):
-    from frslam_graph.datasets import open_recording
+def _run_one(rec, plan, config, label: str, progress: Progress, sequential: bool = False):
     from frslam_graph.offline import run_recording
 
-    rec = open_recording(recording_path)
     task = progress.add_task(label, total=len(rec), rate="")
     import time
 
@@ -44,17 +41,27 @@ def _run_one(recording_path: Path, plan, config, label: str, progress: Progress,
         rec, floor_plan=plan, config=config, progress=tick, parallel=False if sequential else None
     )
     progress.update(task, completed=len(rec))
-    return rec, run
+    return run
 
 
-def _ground_truth(rec, ground_truth: Path | None) -> np.ndarray | None:
-    from frslam_graph.metrics import load_tum
+def _inputs(recording: Path, config: Path | None, ground_truth: Path | None, relations: Path | None):
+    """Open and check every input before the run (which may take long): the recording, the
+    configuration, the ground truth (``--ground-truth`` or the recording's own) and the relations.
+    A bad one is reported now, not after the run with its outputs lost."""
+    from frslam_graph.config import FRSlamConfig
+    from frslam_graph.datasets import open_recording
+    from frslam_graph.metrics import load_relations, load_tum
 
+    rec = open_recording(recording)
+    cfg = FRSlamConfig.load(config) if config is not None else None
     if ground_truth is not None:
-        return load_tum(ground_truth)
-    if getattr(rec, "ground_truth_path", None) is not None:
-        return rec.ground_truth()
-    return None
+        gt = load_tum(ground_truth)
+    elif getattr(rec, "ground_truth_path", None) is not None:
+        gt = rec.ground_truth()
+    else:
+        gt = None
+    rel = load_relations(relations) if relations is not None else None
+    return rec, cfg, gt, rel
 
 
 def _load_plan(path: Path | None):
@@ -86,17 +93,14 @@ def run(
     ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
-    from frslam_graph.metrics import load_relations
     from frslam_graph.offline import write_outputs
     from frslam_graph.viz import save_trajectory_png
 
     plan = None if no_priors else _load_plan(floor_plan)
-    rel = load_relations(relations) if relations is not None else None
+    rec, cfg, gt, rel = _inputs(recording, config, ground_truth, relations)
     with _progress() as progress:
-        rec, result = _run_one(
-            recording, plan, config, "with priors" if plan is not None else "no priors", progress, sequential
-        )
-    gt = _ground_truth(rec, ground_truth)
+        label = "with priors" if plan is not None else "no priors"
+        result = _run_one(rec, plan, cfg, label, progress, sequential)
     write_outputs(result, out, gt, rel)
     save_trajectory_png(
         out / "trajectory.png",
@@ -125,16 +129,14 @@ def compare(
     ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
-    from frslam_graph.metrics import load_relations
     from frslam_graph.offline import write_outputs
     from frslam_graph.viz import save_trajectory_png
 
     plan = _load_plan(floor_plan)
-    rel = load_relations(relations) if relations is not None else None
+    rec, cfg, gt, rel = _inputs(recording, config, ground_truth, relations)
     with _progress() as progress:
-        rec, without = _run_one(recording, None, config, "without priors", progress, sequential)
-        _, with_ = _run_one(recording, plan, config, "with priors", progress, sequential)
-    gt = _ground_truth(rec, ground_truth)
+        without = _run_one(rec, None, cfg, "without priors", progress, sequential)
+        with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
     write_outputs(without, out / "without_priors", gt, rel)
     write_outputs(with_, out / "with_priors", gt, rel)
     save_trajectory_png(
