@@ -32,6 +32,8 @@ class RunOutput:
     result: SlamResult
     files: dict[str, Path] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
+    #: what the reader saw (records skipped or flagged and where; None for a plain iterable)
+    recording_stats: Any = None
 
 
 def run_recording(
@@ -55,7 +57,7 @@ def run_recording(
                 progress(i + 1)
 
     result = slam.process(scans(), batch=True, parallel=parallel)
-    return RunOutput(slam, result)
+    return RunOutput(slam, result, recording_stats=getattr(recording, "stats", None))
 
 
 def _jsonable(value: Any) -> Any:
@@ -121,6 +123,15 @@ def write_outputs(
         "decisions": kinds,
         "floor_plan": run.slam.floor_plan is not None,
     }
+    st = run.recording_stats
+    if st is not None:  # records the reader skipped or flagged: kept with the results
+        metrics["recording"] = {
+            "skipped": dict(st.skipped),
+            "flagged": dict(st.problems),
+            "first_at": dict(st.first),
+            "invalid_beams": int(st.invalid_beams),
+            "beams": int(st.beams),
+        }
     metrics.update(evaluate(res.trajectory, ground_truth, relations))
     files["metrics"] = out / "metrics.json"
     files["metrics"].write_text(json.dumps(_jsonable(metrics), indent=1))

@@ -165,3 +165,22 @@ def test_bad_ground_truth_or_config_stops_before_the_run(small_log, tmp_path, ca
         assert all(w in err for w in words), err
         assert "Traceback" not in err
     assert not runs
+
+
+def test_reader_warnings_are_one_line_and_kept_in_the_metrics(small_log, tmp_path, capsys):
+    """A record the reader skips is reported as one 'warning:' line naming the file and line (no
+    Python source line) and counted in metrics.json, so it is not lost with the terminal."""
+    log, _ = small_log
+    lines = log.read_text().splitlines()
+    bad = tmp_path / "with_bad_record.clf"
+    bad.write_text("\n".join([*lines[:50], "FLASER 180 1.0 2.0 3.0", *lines[50:]]) + "\n")
+    out = tmp_path / "run"
+    assert main(["run", str(bad), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    warn = [x for x in err.splitlines() if "skipped" in x]
+    assert len(warn) == 1 and warn[0].startswith("warning: ") and "with_bad_record.clf:51" in warn[0]
+    assert "enumerate" not in err and "RecordingWarning" not in err
+    rec = json.loads((out / "metrics.json").read_text())["recording"]
+    assert sum(rec["skipped"].values()) == 1
+    assert list(rec["first_at"].values()) == ["with_bad_record.clf:51"]
+    assert rec["beams"] == 180 * (len(lines)) and 0 <= rec["invalid_beams"] <= rec["beams"]

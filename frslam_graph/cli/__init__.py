@@ -8,10 +8,12 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+import warnings
 
 from rich.markup import escape
 
 from frslam_graph.cli.app import app, err_console
+from frslam_graph.datasets.recording import RecordingWarning
 from frslam_graph.errors import FrslamError
 
 # One module per command group; each adds its commands to ``app`` when imported.
@@ -34,6 +36,18 @@ for _name in COMMAND_MODULES:
         importlib.import_module(f"frslam_graph.cli.{_name}")
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A reader's warning (records skipped or repaired, naming the file and where) as one
+    yellow line; any other warning as Python prints it."""
+    if issubclass(category, RecordingWarning):
+        err_console.print(f"[bold yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+    else:
+        _default_show(message, category, filename, lineno, file, line)
+
+
+_default_show = warnings.showwarning
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line.
 
@@ -42,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     exit code 2; any other exception is a bug and keeps its traceback.
     """
     try:
-        app(args=argv, standalone_mode=True)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            app(args=argv, standalone_mode=True)
     except FrslamError as exc:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
