@@ -601,9 +601,15 @@ class FloorPlanUpdater:
         if reg.score < cfg.min_score:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
         if reg.ambiguity > cfg.max_ambiguity:
-            picked = self._disambiguate(slam, reg, nums)
+            picked = self._disambiguate(slam, reg, grid, nums)
             if picked is None:
-                return reject(f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}")
+                why = f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}"
+                if "placements_map_fit" in nums:
+                    why += (
+                        f"; no placement's walls explain the map ({nums['placements_map_fit']:.0%} < "
+                        f"{cfg.min_map_fit:.0%})"
+                    )
+                return reject(why)
             reg = picked
         try:
             plan_map = reg.apply(self.plan)
@@ -725,25 +731,35 @@ class FloorPlanUpdater:
         self._next_id += 1
         return acc, relocaliser, reloc
 
-    def _disambiguate(self, slam, reg, nums: dict[str, float]):
+    def _disambiguate(self, slam, reg, grid, nums: dict[str, float]):
         """An ambiguous registration: its placement and the registration's runner-up placements
         (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
         its own (which a drifted map cannot bias). Returns the registration of the placement that
         explains them clearly best (by ``disambiguate_margin``, and at least ``min_scan_fit``),
-        else None; ``nums`` get the two best fits."""
+        else None; ``nums`` get the two best fits.
+
+        The placement picked is judged next by its map fit (``min_map_fit``, the first check after
+        this one; no registration is accepted here). When no placement passes it, the verdict is a
+        rejection whichever one the scans would pick: the scan fits (most of the cost, ~1-2 s
+        with the plan of another building) are skipped and ``nums["placements_map_fit"]`` says why."""
         cfg = self.config
         alts = [np.asarray(a["matrix"], float) for a in (reg.details or {}).get("alternatives", [])]
         if cfg.disambiguate_margin <= 0.0 or not alts or self.accepted is not None:
             return None
         matrices = [np.asarray(reg.matrix, float), *alts]
-        fits = []
+        relocalisers: list[Relocaliser | None] = []
         for m in matrices:
             try:
-                relocaliser = Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params)
+                relocalisers.append(Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params))
             except (FrslamError, ValueError):
-                fits.append(0.0)
-                continue
-            fits.append(self._scan_fit(slam, relocaliser))
+                relocalisers.append(None)  # the picked one would be "unusable": rejected too
+        occ = _occupied_points(grid)
+        fit_tol = self._tolerances()[0]
+        map_fits = [r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers]
+        if max(map_fits) < cfg.min_map_fit:
+            nums["placements_map_fit"] = max(map_fits)
+            return None
+        fits = [self._scan_fit(slam, r) if r is not None else 0.0 for r in relocalisers]
         order = np.argsort(fits)[::-1]
         best, second = float(fits[order[0]]), float(fits[order[1]])
         nums.update(ambiguous_scan_fit=best, runner_up_scan_fit=second, placement=int(order[0]))

@@ -808,6 +808,42 @@ def test_ambiguous_registration_is_resolved_by_the_keyframe_scans(sim):
             assert all("ambiguous" in e.reason for e in regs)
 
 
+def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_scan_fits(sim, monkeypatch):
+    """An ambiguous registration of another building's plan: its placement and runner-up both
+    fail the map-fit check that follows the disambiguation, so the rejection is certain; the
+    keyframe-scan fits (1-2 s per attempt on a house) are not run, the reason says so, and the
+    run is the same as if every attempt had been rejected outright."""
+    _, run, m = sim
+    other, mo = _other_building(run)
+    source = ambiguous_source(mo, [rotated_about_centre(other, mo, angle=np.pi / 2)])
+    cfg = CFG.updates.model_copy(update=NO_REFINEMENT)
+    fits = []
+    scan_fit = FloorPlanUpdater._scan_fit
+    monkeypatch.setattr(
+        FloorPlanUpdater, "_scan_fit", lambda self, slam, rel: fits.append(1) or scan_fit(self, slam, rel)
+    )
+    upd = FloorPlanUpdater(other, cfg, register_fn=source)
+    slam, res = run_slam(run, upd)
+    regs = upd.events("register")
+    assert regs and not any(e.accepted for e in regs) and not slam.graph.priors()
+    assert all("no placement's walls explain the map" in e.reason for e in regs)
+    assert all(e.numbers["placements_map_fit"] < cfg.min_map_fit for e in regs)
+    assert not fits
+    # the same run as one whose every registration attempt is rejected outright
+    monkeypatch.setattr(FloorPlanUpdater, "_disambiguate", lambda self, slam, reg, grid, nums: None)
+    _, res_rejected = run_slam(run, FloorPlanUpdater(other, cfg, register_fn=source))
+    np.testing.assert_array_equal(res.trajectory, res_rejected.trajectory)
+    # a placement that fits the map keeps the scan fits (the right plan, mirrored and right)
+    monkeypatch.undo()
+    plan = sim[0]
+    upd = FloorPlanUpdater(
+        plan, cfg, register_fn=ambiguous_source(rotated_about_centre(plan, m, mirror=True), [m])
+    )
+    run_slam(run, upd)
+    first = next(e for e in upd.events("register") if e.accepted)
+    assert "ambiguous_scan_fit" in first.numbers and "placements_map_fit" not in first.numbers
+
+
 def test_keyframe_scans_reject_the_plan_of_another_building(sim):
     """min_scan_fit: with the map checks let through (as a plan of another building can pass them
     by a small margin) and quick rechecks, the current-scan check alone lets the other building in
