@@ -184,3 +184,28 @@ def test_reader_warnings_are_one_line_and_kept_in_the_metrics(small_log, tmp_pat
     assert sum(rec["skipped"].values()) == 1
     assert list(rec["first_at"].values()) == ["with_bad_record.clf:51"]
     assert rec["beams"] == 180 * (len(lines)) and 0 <= rec["invalid_beams"] <= rec["beams"]
+
+
+def test_compare_keeps_the_first_runs_outputs_when_the_second_fails(small_log, tmp_path, monkeypatch):
+    """compare writes the run without priors before starting the one with them: a failure in
+    the second run (here a simulated crash) does not lose the first run's outputs."""
+    import frslam_graph.offline as offline
+
+    log, gt = small_log
+    room = tmp_path / "room.json"
+    room.write_text(
+        json.dumps({"rooms": [{"id": "r", "type": "office", "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]})
+    )
+    real = offline.run_recording
+
+    def second_fails(recording, floor_plan=None, **kw):
+        if floor_plan is not None:
+            raise RuntimeError("simulated crash in the run with priors")
+        return real(recording, floor_plan=floor_plan, **kw)
+
+    monkeypatch.setattr(offline, "run_recording", second_fails)
+    out = tmp_path / "cmp"
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        main(["compare", str(log), "--floor-plan", str(room), "--ground-truth", str(gt), "--out", str(out)])
+    assert (out / "without_priors" / "trajectory.tum").exists()
+    assert json.loads((out / "without_priors" / "metrics.json").read_text())["ate"]["rmse"] < 0.2

@@ -136,8 +136,8 @@ def compare(
     rec, cfg, gt, rel = _inputs(recording, config, ground_truth, relations)
     with _progress() as progress:
         without = _run_one(rec, None, cfg, "without priors", progress, sequential)
+        write_outputs(without, out / "without_priors", gt, rel)  # kept whatever the second run does
         with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
-    write_outputs(without, out / "without_priors", gt, rel)
     write_outputs(with_, out / "with_priors", gt, rel)
     save_trajectory_png(
         out / "compare.png",
