@@ -252,8 +252,7 @@ class PoseGraph:
                 raise FrslamError(f"prior {h.id} is not in the graph", where="handle")
         if not live:
             return []
-        self._update([], remove=[h.factor_index for h in live])
-        self.settle(extra_iterations)
+        self.remove_factors([h.factor_index for h in live], extra_iterations)
         for h in live:
             h.active = False
         return live
