@@ -600,6 +600,7 @@ class FloorPlanUpdater:
             return reject(f"registration failed: {reg.reason or 'no match'}")
         if reg.score < cfg.min_score:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
+        relocaliser = None  # the disambiguation's, when it picked a placement: built once
         if reg.ambiguity > cfg.max_ambiguity:
             picked = self._disambiguate(slam, reg, grid, nums)
             if picked is None:
@@ -610,10 +611,11 @@ class FloorPlanUpdater:
                         f"{cfg.min_map_fit:.0%})"
                     )
                 return reject(why)
-            reg = picked
+            reg, relocaliser = picked
         try:
-            plan_map = reg.apply(self.plan)
-            relocaliser = Relocaliser(plan_map, self.params)
+            if relocaliser is None:
+                relocaliser = Relocaliser(reg.apply(self.plan), self.params)
+            plan_map = relocaliser.plan
         except (FrslamError, ValueError) as exc:
             return reject(f"registered plan unusable: {exc}")
         occ = _occupied_points(grid)
@@ -735,8 +737,8 @@ class FloorPlanUpdater:
         """An ambiguous registration: its placement and the registration's runner-up placements
         (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
         its own (which a drifted map cannot bias). Returns the registration of the placement that
-        explains them clearly best (by ``disambiguate_margin``, and at least ``min_scan_fit``),
-        else None; ``nums`` get the two best fits.
+        explains them clearly best (by ``disambiguate_margin``, and at least ``min_scan_fit``)
+        with its relocaliser, else None; ``nums`` get the two best fits.
 
         The placement picked is judged next by its map fit (``min_map_fit``, the first check after
         this one; no registration is accepted here). When no placement passes it, the verdict is a
@@ -755,9 +757,9 @@ class FloorPlanUpdater:
                 relocalisers.append(None)  # the picked one would be "unusable": rejected too
         occ = _occupied_points(grid)
         fit_tol = self._tolerances()[0]
-        map_fits = [r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers]
-        if max(map_fits) < cfg.min_map_fit:
-            nums["placements_map_fit"] = max(map_fits)
+        best_map_fit = max(r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers)
+        if best_map_fit < cfg.min_map_fit:
+            nums["placements_map_fit"] = best_map_fit
             return None
         fits = [self._scan_fit(slam, r) if r is not None else 0.0 for r in relocalisers]
         order = np.argsort(fits)[::-1]
@@ -766,13 +768,14 @@ class FloorPlanUpdater:
         if best < max(cfg.min_scan_fit, second + cfg.disambiguate_margin):
             return None
         nums["scan_fit"] = best
-        return type(reg).from_matrix(
+        picked = type(reg).from_matrix(
             matrices[order[0]],
             score=reg.score,
             ambiguity=second / max(best, 1e-9),
             method=f"{reg.method}+scans",
             rooms=reg.rooms,
         )
+        return picked, relocalisers[order[0]]
 
     def _refine(self, slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better) -> None:
         """An agreeing registration explains the data as well or better: the same placement fitted
