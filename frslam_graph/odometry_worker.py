@@ -9,6 +9,14 @@ wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.Odo
 None for an out-of-order stamp) per scan, in order; the results are bit-identical to running the
 same ScanOdometry in-process. Frames and units are those of :mod:`frslam_graph.odometry`.
 
+The stateless part of the odometry (:meth:`ScanOdometry.prepare
+<frslam_graph.odometry.ScanOdometry.prepare>`: valid points, voxelisation, scan geometry) goes to
+whichever stage is the lighter one: given a ``prepare`` function, :meth:`OdometryWorker.run`
+applies it in the caller to the next chunk while the caller's own work per scan is below the
+worker's (a light backend), and leaves it to the worker otherwise (loop closure and floor-plan
+priors), by moving averages of both stages' times. Either way the worker's results are the same
+(prepare is deterministic and stateless); only the speed depends on the split.
+
 An input error raised by the odometry in the worker (e.g. a non-finite stamp) is re-raised in the
 caller after the results of the scans before it, exactly where the in-process run would raise.
 The worker is started with ``fork`` (Linux), so nothing is pickled at start-up and it costs
@@ -25,14 +33,14 @@ import sys
 import time
 import traceback
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
 
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import FrslamError
-from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
+from frslam_graph.odometry import OdometryResult, OdometryStats, PreparedScan, ScanOdometry
 
 #: one scan for the worker: stamp (s), points (M, 2) in base_link or their PreparedScan, wheel
 #: pose (x, y, theta) in odom or None
@@ -70,12 +78,15 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
-        results: list[tuple[OdometryResult | None, float]] = []
+        results: list[tuple[OdometryResult | None, float, float]] = []
         try:
             for stamp, points, odom in chunk:
                 t0 = time.perf_counter()
+                if not isinstance(points, PreparedScan):  # what process() would do first
+                    points = odometry.prepare(points)
+                t1 = time.perf_counter()
                 res = odometry.process(stamp, points, odom)
-                results.append((res, time.perf_counter() - t0))
+                results.append((res, time.perf_counter() - t0, t1 - t0))
         except FrslamError as exc:  # bad input: the caller raises it after the earlier results
             outbox.put(("results", results))
             outbox.put(("error", exc))
@@ -90,10 +101,12 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
 class OdometryWorker:
     """A ScanOdometry in a forked process (see module docstring); use as a context manager.
 
-    ``run(items)`` yields ``(item, result, seconds)`` for each ``item`` of ``items`` (a ScanInput
-    followed by anything the caller wants back with it), in order, keeping at most
-    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it.
-    ``stats`` holds the worker's :class:`OdometryStats` once ``run`` is exhausted.
+    ``run(items, prepare)`` yields ``(item, result, seconds)`` for each ``item`` of ``items`` (a
+    ScanInput followed by anything the caller wants back with it), in order, keeping at most
+    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it
+    (its prepare included, wherever it ran). ``stats`` holds the worker's
+    :class:`OdometryStats` once ``run`` is exhausted; ``prepared_here`` / ``prepared_there``
+    count the scans whose prepare ran in the caller / in the worker.
     """
 
     def __init__(self, config: OdometryConfig, chunk: int = 16, window: int = 4, poll_s: float = 1.0):
@@ -101,6 +114,10 @@ class OdometryWorker:
             raise ValueError("chunk and window must be >= 1")
         self.chunk, self.window, self.poll_s = chunk, window, poll_s
         self.stats: OdometryStats | None = None
+        self.prepared_here = self.prepared_there = 0
+        # moving averages (s per scan) of each stage's own work: the worker's odometry without
+        # prepare, and the caller's time between taking one result and asking for the next
+        self._odometry_s = self._caller_s = None
         ctx = mp.get_context("fork")
         self._inbox, self._outbox = ctx.Queue(), ctx.Queue()
         self._proc = ctx.Process(
@@ -143,20 +160,41 @@ class OdometryWorker:
             raise RuntimeError(f"the odometry worker failed:\n{payload}")
         return payload
 
+    def _prepare_here(self) -> bool:
+        """Prepare the next chunk in the caller unless the caller's own work per scan (the
+        backend) is at least the worker's (its odometry without prepare): with b the backend's and
+        w the odometry's seconds per scan and p prepare's, the pipeline takes max(b + p, w) per
+        scan with prepare here and max(b, w + p) there, and the latter is smaller iff b >= w."""
+        if self._odometry_s is None or self._caller_s is None:
+            return True
+        return self._caller_s < self._odometry_s
+
     def run(
-        self, items: Iterable[tuple[Any, ...]]
+        self, items: Iterable[tuple[Any, ...]], prepare: Callable[[np.ndarray], Any] | None = None
     ) -> Iterator[tuple[tuple[Any, ...], OdometryResult | None, float]]:
+        """See the class docstring. ``prepare``: the odometry's stateless preparation of an item's
+        points (``ScanOdometry.prepare``), run in this process while the worker is the slower
+        stage; None = always in the worker."""
         source = iter(items)
-        waiting: deque[tuple[Any, ...]] = deque()  # items sent, results not yet yielded
+        waiting: deque[tuple[tuple[Any, ...], float]] = deque()  # (item, prepare s) sent, not yielded
         in_flight, exhausted = 0, False
         while True:
             while not exhausted and in_flight < self.window:
                 chunk = []
+                here = prepare is not None and self._prepare_here()
                 for item in source:
-                    waiting.append(item)
-                    chunk.append(item[:3])
+                    stamp, points, odom = item[:3]
+                    t0 = time.perf_counter()
+                    if here:
+                        points = prepare(points)
+                    waiting.append((item, time.perf_counter() - t0 if here else 0.0))
+                    chunk.append((stamp, points, odom))
                     if len(chunk) == self.chunk:
                         break
+                if here:
+                    self.prepared_here += len(chunk)
+                else:
+                    self.prepared_there += len(chunk)
                 if chunk:
                     self._inbox.put(chunk)
                     in_flight += 1
@@ -167,9 +205,18 @@ class OdometryWorker:
                 break
             results = self._receive()
             in_flight -= 1
-            for result, seconds in results:
-                yield waiting.popleft(), result, seconds
+            for result, seconds, worker_prepare_s in results:
+                item, prepare_s = waiting.popleft()
+                self._odometry_s = _average(self._odometry_s, seconds - worker_prepare_s)
+                t0 = time.perf_counter()
+                yield item, result, seconds + prepare_s
+                self._caller_s = _average(self._caller_s, time.perf_counter() - t0)
         self.stats = self._receive()  # or the error that ended the last chunk after its results
+
+
+def _average(mean: float | None, x: float, weight: float = 1.0 / 64.0) -> float:
+    """Exponential moving average (about the last 64 scans)."""
+    return x if mean is None else mean + weight * (x - mean)
 
 
 __all__ = ["OdometryWorker", "ScanInput", "available"]

@@ -550,7 +550,7 @@ class FRSlam:
         cores). None = whenever possible: a fresh instance (no scans yet) where
         :func:`~frslam_graph.odometry_worker.available` holds. Afterwards this instance takes no
         more scans (its own odometry did not run). ``SlamResult.latencies`` are then the sum of
-        both stages' seconds per scan (what ``add_scan`` would take, without preparing the scan).
+        both stages' seconds per scan (what ``add_scan`` would take).
         """
         from frslam_graph import odometry_worker
 
@@ -612,14 +612,14 @@ class FRSlam:
 
     def _odometry_in_worker(self, recording: Iterable[Any], worker) -> Iterator[tuple]:
         """The same from an :class:`~frslam_graph.odometry_worker.OdometryWorker`; the stateless
-        part of the odometry (prepare) stays in this process."""
+        part of the odometry (prepare) runs in whichever stage is the lighter one."""
 
         def inputs():
             for scan in recording:
                 pts, off = _body_points(scan.points, scan.sensor_offset)
-                yield scan.stamp, self.odometry.prepare(pts), scan.odom, pts, off
+                yield scan.stamp, pts, scan.odom, off
 
-        for (stamp, _, _, pts, off), res, seconds in worker.run(inputs()):
+        for (stamp, pts, _, off), res, seconds in worker.run(inputs(), self.odometry.prepare):
             yield stamp, res, pts, off, seconds
 
 

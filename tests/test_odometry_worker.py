@@ -165,3 +165,42 @@ def test_input_errors_survive_pickling():
         "line 7",
     )
     assert str(back) == str(err)
+
+
+@needs_worker
+@pytest.mark.parametrize("backend_s", [0.0, 0.01])
+def test_prepare_runs_in_the_lighter_stage_with_the_same_results(faulty_recording, backend_s):
+    """The caller prepares the scans while its own work per scan is below the worker's odometry
+    (a light backend) and leaves it to the worker when its work is heavier (10 ms a scan against
+    about 1 ms of odometry); the results are those of the in-process odometry either way."""
+    cfg = FRSlamConfig.from_dict(CFG).odometry
+    scans = faulty_recording[:250]
+    here = ScanOdometry(cfg)
+    prepare_calls = []
+
+    def prepare(points):
+        prepare_calls.append(1)
+        return here.prepare(points)
+
+    inputs = [(s.stamp, s.points, s.odom, k) for k, s in enumerate(scans)]
+    expected = [here.process(s.stamp, s.points, s.odom) for s in scans]
+    with odometry_worker.OdometryWorker(cfg, chunk=8) as worker:
+        got = []
+        for item, res, seconds in worker.run(inputs, prepare):
+            got.append((item[3], res))
+            assert seconds > 0.0
+            if backend_s:
+                time.sleep(backend_s)
+    assert [k for k, _ in got] == list(range(len(scans)))
+    for (_, a), b in zip(got, expected, strict=True):
+        if b is None:
+            assert a is None
+        else:
+            np.testing.assert_array_equal(a.pose, b.pose)
+            np.testing.assert_array_equal(a.covariance, b.covariance)
+            assert a.keyframe == b.keyframe
+    assert worker.prepared_here + worker.prepared_there == len(scans) == len(prepare_calls) + worker.prepared_there
+    if backend_s:
+        assert worker.prepared_there > len(scans) // 2  # the heavy caller handed prepare over
+    else:
+        assert worker.prepared_here > len(scans) // 2  # the light caller kept it
