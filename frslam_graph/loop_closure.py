@@ -85,7 +85,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Generator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -101,18 +101,12 @@ from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
 from frslam_graph.graph import key
 from frslam_graph.motion_model import between, between_many, compose
+from frslam_graph.steps import Steps, run_steps
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.pipeline import FRSlam, KeyframeInfo
 
 T = TypeVar("T")
-# A piece of work split into steps: each ``next()`` runs one bounded step; the generator's return
-# value (``StopIteration.value``) is the result. Anytime: the caller decides how many steps to run
-# per call, the result does not depend on it. Each yield gives the estimated cost (ms) of the
-# step that follows it, from the sizes involved (the cost model below), so the caller can pack
-# steps into a per-scan budget deterministically; the code between yields outside these steps is
-# light glue (well under a millisecond).
-Steps = Generator[float, None, T]
 
 # Cost model: milliseconds on one core of the development machine (2-core x86 VM, 2020s); only
 # needs to be right within a factor of about two. Fitted to the measured medians per step on ACES
@@ -570,15 +564,6 @@ def match_scan(
     (x, y, theta of the query frame in the reference frame) within ± window_xy (m) and
     ± window_theta (rad). None when nothing can be matched (too few points / no overlap)."""
     return run_steps(match_scan_steps(reference, query, centre, window_xy, window_theta, config, rng))
-
-
-def run_steps(steps: Steps[T]) -> T:
-    """Run a step generator to the end; returns its result."""
-    while True:
-        try:
-            next(steps)
-        except StopIteration as stop:
-            return stop.value
 
 
 def match_scan_steps(

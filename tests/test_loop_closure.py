@@ -484,7 +484,8 @@ def test_large_turn_since_the_closure_unties_the_region():
 
 
 def test_queued_candidate_tied_by_a_later_closure_is_dropped_unmatched():
-    from frslam_graph.loop_closure import _Job, run_steps
+    from frslam_graph.loop_closure import _Job
+    from frslam_graph.steps import run_steps
 
     closer, est = _circle_closer(None)
     job = _Job(22, 60, 3.0, 0.2, None, len(closer.closures))  # planned before the closure below

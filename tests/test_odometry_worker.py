@@ -199,7 +199,11 @@ def test_prepare_runs_in_the_lighter_stage_with_the_same_results(faulty_recordin
             np.testing.assert_array_equal(a.pose, b.pose)
             np.testing.assert_array_equal(a.covariance, b.covariance)
             assert a.keyframe == b.keyframe
-    assert worker.prepared_here + worker.prepared_there == len(scans) == len(prepare_calls) + worker.prepared_there
+    assert (
+        worker.prepared_here + worker.prepared_there
+        == len(scans)
+        == len(prepare_calls) + worker.prepared_there
+    )
     if backend_s:
         assert worker.prepared_there > len(scans) // 2  # the heavy caller handed prepare over
     else:
