@@ -272,12 +272,6 @@ class UpdatesConfig(_Section):
     # relocalisation, prior and prior check (and each backfill) run as separate steps on the
     # scans after the keyframe (FRSlam.defer): same decisions, no scan pays for all of them
     spread_over_scans: bool = True
-    # a registration (the map, MFR, each placement's distance field, each keyframe scan its checks
-    # relocalise) also runs as steps on the scans after its trigger, instead of in one add_scan;
-    # its verdict applies when the last step ran (the triggers wait for it; after
-    # register_steps_keyframes keyframes the rest runs at once)
-    spread_registration: bool = False
-    register_steps_keyframes: int = Field(30, ge=0)
 
 
 class LoopClosureConfig(_Section):

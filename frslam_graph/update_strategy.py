@@ -70,7 +70,6 @@ from frslam_graph.relocalisation import (
     subsample,
     tukey_weights,
 )
-from frslam_graph.steps import run_steps
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 # Cost model of the deferred steps (ms on one core; sizes, never a clock, so the schedule stays
@@ -216,7 +215,6 @@ class FloorPlanUpdater:
         self._inconsistent_run = 0
         self._checks = 0
         self._next_id = 0
-        self._registering: int | None = None  # keyframes since a spread registration started
         self.timings: dict[str, float] = {"register": 0.0, "relocalise": 0.0, "coverage": 0.0}
 
     # ------------------------------------------------------------------ public
@@ -260,7 +258,7 @@ class FloorPlanUpdater:
         # relocalises every prior: ~7 s on a 200 m run)
         self._held_reanchor = _HeldReanchor()
         try:
-            self._register(slam, last, "end of the run: final refinement", now=True)
+            self._register(slam, last, "end of the run: final refinement")
             self._finish_steps(slam)
             if self.accepted is not None and cfg.scale_refine_distance > 0.0:
                 # the run's last word on the scale: any gain on the keyframe scans of the whole
@@ -297,14 +295,6 @@ class FloorPlanUpdater:
 
         area = self.mapped_area
         reason, local, quick = None, False, False
-        if self._registering is not None:
-            # a registration runs as steps (spread_registration): what the triggers would decide
-            # depends on its verdict; they are looked at once it is done (after at most
-            # register_steps_keyframes keyframes it is finished here)
-            self._registering += 1
-            if self._registering <= cfg.register_steps_keyframes:
-                return
-            self._finish_steps(slam)
         if self._attempts < cfg.max_registrations:
             if self._attempts == 0:
                 if area >= cfg.first_register_area_m2:
@@ -440,50 +430,18 @@ class FloorPlanUpdater:
         return obstructed
 
     # ------------------------------------------------------------------ registration
-    def _register(
-        self, slam, keyframe, reason: str, local: bool = False, quick: bool = False, now: bool = False
-    ) -> None:
+    def _register(self, slam, keyframe, reason: str, local: bool = False, quick: bool = False) -> None:
         """Register the plan on the map and act on the verdict. ``quick``: this attempt is a
         quick recheck (``register_recheck_distance``): it counts towards ``register_recheck_max``
-        in a row; any other trigger (the map grew, a retry, a refinement) starts a new run.
-        With ``spread_registration`` (and not ``now``) the work runs as steps on the following
-        scans (:meth:`FRSlam.defer`): the map, MFR, each placement's distance field and each
-        keyframe scan relocalised by the checks is one step."""
+        in a row; any other trigger (the map grew, a retry, a refinement) starts a new run."""
         cfg = self.config
+        t0 = time.perf_counter()
         self._attempts += 1
         self._recheck = False
         self._recheck_run = self._recheck_run + 1 if quick else 0
-        self._area_at_attempt = self.mapped_area
+        area = self.mapped_area
+        self._area_at_attempt = area
         self._dist_at_attempt = self._dist
-        steps = self._timed("register", self._register_steps(slam, keyframe, reason, local))
-        defer = getattr(slam, "defer", None)
-        if cfg.spread_registration and not now and defer is not None:
-            self._registering = 0
-            defer(steps)
-        else:
-            run_steps(steps)
-
-    def _timed(self, key: str, steps: Generator[Any, None, Any]) -> Generator[Any, None, Any]:
-        """``steps`` with the time spent in them (not between them) added to ``timings[key]``."""
-        while True:
-            t0 = time.perf_counter()
-            try:
-                cost = next(steps)
-            except StopIteration as stop:
-                self.timings[key] += time.perf_counter() - t0
-                return stop.value
-            self.timings[key] += time.perf_counter() - t0
-            yield cost
-
-    def _register_steps(self, slam, keyframe, reason: str, local: bool) -> Generator[Any, None, None]:
-        try:
-            yield from self._register_work(slam, keyframe, reason, local)
-        finally:
-            self._registering = None
-
-    def _register_work(self, slam, keyframe, reason: str, local: bool) -> Generator[Any, None, None]:
-        cfg = self.config
-        area = self._area_at_attempt
         stamp, i = float(keyframe.stamp), keyframe.index
         if local:
             grid = self._local_grid(slam)
@@ -492,15 +450,15 @@ class FloorPlanUpdater:
             grid = slam.occupancy_grid(cfg.map_resolution)
         if self.accepted is not None:
             self._recheck_accepted(slam, keyframe, grid)
-        yield None
         try:
             reg = self.register_fn(self.plan, grid)
         except FrslamError as exc:
             self._event(slam, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
+            self.timings["register"] += time.perf_counter() - t0
             return
-        yield None
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
-        verdict = yield from self._judge(slam, keyframe, reg, grid, nums, reason)
+        verdict = self._judge(slam, keyframe, reg, grid, nums, reason)
+        self.timings["register"] += time.perf_counter() - t0
         if verdict is None:
             # a match the checks rejected (wrong, or right on a map that drifted) gets a quick
             # retry on a map a few metres larger, before the drift grows any further (up to
@@ -510,7 +468,7 @@ class FloorPlanUpdater:
             # seeds: runs within 10 % of the clean run 55 -> 48 of 60; regime A house 4 worse)
             self._recheck = reg.ok and self.accepted is None and self._recheck_run < cfg.register_recheck_max
             return
-        accepted, relocaliser, reloc, keyframe = verdict
+        accepted, relocaliser, reloc = verdict
         msg, kind = f"{reason}; accepted", "register"
         if self.accepted is not None:
             msg, kind = f"{reason}; replaces registration {self.accepted.id}", "registration_replaced"
@@ -520,7 +478,7 @@ class FloorPlanUpdater:
         self._dist_at_scale = self._dist
         self._scale_interval = 0.0
         if previous is not None:
-            yield from self._reanchor_steps(slam, previous)
+            self._reanchor(slam, previous)
         self._try_prior(slam, keyframe, reloc, "registration accepted")
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
@@ -630,11 +588,8 @@ class FloorPlanUpdater:
             )
         return handles
 
-    def _judge(
-        self, slam, keyframe, reg, grid, nums: dict[str, float], trigger: str = ""
-    ) -> Generator[Any, None, tuple | None]:
-        """Accept / reject a registration, as steps; returns (accepted, relocaliser,
-        relocalisation, keyframe at its current estimate) or None."""
+    def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float], trigger: str = ""):
+        """Accept / reject a registration; returns (accepted, relocaliser, relocalisation) or None."""
         cfg = self.config
         stamp, i = float(keyframe.stamp), keyframe.index
 
@@ -647,7 +602,7 @@ class FloorPlanUpdater:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
         relocaliser = None  # the disambiguation's, when it picked a placement: built once
         if reg.ambiguity > cfg.max_ambiguity:
-            picked = yield from self._disambiguate(slam, reg, grid, nums)
+            picked = self._disambiguate(slam, reg, grid, nums)
             if picked is None:
                 why = f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}"
                 if "placements_map_fit" in nums:
@@ -658,14 +613,11 @@ class FloorPlanUpdater:
                 return reject(why)
             reg, relocaliser = picked
         try:
-            built = relocaliser is None
-            if built:
+            if relocaliser is None:
                 relocaliser = Relocaliser(reg.apply(self.plan), self.params)
             plan_map = relocaliser.plan
         except (FrslamError, ValueError) as exc:
             return reject(f"registered plan unusable: {exc}")
-        if built:
-            yield None  # the distance field
         occ = _occupied_points(grid)
         fit_tol, margin = self._tolerances()
         fit = relocaliser.fit_points(occ, fit_tol)
@@ -678,8 +630,8 @@ class FloorPlanUpdater:
                 # the map was drawn at estimates the accepted plan's priors pulled onto it (its
                 # fit is biased towards that plan): compare the two on the keyframe scans, each
                 # relocalised on its own
-                q_new = yield from self._scan_fit_steps(slam, relocaliser)
-                q_old = yield from self._scan_fit_steps(slam, acc.relocaliser)
+                q_new = self._scan_fit(slam, relocaliser)
+                q_old = self._scan_fit(slam, acc.relocaliser)
                 nums.update(scan_fit=q_new, accepted_scan_fit=q_old)
                 if q_new > q_old + cfg.refine_scan_margin:
                     better = f"the keyframe scans better ({q_new:.1%} vs {q_old:.1%})"
@@ -737,7 +689,6 @@ class FloorPlanUpdater:
                     f"disagrees with registration {acc.id} (RMS {disp:.2f} m) and explains "
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})"
                 )
-        keyframe = slam.keyframe(i)  # at its current estimate (the steps may have taken scans)
         points = slam.keyframe_scans()[0][i]
         reloc = relocaliser.relocalise(points, keyframe.pose_map)
         nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
@@ -747,11 +698,7 @@ class FloorPlanUpdater:
             # the keyframe scans of the whole run, each relocalised on its own: the plan of another
             # building (or a wrong placement) that the map checks let through by a small margin
             # explains them poorly
-            q = (
-                nums["scan_fit"]
-                if "scan_fit" in nums
-                else (yield from self._scan_fit_steps(slam, relocaliser))
-            )
+            q = nums["scan_fit"] if "scan_fit" in nums else self._scan_fit(slam, relocaliser)
             nums["scan_fit"] = q
             if q < cfg.min_scan_fit:
                 return reject(
@@ -784,9 +731,9 @@ class FloorPlanUpdater:
         self._pending_reg = None
         acc = _Accepted(self._next_id, reg, plan_map, relocaliser, fit)
         self._next_id += 1
-        return acc, relocaliser, reloc, keyframe
+        return acc, relocaliser, reloc
 
-    def _disambiguate(self, slam, reg, grid, nums: dict[str, float]) -> Generator[Any, None, tuple | None]:
+    def _disambiguate(self, slam, reg, grid, nums: dict[str, float]):
         """An ambiguous registration: its placement and the registration's runner-up placements
         (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
         its own (which a drifted map cannot bias). Returns the registration of the placement that
@@ -808,16 +755,13 @@ class FloorPlanUpdater:
                 relocalisers.append(Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params))
             except (FrslamError, ValueError):
                 relocalisers.append(None)  # the picked one would be "unusable": rejected too
-            yield None  # a distance field
         occ = _occupied_points(grid)
         fit_tol = self._tolerances()[0]
         best_map_fit = max(r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers)
         if best_map_fit < cfg.min_map_fit:
             nums["placements_map_fit"] = best_map_fit
             return None
-        fits = []
-        for r in relocalisers:
-            fits.append((yield from self._scan_fit_steps(slam, r)) if r is not None else 0.0)
+        fits = [self._scan_fit(slam, r) if r is not None else 0.0 for r in relocalisers]
         order = np.argsort(fits)[::-1]
         best, second = float(fits[order[0]]), float(fits[order[1]])
         nums.update(ambiguous_scan_fit=best, runner_up_scan_fit=second, placement=int(order[0]))
@@ -1018,31 +962,18 @@ class FloorPlanUpdater:
         """Mean soft score of keyframe scans, each relocalised on its own against the plan (in a
         window around its estimate): how well the plan explains the scans, unlike the map fit not
         biased towards the plan whose priors shaped the map."""
-        return run_steps(self._scan_fit_steps(slam, relocaliser))
-
-    def _scan_fit_steps(self, slam, relocaliser: Relocaliser) -> Generator[float, None, float]:
-        """:meth:`_scan_fit` as steps, one relocalised scan each."""
         if not self._kf_dist:
             return 0.0
+        ks = self._scan_sample()
         scans = slam.keyframe_scans()[0]
-        soft = []
-        for k in self._scan_sample():
-            t0 = time.perf_counter()
-            soft.append(relocaliser.relocalise(scans[k], slam.keyframe(int(k)).pose_map).soft_score)
-            self.timings["relocalise"] += time.perf_counter() - t0
-            yield _MS_RELOCALISE
+        t0 = time.perf_counter()
+        soft = [relocaliser.relocalise(scans[k], slam.keyframe(int(k)).pose_map).soft_score for k in ks]
+        self.timings["relocalise"] += time.perf_counter() - t0
         return float(np.mean(soft))
 
     def _reanchor(self, slam, previous: _Accepted | list[_Accepted], why: str | None = None) -> None:
         """Remove the replaced registration's priors (or those of several); relocalise those
         keyframes on the accepted plan. While on_finish holds re-anchoring, only note it."""
-        run_steps(self._reanchor_steps(slam, previous, why))
-
-    def _reanchor_steps(
-        self, slam, previous: _Accepted | list[_Accepted], why: str | None = None
-    ) -> Generator[float, None, None]:
-        """:meth:`_reanchor` as steps, one relocalised keyframe each (their priors are added
-        without settling; one settle at the end)."""
         prev = previous if isinstance(previous, list) else [previous]
         why = why or f"registration {prev[0].id} replaced"
         if self._held_reanchor is not None:  # on_finish: once, at the end, for all involved
@@ -1057,7 +988,6 @@ class FloorPlanUpdater:
             added |= self._try_prior(
                 slam, kf, reloc, "re-anchored on the new registration", drift=self._dist, settle=False
             )
-            yield _MS_RELOCALISE
         if added:  # one settle for all of them, not one per prior
             slam.graph.settle()
 

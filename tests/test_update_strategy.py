@@ -818,11 +818,9 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     source = ambiguous_source(mo, [rotated_about_centre(other, mo, angle=np.pi / 2)])
     cfg = CFG.updates.model_copy(update=NO_REFINEMENT)
     fits = []
-    scan_fit = FloorPlanUpdater._scan_fit_steps
+    scan_fit = FloorPlanUpdater._scan_fit
     monkeypatch.setattr(
-        FloorPlanUpdater,
-        "_scan_fit_steps",
-        lambda self, slam, rel: fits.append(1) or scan_fit(self, slam, rel),
+        FloorPlanUpdater, "_scan_fit", lambda self, slam, rel: fits.append(1) or scan_fit(self, slam, rel)
     )
     upd = FloorPlanUpdater(other, cfg, register_fn=source)
     slam, res = run_slam(run, upd)
@@ -831,13 +829,8 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     assert all("no placement's walls explain the map" in e.reason for e in regs)
     assert all(e.numbers["placements_map_fit"] < cfg.min_map_fit for e in regs)
     assert not fits
-
     # the same run as one whose every registration attempt is rejected outright
-    def rejected(self, slam, reg, grid, nums):
-        return None
-        yield  # a generator, as the disambiguation
-
-    monkeypatch.setattr(FloorPlanUpdater, "_disambiguate", rejected)
+    monkeypatch.setattr(FloorPlanUpdater, "_disambiguate", lambda self, slam, reg, grid, nums: None)
     _, res_rejected = run_slam(run, FloorPlanUpdater(other, cfg, register_fn=source))
     np.testing.assert_array_equal(res.trajectory, res_rejected.trajectory)
     # a placement that fits the map keeps the scan fits (the right plan, mirrored and right)
