@@ -275,7 +275,8 @@ class UpdatesConfig(_Section):
 
 
 class LoopClosureConfig(_Section):
-    """Loop closure (:mod:`frslam_graph.loop_closure`): candidates, scan matcher, acceptance."""
+    """Loop closure (:mod:`frslam_graph.loop_closure`, its scan matcher
+    :mod:`frslam_graph.submap_matching`): candidates, matching, acceptance."""
 
     enabled: bool = True
     # Candidates: earlier keyframes at least this far back (keyframes AND travel or turned angle).

@@ -13,15 +13,10 @@ from synthetic_world import ROOM_LOOP, box, cast, corridor_world, room_world, ro
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError
 from frslam_graph.graph import key
-from frslam_graph.loop_closure import (
-    LoopCloser,
-    LoopClosure,
-    ReferenceSubmap,
-    match_scan,
-    transform_points,
-)
+from frslam_graph.loop_closure import LoopCloser, LoopClosure
 from frslam_graph.motion_model import between, compose
 from frslam_graph.pipeline import FRSlam
+from frslam_graph.submap_matching import ReferenceSubmap, match_scan, transform_points
 
 CFG = {"odometry": {"max_range": 10.0}}
 
@@ -285,10 +280,10 @@ def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monke
     """With a tight budget no add_scan builds more than one reference submap or refines more than
     one ICP pose (before: all candidates of a keyframe in its add_scan), and the loop still
     closes."""
-    import frslam_graph.loop_closure as lc_module
+    import frslam_graph.submap_matching as matching
 
     counts = {"icp": 0, "submaps": 0}
-    icp, submap_init = lc_module.icp_point_to_line, ReferenceSubmap.__init__
+    icp, submap_init = matching.icp_point_to_line, ReferenceSubmap.__init__
 
     def counting_icp(*a, **k):
         counts["icp"] += 1
@@ -298,7 +293,7 @@ def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monke
         counts["submaps"] += 1
         submap_init(self, *a, **k)
 
-    monkeypatch.setattr(lc_module, "icp_point_to_line", counting_icp)
+    monkeypatch.setattr(matching, "icp_point_to_line", counting_icp)
     monkeypatch.setattr(ReferenceSubmap, "__init__", counting_init)
     truth, ranges, amin, inc = two_laps
     slam = FRSlam(dict(CFG, loop_closure={"budget_ms": 2.0}))
@@ -591,7 +586,9 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
     """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with a large correction and
     ``inliers``; with ``pending`` a closure of keyframe 37 on keyframe 0 agrees with it."""
     import frslam_graph.loop_closure as lcm
-    from frslam_graph.loop_closure import ScanMatch, _Job
+    from frslam_graph.loop_closure import _Job
+    from frslam_graph.steps import run_steps
+    from frslam_graph.submap_matching import ScanMatch
 
     slam = _line_slam()
     # no pruning: the straight chain cannot fold onto itself as these closures would have it
@@ -605,7 +602,7 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
     closer._reference = lambda slam, c, i: _ret(None)
     if pending:
         closer._pending.append(LoopClosure(0, 37, np.zeros(3), np.eye(3) * 4e-4, m, np.zeros(3)))
-    out = lcm.run_steps(closer._job(slam, _Job(2, 39, 2.0, 0.2)))
+    out = run_steps(closer._job(slam, _Job(2, 39, 2.0, 0.2)))
     return closer, out
 
 

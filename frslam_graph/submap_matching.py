@@ -1,0 +1,592 @@
+"""Scan-to-submap matching for loop closure (points in metres, poses x, y, theta in radians).
+
+:func:`match_scan` matches a *query* submap (points in the query keyframe's frame) against a
+:class:`ReferenceSubmap` (points of a reference keyframe's neighbours, in its frame) around a
+predicted pose. A correlative grid search over (x, y, theta) scores every pose at once
+(vectorised over poses × points) on a likelihood field of the reference
+(``cv2.distanceTransform``), max-filtered so the coarse grid cannot step over the peak; the best
+distinct peaks are refined by point-to-line ICP on the reference points. The result
+(:class:`ScanMatch`) carries the inlier fraction, the ambiguity (best distinct second peak over
+the best), the ICP covariance and the share of query points in space the reference saw free;
+:mod:`frslam_graph.loop_closure` decides on it. :func:`match_scan_steps` is the same work as
+bounded steps, each announcing its estimated cost (:mod:`frslam_graph.steps`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TypeVar
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frslam_graph.config import LoopClosureConfig
+from frslam_graph.steps import Steps, run_steps
+
+T = TypeVar("T")
+
+# Cost model: milliseconds on one core of the development machine (2-core x86 VM, 2020s); only
+# needs to be right within a factor of about two. Fitted to the measured medians per step on ACES
+# (180 beams) and regime-A houses (720 beams, 30 m; tools/bench_backend.py) as the geometric mean
+# of the two ratios (before: the ICP, field and free-space steps took 2-3.5x their estimate on
+# the houses, so a scan's 8 ms budget ran 15-30 ms of closure work).
+_MS_PER_LOOKUP = 4.3e-6  # correlative search: one likelihood-field look-up (gather + mean)
+_MS_PER_CELL_FIELD = 3.3e-5  # reference submap: distance transform with labels + field, per inner cell
+_MS_PER_CELL_FILL = 2.3e-6  # zero padding of the whole grid
+_MS_PER_CELL_DILATE = 3e-6  # max filter of the field (first use of a step size)
+_MS_PER_CELL_NEAREST = 3.6e-6  # nearest-point map for ICP, per cell
+_MS_PER_CELL_FREE = 6.5e-6  # free-space mask, per cell
+_MS_PER_POINT_NORMALS = 1.8e-3  # k-d tree and PCA normals, per reference point
+_MS_ICP = 1.1  # one ICP refinement: fixed part ...
+_MS_PER_POINT_ICP = 3.7e-4  # ... and per query point and iteration
+_MS_FINE = 2.3  # finer level of the correlative search (a few hundred poses)
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (M, 2) given in the frame ``pose`` (x, y, theta) -> the frame ``pose`` lives in."""
+    return rigid_points(
+        pose[0], pose[1], np.cos(pose[2]), np.sin(pose[2]), np.asarray(points, dtype=np.float64)
+    )
+
+
+def rigid_points(x, y, c, s, p: np.ndarray) -> np.ndarray:
+    """(x, y) + R(c, s) p for points p (M, 2); x, y, c, s scalars or (M,) per point."""
+    return np.column_stack((x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]))
+
+
+def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis (min, max) of (M, 2) points, M >= 1. Column by column: numpy's axis-0 reduction
+    of an (M, 2) array is ~50x slower (two-element inner loops)."""
+    return (
+        np.array([points[:, 0].min(), points[:, 1].min()]),
+        np.array([points[:, 0].max(), points[:, 1].max()]),
+    )
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The first point of each occupied voxel (order kept)."""
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    cells = np.floor(points / voxel).astype(np.int64)
+    h = cells[:, 0] * 73856093 ^ cells[:, 1] * 19349663
+    _, idx = np.unique(h, return_index=True)
+    return points[np.sort(idx)]
+
+
+def _normals(points: np.ndarray, tree: cKDTree, k: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (N, 2) from PCA of the k nearest neighbours, and a line-quality weight (N,)."""
+    k = min(k, len(points))
+    _, nn = tree.query(points, k=k)
+    nb = points[nn.reshape(len(points), k)]  # (N, k, 2)
+    d = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 0])
+    syy = np.einsum("ij,ij->i", d[:, :, 1], d[:, :, 1])
+    sxy = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 1])
+    # smallest eigenvalue / eigenvector of [[sxx, sxy], [sxy, syy]] in closed form
+    tr, det = sxx + syy, sxx * syy - sxy**2
+    disc = np.sqrt(np.maximum(tr**2 / 4.0 - det, 0.0))
+    lmin, lmax = tr / 2.0 - disc, tr / 2.0 + disc
+    n = np.column_stack((sxy, lmin - sxx))
+    alt = np.column_stack((lmin - syy, sxy))
+    use_alt = np.hypot(*n.T) < np.hypot(*alt.T)
+    n[use_alt] = alt[use_alt]
+    norm = np.hypot(*n.T)
+    degenerate = norm < 1e-12
+    n[degenerate] = (1.0, 0.0)
+    n /= np.maximum(np.hypot(*n.T), 1e-12)[:, None]
+    quality = np.where(lmax > 1e-12, 1.0 - np.clip(lmin / np.maximum(lmax, 1e-12), 0.0, 1.0), 0.0)
+    quality[degenerate] = 0.0
+    return n, quality
+
+
+# ----------------------------------------------------------------------------- reference submap
+class ReferenceSubmap:
+    """Points of a reference submap with a likelihood field (correlative search) and a k-d tree
+    with normals (ICP). ``points`` (M, 2) in the reference keyframe's frame.
+
+    The likelihood field is built on construction; what only ICP and the free-space test need
+    (nearest point per cell, normals, the free-space mask) is built on first use, so a candidate
+    rejected by the correlative search never pays for it (and the anytime matcher can build it in
+    a step of its own)."""
+
+    @staticmethod
+    def build_cost(points: np.ndarray, resolution: float, sigma: float, margin: float) -> float:
+        """Estimated cost (ms) of building a submap of ``points`` (M >= 1) with these arguments:
+        the distance transform over the inner cells and the zero padding of the whole grid."""
+        inner = min(margin, max(16.0 * sigma, 2.0))  # as __init__
+        lo, hi = point_bounds(points)
+        extent = hi - lo
+        cells = np.prod((extent + 2.0 * margin) / resolution + 1.0)
+        cells_inner = np.prod((extent + 2.0 * inner) / resolution + 1.0)
+        return _MS_PER_CELL_FIELD * float(cells_inner) + _MS_PER_CELL_FILL * float(cells)
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        resolution: float,
+        sigma: float,
+        margin: float,
+        scans: list[tuple[np.ndarray, np.ndarray]] | None = None,
+        free_margin: float = 0.3,
+    ):
+        pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
+        self.points = pts
+        self.resolution = res = float(resolution)
+        lo, hi = point_bounds(pts) if len(pts) else (np.zeros(2), np.zeros(2))
+        lo, hi = lo - margin, hi + margin
+        self.origin = lo
+        self.margin_cells = int(np.ceil(margin / res))
+        w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
+        self.shape = (h, w)
+        # Distances are computed on an inner grid only (the points' box + max(16 sigma, 2 m)):
+        # farther out the float32 likelihood is exactly 0 (it underflows beyond 14.4 sigma), no
+        # nearest point is within 2 m and every cell is far from the end points. The outer
+        # margin (for the correlative search's clamped look-ups) is zero padding.
+        pad = max(0, int(np.floor((margin - max(16.0 * sigma, 2.0)) / res)))
+        pad = min(pad, (h - 1) // 2, (w - 1) // 2)
+        hi_, wi = h - 2 * pad, w - 2 * pad
+        self._inner = (pad, hi_, wi)
+        free = np.full((hi_, wi), 255, np.uint8)
+        self._cells = np.zeros(0, np.int64)  # flat index of each point's cell (full grid)
+        if len(pts):
+            ij = np.floor((pts - lo) / res).astype(int)
+            free[ij[:, 1] - pad, ij[:, 0] - pad] = 0
+            self._cells = ij[:, 1] * w + ij[:, 0]
+        # distances (5×5 mask, within about 2 %) and the nearest occupied cell of every cell
+        dist, self._labels = cv2.distanceTransformWithLabels(
+            free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        dist *= res
+        self.field = np.zeros((h, w), np.float32)
+        self.field[pad : pad + hi_, pad : pad + wi] = np.exp(-0.5 * (dist / sigma) ** 2)
+        self._occupied = free.ravel() == 0  # inner grid
+        self._scans = scans
+        # free space must be farther than free_margin from any end point
+        self._far = None
+        if scans:
+            far = np.ones((h, w), bool)
+            far[pad : pad + hi_, pad : pad + wi] = dist > free_margin
+            self._far = far.ravel()
+        self._nearest: np.ndarray | None = None
+        self._tree: cKDTree | None = None
+        self._normals: tuple[np.ndarray, np.ndarray] | None = None
+        self._free: np.ndarray | None = None
+        self._dilated: dict[int, np.ndarray] = {}
+
+    # ----- built on first use (ICP, free-space test)
+    @property
+    def nearest(self) -> np.ndarray:
+        """Index of the nearest reference point of every cell (flattened; -1 without points)."""
+        if self._nearest is None:
+            h, w = self.shape
+            pad, hi_, wi = self._inner
+            nearest = np.full((h, w), -1, np.int32)
+            if len(self.points):
+                owner = np.full(h * w, -1, np.int32)  # reference point in each occupied cell
+                owner[self._cells] = np.arange(len(self.points), dtype=np.int32)
+                owner = owner.reshape(h, w)[pad : pad + hi_, pad : pad + wi].ravel()
+                # labels number the (inner grid's) zero cells in raster order
+                zeros = np.flatnonzero(self._occupied)
+                labels = self._labels.ravel()
+                inner = owner[zeros[np.clip(labels - 1, 0, len(zeros) - 1)]]
+                nearest[pad : pad + hi_, pad : pad + wi] = inner.reshape(hi_, wi)
+            self._nearest = nearest.ravel()
+            self._labels = None
+        return self._nearest
+
+    @property
+    def tree(self) -> cKDTree | None:
+        if self._tree is None and len(self.points):
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def _normals_quality(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._normals is None:
+            n = len(self.points)
+            self._normals = _normals(self.points, self.tree) if n >= 3 else (np.zeros((n, 2)), np.zeros(n))
+        return self._normals
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._normals_quality()[0]
+
+    @property
+    def quality(self) -> np.ndarray:
+        return self._normals_quality()[1]
+
+    @property
+    def free(self) -> np.ndarray | None:
+        """Cells the reference scans saw free (sensor -> end points polygons) away from any end
+        point (flattened bool), or None without scans: a query point there contradicts the match."""
+        if self._free is None and self._scans:
+            h, w = self.shape
+            seen = np.zeros((h, w), np.uint8)
+            polys = [
+                np.round((np.vstack((o[None], e)) - self.origin) / self.resolution).astype(np.int32)
+                for o, e in self._scans
+                if len(e) >= 2
+            ]
+            cv2.fillPoly(seen, polys, 1)
+            self._free = (seen.ravel() > 0) & self._far
+        return self._free
+
+    def prepare_icp(self) -> None:
+        """Build what ICP needs now (nearest-point map, k-d tree, normals)."""
+        self.nearest  # noqa: B018
+        self._normals_quality()
+
+    def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """(indices into ``points`` with a reference point within max_distance, those reference
+        points' indices): nearest neighbours by a cell look-up (exact up to one cell)."""
+        h, w = self.shape
+        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        sel = np.flatnonzero(inside)
+        j = self.nearest[ij[sel, 1] * w + ij[sel, 0]]
+        d = np.hypot(*(points[sel] - self.points[np.maximum(j, 0)]).T)
+        ok = (j >= 0) & (d <= max_distance)
+        return sel[ok], j[ok]
+
+    def dilated(self, cells: int) -> np.ndarray:
+        """The likelihood field max-filtered over a (2·cells + 1)² window (flattened)."""
+        f = self._dilated.get(cells)
+        if f is None:
+            if cells > 0:
+                kernel = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
+                f = cv2.dilate(self.field, kernel).ravel()
+            else:
+                f = self.field.ravel()
+            self._dilated[cells] = f
+        return f
+
+    def free_violation(self, query: np.ndarray, pose: np.ndarray) -> float:
+        """Share of query points (at ``pose``) in space the reference saw free (0 without scans)."""
+        if self.free is None or len(query) == 0:
+            return 0.0
+        h, w = self.shape
+        ij = np.floor((transform_points(pose, query) - self.origin) / self.resolution).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        return float(self.free[ij[inside, 1] * w + ij[inside, 0]].sum()) / len(query)
+
+    def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
+        if len(self.points) == 0 or len(query) == 0:
+            return 0.0
+        sel, _ = self.nearest_points(transform_points(pose, query), distance)
+        return len(sel) / len(query)
+
+
+# ----------------------------------------------------------------------------- matcher
+@dataclass(frozen=True, slots=True)
+class ScanMatch:
+    """Result of :func:`match_scan`: the query frame's pose in the reference frame.
+
+    ``inlier_fraction``: share of query points within ``inlier_distance`` of the reference after
+    ICP; ``ambiguity``: the best distinct second peak's inlier fraction / the best (0 = none);
+    ``covariance``: 3×3 in GTSAM's Pose2 tangent (body frame of ``pose``).
+    """
+
+    pose: np.ndarray
+    inlier_fraction: float
+    ambiguity: float
+    covariance: np.ndarray
+    coarse_score: float
+    n_points: int
+    second: np.ndarray | None = None
+    free_violation: float = 0.0  # share of query points in the reference's free space
+
+
+def _dilation_cells(res: float, step_xy: float, step_theta: float, reach: float) -> int:
+    """Max-filter radius (cells) so a grid pose bounds every pose within half a step of it."""
+    return int(np.ceil((0.5 * step_xy + 0.5 * step_theta * reach) / res))
+
+
+def _grid_search(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    step_xy: float,
+    step_theta: float,
+    reach: float,
+    max_lookups: int = 2_000_000,
+) -> Steps[tuple[np.ndarray, np.ndarray]]:
+    """Score every pose of a (thetas × offsets) grid: returns (P, 3) poses and (P,) scores.
+
+    A generator (see :func:`match_scan_steps`): a step per chunk of headings scored with at most
+    ``max_lookups`` field look-ups (at least one heading per chunk)."""
+    res = ref.resolution
+    h, w = ref.shape
+    n_th = int(np.ceil(window_theta / step_theta))
+    thetas = centre[2] + step_theta * np.arange(-n_th, n_th + 1)
+    s = max(1, int(round(step_xy / res)))
+    n_xy = int(np.ceil(window_xy / (s * res)))
+    o = s * np.arange(-n_xy, n_xy + 1)
+    ox, oy = (a.ravel() for a in np.meshgrid(o, o))
+    cells = _dilation_cells(res, s * res, step_theta, reach)
+    c, sn = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    px = c * query[None, :, 0] - sn * query[None, :, 1] + centre[0]
+    py = sn * query[None, :, 0] + c * query[None, :, 1] + centre[1]
+    bx = np.floor((px - ref.origin[0]) / res).astype(np.int64)
+    by = np.floor((py - ref.origin[1]) / res).astype(np.int64)
+    # points whose whole offset range would leave the grid see only the zero margin
+    lim = n_xy * s
+    out = (bx < lim) | (bx >= w - lim) | (by < lim) | (by >= h - lim)
+    bx[out] = lim
+    by[out] = lim
+    base = (by * w + bx).astype(np.int32)  # (T, M)
+    off = (oy * w + ox).astype(np.int32)  # (O,)
+    scores = np.empty((len(thetas), len(off)), np.float32)
+    chunk = max(1, int(max_lookups // max(1, len(off) * query.shape[0])))
+    for a in range(0, len(thetas), chunk):
+        cost = _MS_PER_LOOKUP * len(off) * query.shape[0] * min(chunk, len(thetas) - a)
+        yield cost + (_MS_PER_CELL_DILATE * h * w if cells not in ref._dilated else 0.0)
+        field = ref.dilated(cells)
+        idx = base[a : a + chunk, None, :] + off[None, :, None]  # (t, O, M) flat cells
+        scores[a : a + chunk] = field[idx].mean(axis=2)
+    tt = np.repeat(thetas, len(off))
+    poses = np.column_stack(
+        (np.tile(centre[0] + ox * res, len(thetas)), np.tile(centre[1] + oy * res, len(thetas)), tt)
+    )
+    return poses, scores.ravel()
+
+
+def _score_poses(ref: ReferenceSubmap, query: np.ndarray, poses: np.ndarray, cells: int) -> np.ndarray:
+    """Mean (max-filtered) likelihood of ``query`` at each of ``poses`` (P, 3)."""
+    field = ref.dilated(cells)
+    h, w = ref.shape
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    px = c * query[None, :, 0] - s * query[None, :, 1] + poses[:, 0:1]
+    py = s * query[None, :, 0] + c * query[None, :, 1] + poses[:, 1:2]
+    bx = np.floor((px - ref.origin[0]) / ref.resolution).astype(np.int64)
+    by = np.floor((py - ref.origin[1]) / ref.resolution).astype(np.int64)
+    out = (bx < 0) | (bx >= w) | (by < 0) | (by >= h)
+    bx[out] = 0
+    by[out] = 0  # the corner cell lies in the zero margin
+    return field[by * w + bx].mean(axis=1)
+
+
+def _coarse_search(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    step_xy: float,
+    step_theta: float,
+    sep_xy: float = 1.0,
+    sep_theta: float = np.deg2rad(10.0),
+    max_lookups: int = 2_000_000,
+) -> Steps[tuple[np.ndarray, np.ndarray]]:
+    """Two-level correlative search: a grid at twice the steps on a wider max filter (an upper
+    bound of the finer level), then the finer grid inside the best cells and the best distinct
+    cells. Returns the finer-level (P, 3) poses and (P,) scores (a generator, see
+    :func:`match_scan_steps`)."""
+    reach = float(np.percentile(np.hypot(*query.T), 90)) if len(query) else 0.0
+    poses1, scores1 = yield from _grid_search(
+        ref, query, centre, window_xy, window_theta, 2.0 * step_xy, 2.0 * step_theta, reach, max_lookups
+    )
+    yield _MS_FINE + _MS_PER_CELL_DILATE * ref.shape[0] * ref.shape[1]
+    n = min(len(scores1), 16)
+    top = np.argpartition(-scores1, n - 1)[:n]
+    cells = np.union1d(top, _distinct_peaks(poses1, scores1, 8, sep_xy, sep_theta))
+    d = np.array([-1.0, 0.0, 1.0])
+    dx, dy, dt = (a.ravel() for a in np.meshgrid(d * step_xy, d * step_xy, d * step_theta, indexing="ij"))
+    fine = (poses1[cells][:, None, :] + np.column_stack((dx, dy, dt))[None]).reshape(-1, 3)
+    res = ref.resolution
+    s = max(1, int(round(step_xy / res)))
+    scores = _score_poses(ref, query, fine, _dilation_cells(res, s * res, step_theta, reach))
+    return fine, scores
+
+
+def _distinct_peaks(
+    poses: np.ndarray, scores: np.ndarray, k: int, sep_xy: float, sep_theta: float
+) -> list[int]:
+    """Indices of up to k best poses, pairwise at least (sep_xy or sep_theta) apart."""
+    top = min(len(scores), 400)
+    order = np.argpartition(-scores, top - 1)[:top]
+    order = order[np.argsort(-scores[order])]
+    cand = poses[order]
+    alive = np.ones(len(order), bool)  # not within the separation of a picked peak
+    picked: list[int] = []
+    while len(picked) < k:
+        left = np.flatnonzero(alive)
+        if not len(left):
+            break
+        j = left[0]
+        picked.append(int(order[j]))
+        p = cand[j]
+        near = (np.hypot(cand[:, 0] - p[0], cand[:, 1] - p[1]) < sep_xy) & (
+            np.abs(_wrap(cand[:, 2] - p[2])) < sep_theta
+        )
+        alive &= ~near
+    return picked
+
+
+def icp_point_to_line(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    pose: np.ndarray,
+    iterations: int = 15,
+    max_distance: float = 0.5,
+    kernel: float = 0.05,
+    sigma: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Point-to-line ICP of ``query`` onto the reference; returns (pose, 3×3 body covariance)."""
+    if len(ref.points) == 0 or len(query) < 10:
+        return None
+    x = np.asarray(pose, dtype=np.float64).copy()
+    h = None
+    for it in range(iterations):
+        dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
+        p = transform_points(x, query)
+        sel, j = ref.nearest_points(p, dmax)
+        if len(sel) < 10:
+            return None
+        p = p[sel]
+        n, q = ref.normals[j], ref.quality[j]
+        r = np.einsum("ij,ij->i", p - ref.points[j], n)
+        rel = p - x[:2]
+        jac = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]))
+        wgt = q / (1.0 + (r / kernel) ** 2)
+        h = jac.T @ (wgt[:, None] * jac)
+        g = jac.T @ (wgt * r)
+        try:
+            delta = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+        except np.linalg.LinAlgError:
+            return None
+        x += delta
+        x[2] = float(_wrap(x[2]))
+        if np.hypot(delta[0], delta[1]) < 1e-4 and abs(delta[2]) < 1e-5:
+            break
+    if h is None:
+        return None
+    # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
+    c, s = np.cos(x[2]), np.sin(x[2])
+    a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    hb = a.T @ h @ a / sigma**2
+    try:
+        cov = np.linalg.inv(hb + 1e-9 * np.eye(3))
+    except np.linalg.LinAlgError:
+        return None
+    return x, cov
+
+
+def match_scan(
+    reference: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    config: LoopClosureConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> ScanMatch | None:
+    """Match ``query`` points (M, 2, query frame) against ``reference`` around ``centre``
+    (x, y, theta of the query frame in the reference frame) within ± window_xy (m) and
+    ± window_theta (rad). None when nothing can be matched (too few points / no overlap)."""
+    return run_steps(match_scan_steps(reference, query, centre, window_xy, window_theta, config, rng))
+
+
+def match_scan_steps(
+    reference: ReferenceSubmap,
+    query: np.ndarray,
+    centre: np.ndarray,
+    window_xy: float,
+    window_theta: float,
+    config: LoopClosureConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> Steps[ScanMatch | None]:
+    """:func:`match_scan` as a generator that yields between bounded pieces of work (a chunk of
+    the correlative search of at most ``config.max_lookups_per_step`` look-ups, the finer level,
+    building the reference's ICP data, one ICP refinement); its return value is the match.
+    The anytime loop closer runs a few pieces per scan; the result does not depend on how the
+    pieces are spread."""
+    cfg = config or LoopClosureConfig()
+    q = np.asarray(query, dtype=np.float64).reshape(-1, 2)
+    q = q[np.hypot(*q.T) <= cfg.max_point_range] if len(q) else q
+    fine = voxel_downsample(q, 2.0 * cfg.resolution)
+    if len(fine) < 20 or len(reference.points) < 20:
+        return None
+    coarse = fine
+    if len(coarse) > cfg.max_query_points:
+        rng = rng or np.random.default_rng(0)
+        coarse = coarse[rng.choice(len(coarse), cfg.max_query_points, replace=False)]
+    step_th = np.deg2rad(cfg.coarse_step_theta_deg)
+    c0 = np.asarray(centre, dtype=np.float64)
+    sep_xy, sep_th = cfg.peak_separation_xy, np.deg2rad(cfg.peak_separation_theta_deg)
+    poses, scores = yield from _coarse_search(
+        reference,
+        coarse,
+        c0,
+        window_xy,
+        min(window_theta, np.pi),
+        cfg.coarse_step_xy,
+        step_th,
+        sep_xy,
+        sep_th,
+        cfg.max_lookups_per_step,
+    )
+    peaks = _distinct_peaks(poses, scores, 3, sep_xy, sep_th)
+    top = float(scores[peaks[0]])
+    if top < cfg.min_coarse_score:  # not even the optimistic coarse score: no ICP
+        second = float(scores[peaks[1]]) / top if len(peaks) > 1 and top > 0 else 0.0
+        return ScanMatch(poses[peaks[0]], 0.0, second, np.eye(3), top, len(fine), None)
+    cells = reference.shape[0] * reference.shape[1]
+    if reference._nearest is None:
+        yield _MS_PER_CELL_NEAREST * cells
+        reference.nearest  # noqa: B018
+    if reference._normals is None:
+        yield _MS_PER_POINT_NORMALS * len(reference.points)
+        reference.prepare_icp()
+    refined, unrefined = [], 0.0
+    for j in peaks:
+        if j != peaks[0] and scores[j] < cfg.refine_ratio * top:
+            unrefined = max(unrefined, float(scores[j]) / top)  # clearly lower already
+            continue
+        yield _MS_ICP + _MS_PER_POINT_ICP * len(fine) * cfg.icp_iterations
+        r = icp_point_to_line(
+            reference,
+            fine,
+            poses[j],
+            cfg.icp_iterations,
+            cfg.icp_max_distance,
+            kernel=cfg.inlier_distance / 2.0,
+            sigma=cfg.icp_sigma,
+        )
+        if r is None:
+            continue
+        inl = reference.inlier_fraction(fine, r[0], cfg.inlier_distance)
+        refined.append((inl, r[0], r[1], float(scores[j])))
+    if not refined:
+        return None
+    if reference._free is None and reference._scans:
+        yield _MS_PER_CELL_FREE * cells
+        reference.free  # noqa: B018
+    refined.sort(key=lambda t: -t[0])
+    best = refined[0]
+    second, second_pose = 0.0, None
+    for inl, p, _, _ in refined[1:]:
+        if np.hypot(*(p[:2] - best[1][:2])) >= sep_xy or abs(_wrap(p[2] - best[1][2])) >= sep_th:
+            second, second_pose = inl, p
+            break
+    amb = max(second / best[0], unrefined) if best[0] > 0 else 1.0
+    free = reference.free_violation(fine, best[1])
+    return ScanMatch(best[1], best[0], float(amb), best[2], top, len(fine), second_pose, free)
+
+
+__all__ = [
+    "ReferenceSubmap",
+    "ScanMatch",
+    "icp_point_to_line",
+    "match_scan",
+    "match_scan_steps",
+    "point_bounds",
+    "rigid_points",
+    "transform_points",
+    "voxel_downsample",
+]
