@@ -57,18 +57,22 @@ from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.motion_model import compose, inverse, tangent_cov, to_matrix, vector_cov
+from frslam_graph.plan_checks import (
+    fit_plan_scale,
+    matrix_disagreement,
+    occupied_points,
+    walls_through_free_space,
+)
 from frslam_graph.relocalisation import (
     Relocalisation,
     Relocaliser,
     RelocaliserParams,
     subsample,
-    tukey_weights,
 )
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
@@ -490,7 +494,7 @@ class FloorPlanUpdater:
         judged as a first one."""
         cfg = self.config
         acc = self.accepted
-        crossing = _walls_through_free_space(acc.relocaliser, grid, self._tolerances()[1])
+        crossing = walls_through_free_space(acc.relocaliser, grid, self._tolerances()[1])
         if crossing <= cfg.retract_walls_in_free_space:
             return
         why = (
@@ -618,13 +622,13 @@ class FloorPlanUpdater:
             plan_map = relocaliser.plan
         except (FrslamError, ValueError) as exc:
             return reject(f"registered plan unusable: {exc}")
-        occ = _occupied_points(grid)
+        occ = occupied_points(grid)
         fit_tol, margin = self._tolerances()
         fit = relocaliser.fit_points(occ, fit_tol)
         nums["map_fit"] = fit
         acc = self.accepted
         if acc is not None and cfg.refine_on_agreement and cfg.refine_by == "scans":
-            disp = _matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             nums["disagreement"] = disp
             if disp <= cfg.agree_tol:
                 # the map was drawn at estimates the accepted plan's priors pulled onto it (its
@@ -657,7 +661,7 @@ class FloorPlanUpdater:
                 )
         if fit < cfg.min_map_fit:
             return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
-        crossing = _walls_through_free_space(relocaliser, grid, margin)
+        crossing = walls_through_free_space(relocaliser, grid, margin)
         nums["walls_in_free_space"] = crossing
         if crossing > cfg.max_walls_in_free_space:
             return reject(
@@ -665,7 +669,7 @@ class FloorPlanUpdater:
                 f"> {cfg.max_walls_in_free_space:.0%}"
             )
         if acc is not None:
-            disp = _matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             old_fit = acc.relocaliser.fit_points(occ, fit_tol)
             nums.update(disagreement=disp, accepted_map_fit=old_fit)
             if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
@@ -721,7 +725,7 @@ class FloorPlanUpdater:
                         f"{travelled:.0f} m travelled without a prior: waiting for a second "
                         "registration that agrees"
                     )
-                disp = _matrix_disagreement(self.plan, pending.matrix, reg.matrix)
+                disp = matrix_disagreement(self.plan, pending.matrix, reg.matrix)
                 nums["disagreement"] = disp
                 if disp > cfg.agree_tol:
                     return reject(
@@ -755,7 +759,7 @@ class FloorPlanUpdater:
                 relocalisers.append(Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params))
             except (FrslamError, ValueError):
                 relocalisers.append(None)  # the picked one would be "unusable": rejected too
-        occ = _occupied_points(grid)
+        occ = occupied_points(grid)
         fit_tol = self._tolerances()[0]
         best_map_fit = max(r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers)
         if best_map_fit < cfg.min_map_fit:
@@ -843,7 +847,7 @@ class FloorPlanUpdater:
         lin_inv = np.linalg.inv(lin)
         poses = np.asarray(poses)
         centre = np.mean((poses[:, :2] - t) @ lin_inv.T, axis=0)  # plan units
-        log_s = _fit_scale(rel.field, pts, poses, lin, t, centre, p.truncation, cfg.scale_refine_sigma)
+        log_s = fit_plan_scale(rel.field, pts, poses, lin, t, centre, p.truncation, cfg.scale_refine_sigma)
         f = np.exp(log_s)
         nums = {"scale_x": f[0], "scale_y": f[1], "scans": len(pts)}
         if np.max(np.abs(log_s)) > np.log1p(cfg.scale_refine_max):
@@ -1200,160 +1204,6 @@ def _num(v: Any) -> float:
         return float(v)
     except (TypeError, ValueError):
         return float("nan")
-
-
-def _occupied_points(grid, max_points: int = 4000) -> np.ndarray:
-    """Centres (N, 2) of occupied cells of an OccupancyGrid, evenly subsampled."""
-    rows, cols = np.nonzero(grid.occupied_mask())
-    if not len(rows):
-        return np.zeros((0, 2))
-    if len(rows) > max_points:
-        k = np.linspace(0, len(rows) - 1, max_points).round().astype(np.intp)
-        rows, cols = rows[k], cols[k]
-    return grid.cell_to_world(np.column_stack((cols, rows)).astype(np.float64) + 0.5)
-
-
-def _walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2) -> float:
-    """Share of the plan's interior walls, where the map has observed them, that the map has
-    seen *through*: every cell along the wall normal within ``2 * wall_offset + margin`` metres
-    of the wall pixel is free. Near 0 for a right registration, even on a map drifted by less
-    than ``margin`` (the displaced real wall is occupied, or the space behind it unknown, within
-    reach); a wrong registration draws walls across rooms seen empty."""
-    f = relocaliser.field
-    res = f.frame.resolution
-    # interior walls only (between two rooms): an outer wall may legitimately have free space
-    # beyond it in the map (open windows and doors, glass)
-    deep = (f.sdf < -(f.wall_offset + 1.5 * res)).astype(np.uint8)
-    k = int(np.ceil((2.0 * f.wall_offset + 2.0 * res) / res))
-    near_outside = cv2.dilate(deep, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))) > 0
-    rows, cols = np.nonzero((f.sdf <= 0) & ~near_outside)
-    if not len(rows):
-        return 0.0
-    if len(rows) > 20000:
-        k = np.linspace(0, len(rows) - 1, 20000).round().astype(np.intp)
-        rows, cols = rows[k], cols[k]
-    grad = f.data[rows, cols, 1:].astype(np.float64)
-    norm = np.hypot(grad[:, 0], grad[:, 1])
-    keep = norm > 0.5  # the distance field's gradient is a unit normal off ridges
-    rows, cols, normal = rows[keep], cols[keep], grad[keep] / norm[keep, None]
-    xy = f.frame.to_world(np.column_stack((cols + 0.5, rows + 0.5)))
-    reach = 2.0 * f.wall_offset + margin
-    free = grid.free_mask()
-    known = free | grid.occupied_mask()
-    h, w = grid.shape
-
-    def sample(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
-        cr = np.floor(grid.world_to_cell(pts)).astype(np.intp)
-        ok = (cr[:, 0] >= 0) & (cr[:, 0] < w) & (cr[:, 1] >= 0) & (cr[:, 1] < h)
-        out = np.zeros(len(pts), bool)
-        out[ok] = mask[cr[ok, 1], cr[ok, 0]]
-        return out
-
-    observed = sample(known, xy)
-    # every cell along the normal within +-reach is free: no real wall (occupied) or unseen
-    # space (unknown) anywhere near, the robot has seen straight through this plan wall
-    steps = np.arange(-reach, reach + 1e-9, 0.5 * grid.resolution)
-    pts = xy[:, None, :] + steps[None, :, None] * normal[:, None, :]
-    through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(steps)).all(axis=1)
-    return int(through.sum()) / max(int(observed.sum()), 1)
-
-
-def _fit_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations: int = 15) -> np.ndarray:
-    """Log scale factors (plan x, plan y, about ``centre`` in plan units) of the plan whose
-    distance field is ``field`` (plan -> map: ``lin`` @ xy + ``t``) that best fit the scans
-    ``pts`` (list of (Ni, 2) in base_link) with their poses ``poses`` (n, 3) refined jointly.
-
-    A map point w fits the rescaled plan where its image q = lin (centre + (u / f)) + t, with
-    u = lin⁻¹ (w - t) - centre, fits the accepted one. Levenberg-Marquardt on (poses, log f) with
-    a Tukey kernel and a zero-mean prior of ``sigma`` on log f (weakly observed scales stay).
-    Each point's Jacobian touches only its scan's pose and the two scales, so the normal
-    equations are summed per scan (5 × 5 blocks) rather than from a dense (points × 3n+2) matrix.
-    """
-    keep = [k for k, q in enumerate(pts) if len(q)]
-    pts = [pts[k] for k in keep]
-    n = len(pts)
-    counts = np.array([len(q) for q in pts])
-    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    sid = np.repeat(np.arange(n), counts)
-    xy = np.vstack(pts)
-    poses = np.asarray(poses, float)[keep].copy()
-    log_s = np.zeros(2)
-    lin_inv = np.linalg.inv(lin)
-    pidx = 3 * np.arange(n)[:, None] + np.arange(3)[None, :]  # (n, 3) pose columns of each scan
-    sidx = np.array([3 * n, 3 * n + 1])
-
-    def residuals(poses, log_s):
-        c, s = np.cos(poses[sid, 2]), np.sin(poses[sid, 2])
-        w = np.column_stack((c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1])) + poses[sid, :2]
-        u = (w - t) @ lin_inv.T - centre
-        inv_f = np.exp(-log_s)
-        q = (centre + u * inv_f) @ lin.T + t
-        look = field.lookup(q, outside=-truncation)
-        r, g = look[:, 0], look[:, 1:]
-        ga = g @ (lin @ np.diag(inv_f) @ lin_inv)  # dr/dw
-        dx, dy = w[:, 0] - poses[sid, 0], w[:, 1] - poses[sid, 1]
-        j = np.column_stack(  # per point: d r / d (x, y, theta of its scan, log f_x, log f_y)
-            (
-                ga[:, 0],
-                ga[:, 1],
-                -ga[:, 0] * dy + ga[:, 1] * dx,
-                -(g @ lin[:, 0]) * u[:, 0] * inv_f[0],
-                -(g @ lin[:, 1]) * u[:, 1] * inv_f[1],
-            )
-        )
-        return r, j
-
-    def normal_equations(j, w, r):
-        blk = np.add.reduceat((j * w[:, None])[:, :, None] * j[:, None, :], starts, axis=0)  # (n,5,5)
-        vec = np.add.reduceat(j * (w * r)[:, None], starts, axis=0)  # (n, 5)
-        h = np.zeros((3 * n + 2, 3 * n + 2))
-        h[pidx[:, :, None], pidx[:, None, :]] = blk[:, :3, :3]
-        h[pidx[:, :, None], sidx[None, None, :]] = blk[:, :3, 3:]
-        h[sidx[None, :, None], pidx[:, None, :]] = blk[:, 3:, :3]
-        h[3 * n :, 3 * n :] = blk[:, 3:, 3:].sum(axis=0)
-        b = np.zeros(3 * n + 2)
-        b[pidx] = vec[:, :3]
-        b[3 * n :] = vec[:, 3:].sum(axis=0)
-        return h, b
-
-    prior = np.zeros(3 * n + 2)
-    prior[-2:] = 1.0 / sigma**2
-    lam = 1e-3
-    r, j = residuals(poses, log_s)
-    for it in range(iterations):
-        tau = truncation if it < 3 else 0.5 * truncation
-        w = tukey_weights(r, tau)
-        if w.sum() < 10:
-            break
-        h, b = normal_equations(j, w, r)
-        h += np.diag(prior)
-        b[-2:] += prior[-2:] * log_s
-        cost0 = float(np.sum(w * r * r) + np.sum(prior[-2:] * log_s**2))
-        step = -np.linalg.solve(h + lam * (np.diag(np.diag(h)) + 1e-9 * np.eye(len(b))), b)
-        step[-2:] = np.clip(step[-2:], -0.01, 0.01)
-        cand_p = poses + step[:-2].reshape(n, 3)
-        cand_s = log_s + step[-2:]
-        r2, j2 = residuals(cand_p, cand_s)
-        cost1 = float(np.sum(w * r2 * r2) + np.sum(prior[-2:] * cand_s**2))
-        if cost1 <= cost0:
-            poses, log_s, r, j = cand_p, cand_s, r2, j2
-            lam = max(lam * 0.3, 1e-6)
-            if it >= 3 and cost0 - cost1 <= 1e-5 * cost0:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e4:
-                break
-    return log_s
-
-
-def _matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:
-    """RMS distance (map metres) between the plan's room corners mapped by two matrices."""
-    pts = np.vstack([np.asarray(r.polygon.exterior.coords)[:-1, :2] for r in plan.rooms])
-    h = np.column_stack((pts, np.ones(len(pts))))
-    a = h @ np.asarray(m1, float)[:2].T
-    b = h @ np.asarray(m2, float)[:2].T
-    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
 __all__ = ["FloorPlanUpdater", "UpdateEvent"]

@@ -265,8 +265,8 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     check."""
     from dataclasses import replace
 
+    from frslam_graph.plan_checks import occupied_points, walls_through_free_space
     from frslam_graph.relocalisation import Relocaliser
-    from frslam_graph.update_strategy import _occupied_points, _walls_through_free_space
 
     plan, run, _ = sim
     cfg = CFG.updates
@@ -274,7 +274,7 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     ox, oy, yaw = grid.origin
     drifted = replace(grid, origin=(ox + drift[0], oy + drift[1], yaw))
     right = Relocaliser(plan.transformed(run.house.distortion.matrix, units="m"))
-    occ = _occupied_points(drifted)
+    occ = occupied_points(drifted)
     upd = FloorPlanUpdater(plan, cfg)
     assert upd._tolerances() == (cfg.map_fit_distance, cfg.free_space_margin)  # nothing travelled
     upd._dist = 100.0  # metres without a prior
@@ -282,14 +282,14 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     assert (fit_tol, margin) == (cfg.map_fit_distance_max, cfg.free_space_margin_max)
     assert right.fit_points(occ, fit_tol) >= cfg.min_map_fit
     assert right.fit_points(occ) < right.fit_points(occ, fit_tol) - 0.1  # tight: drift hurts
-    crossing = _walls_through_free_space(right, drifted, margin)
+    crossing = walls_through_free_space(right, drifted, margin)
     assert crossing <= cfg.max_walls_in_free_space
     for kw in ({"angle": np.pi / 2}, {"shift": (1.5, 0.0)}, {"angle": 0.2}):
         wrong = Relocaliser(
             plan.transformed(rotated_about_centre(plan, run.house.distortion.matrix, **kw), units="m")
         )
         assert (
-            _walls_through_free_space(wrong, drifted, cfg.free_space_margin) > cfg.retract_walls_in_free_space
+            walls_through_free_space(wrong, drifted, cfg.free_space_margin) > cfg.retract_walls_in_free_space
         )
 
 
@@ -710,7 +710,7 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
     keyframe's scan fits the plan at the graph's anchor: the plan ends within 2 cm of the true
     placement and the trajectory error falls to that of the right registration; without it the
     offset stays and bends the trajectory near the start."""
-    from frslam_graph.update_strategy import _matrix_disagreement
+    from frslam_graph.plan_checks import matrix_disagreement
 
     plan, run, m = sim
     shifted = rotated_about_centre(plan, m, angle=np.deg2rad(2.0), shift=(0.2, -0.1))
@@ -729,7 +729,7 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
         moved = [e for e in upd.events("plan_refined") if e.reason.startswith("start")]
         if align:
             assert [e.accepted for e in moved][:2] == [True, False]
-            assert _matrix_disagreement(plan, upd.registration.matrix, m) < 0.02
+            assert matrix_disagreement(plan, upd.registration.matrix, m) < 0.02
             assert abs(np.rad2deg(moved[0].numbers["dtheta"]) + 2.0) < 0.3
         else:
             assert not moved and np.allclose(upd.registration.matrix, shifted)
@@ -782,7 +782,7 @@ def test_ambiguous_registration_is_resolved_by_the_keyframe_scans(sim):
     the wrong one (mirrored): the keyframe scans, each relocalised on its own, explain the right
     runner-up placement clearly better, so that one is accepted. When the placements cannot be
     told apart (the same one twice), or with disambiguate_margin 0, it stays rejected."""
-    from frslam_graph.update_strategy import _matrix_disagreement
+    from frslam_graph.plan_checks import matrix_disagreement
 
     plan, run, m = sim
     mirrored = rotated_about_centre(plan, m, mirror=True)
@@ -798,7 +798,7 @@ def test_ambiguous_registration_is_resolved_by_the_keyframe_scans(sim):
         regs = upd.events("register")
         if name == "resolved":
             assert upd.registration is not None and upd.registration.method == "fake+scans"
-            assert _matrix_disagreement(plan, upd.registration.matrix, m) < 0.05
+            assert matrix_disagreement(plan, upd.registration.matrix, m) < 0.05
             first = next(e for e in regs if e.accepted)
             assert first.numbers["placement"] == 1
             assert first.numbers["ambiguous_scan_fit"] > first.numbers["runner_up_scan_fit"] + 0.05
