@@ -160,6 +160,12 @@ class UpdatesConfig(_Section):
     first_register_area_m2: float = Field(12.0, ge=0.0)
     register_growth_frac: float = Field(0.2, ge=0.0)
     register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
+    # ... times this factor after each retry on a map that has not grown by register_min_growth_m2
+    # since the attempt before (the robot re-traversing a mapped building whose plan does not
+    # fit: another building's plan was retried every 15 m to the end of the run), up to
+    # register_retry_max_distance; any growth starts again at register_retry_distance. 1 = off.
+    register_retry_backoff: float = Field(2.0, ge=1.0)
+    register_retry_max_distance: float = Field(60.0, gt=0.0)
     # while none is accepted, a registration that matched but failed the checks is retried after
     # this many metres (a fresh map before drift grows; 0 = off), up to register_recheck_max
     # quick rechecks in a row (an attempt another trigger made starts a new run)

@@ -13,7 +13,9 @@ geometry, which corrects the drift accumulated along the way.
 - it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
   first reaches ``first_register_area_m2``, when it has grown by ``register_min_growth_m2`` and
   ``register_growth_frac`` since the last attempt, every ``register_retry_distance`` metres while
-  no registration is accepted (the map changes as it is re-estimated),
+  no registration is accepted (the map changes as it is re-estimated; the interval doubles,
+  ``register_retry_backoff``, after each retry on a map that has not grown, up to
+  ``register_retry_max_distance``),
   ``register_recheck_distance`` metres after a match that the checks rejected while none is
   accepted (before the drift grows further; up to ``register_recheck_max`` quick rechecks in a
   row), every
@@ -198,6 +200,7 @@ class FloorPlanUpdater:
         self._dist_at_attempt = 0.0
         self._kf_dist: list[float] = []  # odometry distance travelled at each keyframe
         self._retries = 0
+        self._stale_retries = 0  # retries in a row on a map that had not grown (backoff)
         self._recheck = False  # the last attempt matched but was rejected: retry soon
         self._recheck_run = 0  # quick retries in a row (register_recheck_max)
         self._refines = 0  # registrations triggered by register_refine_distance
@@ -309,6 +312,7 @@ class FloorPlanUpdater:
                     self._area_at_attempt, 1e-9
                 ):
                     reason = f"mapped area grew by {grown:.1f} m² to {area:.1f} m²"
+                    self._stale_retries = 0
                 elif obstructed and grown >= 1.0:
                     reason = "progress obstructed"
                 elif (
@@ -321,11 +325,10 @@ class FloorPlanUpdater:
                         f"{self._dist - self._dist_at_attempt:.0f} m"
                     )
                     quick = True
-                elif (
-                    self.accepted is None
-                    and self._dist - self._dist_at_attempt >= cfg.register_retry_distance
-                ):
+                elif self.accepted is None and self._dist - self._dist_at_attempt >= self._retry_distance():
                     reason = f"no registration accepted yet; retry after {self._dist - self._dist_at_attempt:.0f} m"
+                    # the map has not grown since the last attempt: the next retry waits longer
+                    self._stale_retries = self._stale_retries + 1 if grown < cfg.register_min_growth_m2 else 0
                     # the whole map may have drifted too far to match: alternate with the map of
                     # the last local_map_distance metres
                     local = self._retries % 2 == 1 and self._dist > cfg.local_map_distance
@@ -371,6 +374,13 @@ class FloorPlanUpdater:
                 self._relocalise_current(slam, keyframe, "relocation angle")
         if self.accepted is not None and self._backfill and not getattr(slam, "deferred_jobs", 0):
             self._run_backfill(slam, cfg.backfill_per_keyframe)  # as fast as the steps get done
+
+    def _retry_distance(self) -> float:
+        """Metres after an attempt before a retry while none is accepted (see
+        ``register_retry_backoff``)."""
+        cfg = self.config
+        d = cfg.register_retry_distance * cfg.register_retry_backoff**self._stale_retries
+        return min(d, max(cfg.register_retry_max_distance, cfg.register_retry_distance))
 
     # ------------------------------------------------------------------ events
     def _event(

@@ -881,3 +881,38 @@ def test_coverage_cells_count_each_cell_once_at_any_extent():
     assert cells.count == len(seen) + 2
     cells.add(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     assert cells.count == len(seen) + 2
+
+
+def test_retries_back_off_while_the_map_does_not_grow(sim):
+    """While none is accepted, each retry on a map that has not grown since the attempt before
+    waits register_retry_backoff times longer (up to register_retry_max_distance): a plan that
+    does not fit a building already mapped is not registered again and again. Off (1.0), the
+    retries keep their spacing."""
+    plan, run, m = sim
+    wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
+    gaps = {}
+    for backoff in (1.0, 2.0):
+        cfg = CFG.updates.model_copy(
+            update={
+                "register_retry_distance": 2.0,
+                "register_retry_backoff": backoff,
+                "register_retry_max_distance": 8.0,
+                "register_recheck_distance": 0.0,  # the retries alone
+            }
+        )
+        upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(wrong))
+        run_slam(run, upd)
+        regs = [e for e in upd.log if e.kind == "register"]
+        assert regs and not any(e.accepted for e in regs)
+        at = [upd._kf_dist[e.keyframe] for e in regs]
+        stale = [
+            b - a
+            for a, b, prev, e in zip(at, at[1:], regs, regs[1:], strict=False)
+            if "no registration accepted yet" in e.reason
+            and e.numbers["area"] - prev.numbers["area"] < cfg.register_min_growth_m2
+        ]
+        gaps[backoff] = np.asarray(stale)
+    assert len(gaps[1.0]) >= 4 and np.all(gaps[1.0] < 3.0)  # every 2 m (plus a keyframe)
+    g = gaps[2.0]
+    assert len(g) >= 2 and g.max() >= 7.5 and np.all(g <= 9.0)  # 4, 8, 8, ... m
+    assert len(g) < len(gaps[1.0])
