@@ -103,8 +103,12 @@ def write_outputs(
             fh.write(json.dumps(_jsonable(ev)) + "\n")
     lat = res.latencies * 1e3 if len(res.latencies) else np.zeros(1)
     kinds: dict[str, int] = {}
+    removed = {"wrong": 0, "re-anchored": 0}
     for ev in res.log:
         kinds[ev.kind] = kinds.get(ev.kind, 0) + 1
+        if ev.kind == "prior_removed":
+            cause = ev.data.get("cause", "wrong")
+            removed[cause] = removed.get(cause, 0) + 1
     metrics: dict[str, Any] = {
         "scans": len(res.trajectory),
         "keyframes": len(res.keyframes),
@@ -121,6 +125,15 @@ def write_outputs(
         "map_to_odom": res.map_to_odom,
         "odometry_stats": res.stats,
         "decisions": kinds,
+        # floor-plan priors: in the graph at the end; removed as wrong (proven wrong, or their
+        # plan retracted) or re-anchored (their plan refined or replaced: relocalised on it)
+        "priors": {
+            "final": len(run.slam.graph.priors()),
+            "added": kinds.get("prior_added", 0),
+            "rejected": kinds.get("prior_rejected", 0),
+            "removed_wrong": removed.get("wrong", 0),
+            "re_anchored": removed.get("re-anchored", 0),
+        },
         "floor_plan": run.slam.floor_plan is not None,
     }
     st = run.recording_stats

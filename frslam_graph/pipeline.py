@@ -494,15 +494,21 @@ class FRSlam:
         )
         return handle
 
-    def remove_prior(self, handle: PriorHandle, reason: str = "") -> None:
-        """Remove a prior proven wrong (logged with the reason)."""
-        self.remove_priors([handle], reason)
+    def remove_prior(self, handle: PriorHandle, reason: str = "", cause: str = "wrong") -> None:
+        """Remove a prior (logged with the reason); see :meth:`remove_priors`."""
+        self.remove_priors([handle], reason, cause)
 
-    def remove_priors(self, handles: list[PriorHandle], reason: str = "") -> None:
-        """Remove priors in one graph update (e.g. all of a retracted registration), each logged."""
+    def remove_priors(self, handles: list[PriorHandle], reason: str = "", cause: str = "wrong") -> None:
+        """Remove priors in one graph update (e.g. all of a retracted registration), each logged
+        as ``prior_removed`` with its ``cause``: "wrong" (proven wrong, or its plan retracted) or
+        "re-anchored" (the plan was refined or replaced: the keyframe is relocalised on it)."""
         for h in self.graph.remove_priors(handles):
             self.log_event(
-                "prior_removed", reason or f"prior {h.id} removed", keyframe=h.keyframe, prior=h.id
+                "prior_removed",
+                reason or f"prior {h.id} removed",
+                keyframe=h.keyframe,
+                prior=h.id,
+                cause=cause,
             )
 
     def transform_map(self, transform: np.ndarray, reason: str = "") -> None:

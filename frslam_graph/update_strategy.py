@@ -521,7 +521,7 @@ class FloorPlanUpdater:
             walls_in_free_space=crossing,
         )
         self.accepted = None
-        self._remove_priors_of(slam, acc, why)
+        self._remove_priors_of(slam, acc, why, "wrong")
         self._dist_at_prior = 0.0  # the trajectory is back on odometry: gate loosely
 
     # ------------------------------------------------------------------ backfill
@@ -585,10 +585,10 @@ class FloorPlanUpdater:
         margin = min(cfg.free_space_margin + grow, max(cfg.free_space_margin_max, cfg.free_space_margin))
         return fit, margin
 
-    def _remove_priors_of(self, slam, acc: _Accepted, why: str) -> list:
+    def _remove_priors_of(self, slam, acc: _Accepted, why: str, cause: str) -> list:
         tag = f"reloc:reg{acc.id}"
         handles = [h for h in slam.graph.priors() if h.source == tag]
-        slam.remove_priors(handles, reason=why)  # one graph update for all of them
+        slam.remove_priors(handles, reason=why, cause=cause)  # one graph update for all of them
         for h in handles:
             self._event(
                 slam,
@@ -993,7 +993,7 @@ class FloorPlanUpdater:
         if self._held_reanchor is not None:  # on_finish: once, at the end, for all involved
             self._held_reanchor.note(prev, why)
             return
-        handles = [h for p in prev for h in self._remove_priors_of(slam, p, why)]
+        handles = [h for p in prev for h in self._remove_priors_of(slam, p, why, "re-anchored")]
         scans = slam.keyframe_scans()[0]
         added = False
         for h in handles:
@@ -1193,7 +1193,7 @@ class FloorPlanUpdater:
                 f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f}, "
                 f"error {np.round(e, 3).tolist()} (weight {res.weight:.2f})"
             )
-            slam.remove_prior(h, reason=why)
+            slam.remove_prior(h, reason=why, cause="wrong")
             self._event(
                 slam,
                 stamp,

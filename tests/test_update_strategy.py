@@ -11,6 +11,7 @@ from shapely.geometry import box as sbox
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.floorplan import FloorPlan, Room
 from frslam_graph.metrics import ate
+from frslam_graph.offline import RunOutput, write_outputs
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
 from frslam_graph.update_strategy import FloorPlanUpdater, UpdateEvent
@@ -225,7 +226,7 @@ class Injector:
             self.handle = slam.add_floorplan_prior(kf.index, pose, np.diag([1e-4, 1e-4, 1e-4]), source=tag)
 
 
-def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean):
+def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean, tmp_path):
     plan, run, m = sim
     upd = FloorPlanUpdater(plan, CFG.updates, register_fn=fixed_source(m))
     n_kf = len(clean[1].keyframe_array())
@@ -235,6 +236,11 @@ def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean):
     removed = [e for e in upd.log if e.kind == "prior_removed"]
     assert len(removed) == 1 and "proven wrong" in removed[0].reason
     assert removed[0].numbers["prior"] == inj.handle.id
+    # the run's metrics say why priors left the graph: this one as wrong, none re-anchored
+    assert [e.data["cause"] for e in slam.log if e.kind == "prior_removed"] == ["wrong"]
+    priors = write_outputs(RunOutput(slam, res), tmp_path).metrics["priors"]
+    assert priors["removed_wrong"] == 1 and priors["re_anchored"] == 0
+    assert priors["final"] == len(slam.graph.priors()) == priors["added"] - 1 > 0
     clean_ate = ate(clean[2].trajectory, run.ground_truth)[0].rmse
     assert ate(res.trajectory, run.ground_truth)[0].rmse <= 1.1 * clean_ate + 0.005
     # the obstruction: logged, and the next action says why
@@ -660,9 +666,9 @@ def test_end_of_run_changes_of_the_plan_reanchor_its_priors_once(sim, monkeypatc
     removals: list[str] = []
     remove = FloorPlanUpdater._remove_priors_of
 
-    def counted(self, slam, acc, why):
+    def counted(self, slam, acc, why, cause):
         removals.append(why)
-        return remove(self, slam, acc, why)
+        return remove(self, slam, acc, why, cause)
 
     def changes(name):
         def change(self, slam, keyframe, final=False):
@@ -683,6 +689,11 @@ def test_end_of_run_changes_of_the_plan_reanchor_its_priors_once(sim, monkeypatc
     assert removals and all(w.endswith("scale changed; start changed") for w in removals)
     removed = [e for e in upd.log if e.kind == "prior_removed" and e.reason.endswith("start changed")]
     assert len(removed) >= n_priors - 1 and len({e.keyframe for e in removed}) == len(removed)
+    # logged as re-anchored, not as wrong (the keyframes are relocalised on the changed plan)
+    causes = {
+        e.data["cause"] for e in slam.log if e.kind == "prior_removed" and e.message.endswith("start changed")
+    }
+    assert causes == {"re-anchored"}
 
 
 def test_finish_calls_the_strategys_on_finish_before_the_final_batch(sim):

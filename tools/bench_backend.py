@@ -459,7 +459,7 @@ def priors_section(rows: list[dict], skipped: list[tuple[str, str]], args, cut: 
         f"{WRONG_FRAC:.0%} of the registrations deliberately corrupted (rotated / mirrored / shifted; "
         f"{args.wrong_seeds} run(s) per house, each with its own corruption seed: the "
         "median ATE, corrupted / calls and corrupted ones accepted summed over the runs, the ratio "
-        "of each run). Priors: added / rejected / removed.",
+        "of each run). Priors: added / rejected / removed (as wrong, or re-anchored on a refined or replaced plan: removed and relocalised, so also counted again in added).",
         "",
     ]
     if cut:

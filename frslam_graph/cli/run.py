@@ -161,6 +161,7 @@ def _summary(m: dict) -> dict:
         "realtime_factor",
         "latency_ms",
         "decisions",
+        "priors",
         "ate",
         "ate_unaligned",
         "rpe_1m",
@@ -204,12 +205,12 @@ def _print_metrics(runs: dict[str, dict]) -> None:
     row("relations rot \\[deg]", lambda m: f"{m['relations'].rot_mean:.3f} ± {m['relations'].rot_std:.3f}")
     row("relations matched / unmatched", lambda m: f"{m['relations'].matched} / {m['relations'].unmatched}")
     row(
-        "priors added / rejected / removed",
-        lambda m: "{} / {} / {}".format(
-            m["decisions"].get("prior_added", 0),
-            m["decisions"].get("prior_rejected", 0),
-            m["decisions"].get("prior_removed", 0),
-        ),
+        "priors at the end / added / rejected",
+        lambda m: "{final} / {added} / {rejected}".format(**m["priors"]),
+    )
+    row(
+        "priors removed as wrong / re-anchored",
+        lambda m: "{removed_wrong} / {re_anchored}".format(**m["priors"]),
     )
     row(
         "loop closures accepted / rejected",
