@@ -21,7 +21,7 @@ import numpy as np
 
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import TrajectoryError
-from frslam_graph.pipeline import FRSlam, SlamResult
+from frslam_graph.pipeline import PRIOR_REMOVAL_CAUSES, FRSlam, SlamResult
 
 
 @dataclass
@@ -103,12 +103,11 @@ def write_outputs(
             fh.write(json.dumps(_jsonable(ev)) + "\n")
     lat = res.latencies * 1e3 if len(res.latencies) else np.zeros(1)
     kinds: dict[str, int] = {}
-    removed = {"wrong": 0, "re-anchored": 0}
+    removed = dict.fromkeys(PRIOR_REMOVAL_CAUSES, 0)
     for ev in res.log:
         kinds[ev.kind] = kinds.get(ev.kind, 0) + 1
         if ev.kind == "prior_removed":
-            cause = ev.data.get("cause", "wrong")
-            removed[cause] = removed.get(cause, 0) + 1
+            removed[ev.data["cause"]] += 1
     metrics: dict[str, Any] = {
         "scans": len(res.trajectory),
         "keyframes": len(res.keyframes),
@@ -131,8 +130,8 @@ def write_outputs(
             "final": len(run.slam.graph.priors()),
             "added": kinds.get("prior_added", 0),
             "rejected": kinds.get("prior_rejected", 0),
-            "removed_wrong": removed.get("wrong", 0),
-            "re_anchored": removed.get("re-anchored", 0),
+            "removed_wrong": removed["wrong"],
+            "re_anchored": removed["re-anchored"],
         },
         "floor_plan": run.slam.floor_plan is not None,
     }

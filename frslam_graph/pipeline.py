@@ -27,7 +27,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol, get_args
 
 import gtsam
 import numpy as np
@@ -59,6 +59,11 @@ class KeyframeInfo:
     scan_index: int
     pose_map: np.ndarray
     pose_odom: np.ndarray
+
+
+#: why a floor-plan prior left the graph (``prior_removed`` events, ``metrics.json`` ``priors``)
+PriorRemoval = Literal["wrong", "re-anchored"]
+PRIOR_REMOVAL_CAUSES: tuple[str, ...] = get_args(PriorRemoval)
 
 
 class UpdateStrategy(Protocol):
@@ -494,14 +499,21 @@ class FRSlam:
         )
         return handle
 
-    def remove_prior(self, handle: PriorHandle, reason: str = "", cause: str = "wrong") -> None:
+    def remove_prior(self, handle: PriorHandle, reason: str = "", cause: PriorRemoval = "wrong") -> None:
         """Remove a prior (logged with the reason); see :meth:`remove_priors`."""
         self.remove_priors([handle], reason, cause)
 
-    def remove_priors(self, handles: list[PriorHandle], reason: str = "", cause: str = "wrong") -> None:
+    def remove_priors(
+        self, handles: list[PriorHandle], reason: str = "", cause: PriorRemoval = "wrong"
+    ) -> None:
         """Remove priors in one graph update (e.g. all of a retracted registration), each logged
         as ``prior_removed`` with its ``cause``: "wrong" (proven wrong, or its plan retracted) or
         "re-anchored" (the plan was refined or replaced: the keyframe is relocalised on it)."""
+        if cause not in PRIOR_REMOVAL_CAUSES:
+            raise ConfigError(
+                f"cause must be one of {', '.join(map(repr, PRIOR_REMOVAL_CAUSES))}, got {cause!r}",
+                where="cause",
+            )
         for h in self.graph.remove_priors(handles):
             self.log_event(
                 "prior_removed",

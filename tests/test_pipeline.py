@@ -136,8 +136,11 @@ def test_callable_strategy_and_wrong_prior_removal(room):
     assert np.abs(slam.trajectory()[:, 1:3] - before[:, 1:3]).max() < 0.02
     res = slam.graph.prior_residual(h)
     assert not res.consistent
+    with pytest.raises(ConfigError, match="cause must be one of 'wrong', 're-anchored'") as err:
+        slam.remove_prior(h, reason="typo", cause="wrnog")  # refused before anything is removed
+    assert err.value.where == "cause" and h.active
     slam.remove_prior(h, reason="inconsistent with the graph")
-    assert slam.log[-1].kind == "prior_removed" and not h.active
+    assert slam.log[-1].kind == "prior_removed" and not h.active and slam.log[-1].data["cause"] == "wrong"
     # a correct prior at a non-keyframe scan lands on that scan's pose
     good = compose(np.array([0.0, 0.05, 0.0]), slam.trajectory()[j, 1:])
     slam.add_floorplan_prior(float(truth[j, 0]), good, np.diag([1e-3**2, 1e-3**2, 1e-4**2]), kernel="none")
