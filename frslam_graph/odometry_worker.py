@@ -184,10 +184,12 @@ class OdometryWorker:
                 here = prepare is not None and self._prepare_here()
                 for item in source:
                     stamp, points, odom = item[:3]
-                    t0 = time.perf_counter()
+                    prepare_s = 0.0
                     if here:
+                        t0 = time.perf_counter()
                         points = prepare(points)
-                    waiting.append((item, time.perf_counter() - t0 if here else 0.0))
+                        prepare_s = time.perf_counter() - t0
+                    waiting.append((item, prepare_s))
                     chunk.append((stamp, points, odom))
                     if len(chunk) == self.chunk:
                         break
