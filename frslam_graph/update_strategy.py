@@ -57,7 +57,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -76,6 +76,9 @@ from frslam_graph.relocalisation import (
     RelocaliserParams,
     subsample,
 )
+
+if TYPE_CHECKING:  # pragma: no cover
+    from frslam_graph.pipeline import PriorRemoval
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 # Cost model of the deferred steps (ms on one core; sizes, never a clock, so the schedule stays
@@ -585,7 +588,7 @@ class FloorPlanUpdater:
         margin = min(cfg.free_space_margin + grow, max(cfg.free_space_margin_max, cfg.free_space_margin))
         return fit, margin
 
-    def _remove_priors_of(self, slam, acc: _Accepted, why: str, cause: str) -> list:
+    def _remove_priors_of(self, slam, acc: _Accepted, why: str, cause: PriorRemoval) -> list:
         tag = f"reloc:reg{acc.id}"
         handles = [h for h in slam.graph.priors() if h.source == tag]
         slam.remove_priors(handles, reason=why, cause=cause)  # one graph update for all of them
