@@ -5,8 +5,8 @@ depends on nothing downstream: the graph, loop closure and floor-plan priors nev
 it. Offline, :meth:`FRSlam.process <frslam_graph.pipeline.FRSlam.process>` therefore runs it in a
 forked worker on the second core while the caller's process runs the backend on the results of
 earlier scans, a classic two-stage pipeline. The worker gets scans (stamp, points in base_link,
-wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.OdometryResult` (or
-None for an out-of-order stamp) per scan, in order; the results are bit-identical to running the
+wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.OdometryResult` per
+scan, in order; the results are bit-identical to running the
 same ScanOdometry in-process. Frames and units are those of :mod:`frslam_graph.odometry`.
 
 The stateless part of the odometry (:meth:`ScanOdometry.prepare
@@ -78,7 +78,7 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
-        results: list[tuple[OdometryResult | None, float, float]] = []
+        results: list[tuple[OdometryResult, float, float]] = []
         try:
             for stamp, points, odom in chunk:
                 t0 = time.perf_counter()
@@ -171,7 +171,7 @@ class OdometryWorker:
 
     def run(
         self, items: Iterable[tuple[Any, ...]], prepare: Callable[[np.ndarray], Any] | None = None
-    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult | None, float]]:
+    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult, float]]:
         """See the class docstring. ``prepare``: the odometry's stateless preparation of an item's
         points (``ScanOdometry.prepare``), run in this process while the worker is the slower
         stage; None = always in the worker."""

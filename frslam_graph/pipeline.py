@@ -198,14 +198,9 @@ class FRSlam:
                 where="parallel",
             )
 
-    def _accept(self, stamp: float, res: OdometryResult | None, pts: np.ndarray, off: np.ndarray) -> None:
-        """Take one scan's odometry result into the backend (None: out-of-order stamp)."""
-        if res is None:
-            self.log_event(
-                "out_of_order", f"scan stamp {stamp} not after the previous one; skipped", stamp=stamp
-            )
-        else:
-            self._record(res, pts, off)
+    def _accept(self, stamp: float, res: OdometryResult, pts: np.ndarray, off: np.ndarray) -> None:
+        """Take one scan's odometry result into the backend."""
+        self._record(res, pts, off)
 
     def defer(self, steps: Iterator[Any]) -> None:
         """Run a hook's work as ``steps`` (a generator: the work between two yields is one step)

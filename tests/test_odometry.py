@@ -214,10 +214,10 @@ def test_odometry_slip_inside_speed_limit_is_detected_by_the_gate(room):
 def test_out_of_order_and_bad_input(room):
     truth, points, _ = room
     o = ScanOdometry(CFG)
-    assert o.process(1.0, points[0]) is not None
-    assert o.process(1.0, points[1]) is None
-    assert o.process(0.5, points[1]) is None
-    assert o.stats.out_of_order == 2 and o.stats.scans == 1
+    assert o.process(1.0, points[0]).stamp == 1.0
+    assert o.process(1.0, points[1]).stamp == 1.0  # kept, at its own stamp
+    assert o.process(0.5, points[1]).stamp == 0.5
+    assert o.stats.out_of_order == 2 and o.stats.scans == 3
     with pytest.raises(RecordingError, match="points"):
         o.process(2.0, np.zeros((10, 1)))
     with pytest.raises(RecordingError, match="stamp"):
@@ -350,3 +350,23 @@ def test_inlier_fractions_failed_pose_scores_zero():
     # a seed that diverged far from the map: no inliers, and no raster spanning the gap
     far = to_matrix4(np.array([3e6, -2e6, 0.3]))
     assert _inlier_fractions(pts, pts, [good, far], 0.2) == [1.0, 0.0]
+
+
+def test_bursty_stamps_keep_every_scan_and_flag_no_jump(room):
+    """A logger that stamps scans in bursts (three within a millisecond, then a long step, some
+    stamped before their predecessor, as in the Intel log): every scan is kept at its own stamp,
+    the wheel increments are not taken for jumps and the drift stays as on a steady clock."""
+    truth, points, odom = room
+    sub = np.arange(0, len(truth), 2)  # 5 Hz, 0.1 m a scan
+    stamps = truth[sub, 0].copy()
+    for g in range(0, len(sub) - 2, 3):  # each group of three stamped at its last scan's time
+        stamps[g : g + 3] = stamps[g + 2] + np.array([0.0, 5e-4, 1e-3])
+    stamps[30::40] -= 0.05  # a few before their predecessor
+    o = ScanOdometry(CFG)
+    res = [o.process(stamps[k], points[i], odom[i]) for k, i in enumerate(sub)]
+    assert [r.stamp for r in res] == stamps.tolist()
+    assert o.stats.scans == len(sub) and o.stats.odom_jumps == 0 and o.stats.dropped_scans == 0
+    assert o.stats.out_of_order == np.count_nonzero(np.diff(stamps) <= 0) > 0
+    assert o.nominal_period() == pytest.approx(0.2, rel=0.15)  # bursts of 3 in spans of 10 scans
+    poses = np.array([r.pose for r in res])
+    assert end_error(truth, poses, sub) / path_length(truth) < 0.02
