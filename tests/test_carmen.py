@@ -297,3 +297,38 @@ def test_shared_logs_read_in_full(shared_data, name, beams):
     assert sum(rec.stats.skipped.values()) == 0
     if name == "intel":
         assert n == 13631
+
+
+def test_intel_excerpt_backwards_stamps_all_kept_by_the_backend(test_data):
+    """The Intel log stamps scans in bursts, some before their predecessor (its line 90 is the
+    first): the backend keeps every scan, one pose per scan at its own stamp, in file order."""
+    from frslam_graph.pipeline import FRSlam
+
+    rec = open_recording(test_data / "intel_head.clf.bz2")
+    scans, _ = read_all(rec)
+    stamps = np.array([s.stamp for s in scans])
+    assert np.count_nonzero(np.diff(stamps) < 0) >= 1
+    traj = FRSlam().process(scans, parallel=False).trajectory
+    np.testing.assert_array_equal(traj[:, 0], stamps)
+    assert np.all(np.isfinite(traj[:, 1:]))
+
+
+def test_fr079_excerpt_laser_offset_and_no_return_beams(test_data):
+    """First 20 FLASER lines of the FR079 log: its laser sits 0.04 m behind the robot's centre
+    (the laser pose of each line, PARAM robot_frontlaser_offset -0.04) and 81.91 m readings mean
+    "no return" (above PARAM robot_front_laser_max 80.99): they become nan, never wall points."""
+    path = test_data / "fr079_head.clf.bz2"
+    rec = open_recording(path)
+    scans, _ = read_all(rec)
+    assert len(scans) == 20 and all(s.ranges.size == 360 for s in scans)
+    assert rec.max_range == pytest.approx(80.99)
+    for s in scans:
+        assert s.sensor_offset[0] == pytest.approx(-0.04, abs=2e-3)
+        assert abs(s.sensor_offset[1]) < 2e-3 and abs(s.sensor_offset[2]) < 1e-6
+    with bz2.open(path, "rt") as f:
+        raw = [line.split() for line in f if line.startswith("FLASER ")]
+    no_return = np.array([np.array(t[2:362], dtype=float) >= 81.9 for t in raw])
+    assert no_return.sum() >= 10
+    ranges = np.array([s.ranges for s in scans])
+    assert np.all(np.isnan(ranges[no_return])) and np.all(np.isfinite(ranges[~no_return]))
+    assert all(np.hypot(*s.points.T).max() < 80.0 for s in scans)
