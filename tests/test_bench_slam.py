@@ -1,0 +1,125 @@
+"""tools/bench_slam.py: the same figures with Dask workers as sequentially; the tables' format."""
+
+from __future__ import annotations
+
+import bz2
+import json
+import math
+
+import numpy as np
+import pytest
+from conftest import load_tool
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_tool("bench_slam")
+
+
+def excerpts(test_data, tmp_path):
+    """Two small logs: the Intel head excerpt and its first 30 laser lines (with their ODOM lines)."""
+    head = test_data / "intel_head.clf.bz2"
+    lines, lasers = [], 0
+    for line in bz2.open(head, "rt", encoding="latin-1"):
+        lines.append(line)
+        lasers += line.startswith("FLASER")
+        if lasers == 30:
+            break
+    short = tmp_path / "intel_short.clf"
+    short.write_text("".join(lines), encoding="latin-1")
+    return {"head": (head, None), "short": (short, None)}
+
+
+TIMING = {"wall_s", "xrt", "latency_ms", "peak_rss_mb"}
+
+
+def test_workers_give_the_sequential_results(bench, test_data, tmp_path):
+    logs = excerpts(test_data, tmp_path)
+    runs = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        done = bench.run_tasks(bench.make_tasks(logs, out, baseline=True), workers)
+        runs[workers] = (out, bench.collect(done))
+    (out1, res1), (out2, res2) = runs[1], runs[2]
+    assert set(res1) == set(res2) == {"head", "short"}
+    for name in ("head", "short"):
+        for kind in ("frslam", "kiss"):
+            a, b = res1[name][kind], res2[name][kind]
+            assert "error" not in a and "error" not in b, (a, b)
+            assert {k: v for k, v in a.items() if k not in TIMING} == {
+                k: v for k, v in b.items() if k not in TIMING
+            }
+        assert res1[name]["frslam"]["scans"] == {"head": 64, "short": 30}[name]
+        assert res1[name]["frslam"]["peak_rss_mb"] > 50  # the run's process, not the task runner's
+        np.testing.assert_array_equal(
+            np.loadtxt(out1 / name / "trajectory.tum"), np.loadtxt(out2 / name / "trajectory.tum")
+        )
+        m1, m2 = (json.loads((o / name / "metrics.json").read_text()) for o in (out1, out2))
+        for k in TIMING | {"wall_time_s", "realtime_factor", "odometry_stats"}:
+            m1.pop(k, None), m2.pop(k, None)
+        assert m1 == m2
+
+
+REL = {
+    "trans_mean": 0.0341,
+    "trans_std": 0.0312,
+    "trans_max": 0.4567,
+    "rot_mean": 0.591,
+    "rot_std": 1.234,
+    "rot_max": 12.345,
+    "matched": 2984,
+    "total": 2984,
+}
+RUN = {
+    "scans": 13631,
+    "duration_s": 2691.0,
+    "wall_s": 100.0,
+    "xrt": 26.91,
+    "latency_ms": {"median": 1.234, "p99": 12.34, "max": 456.7},
+    "endpoints_on_wall": None,
+    "closures": 42,
+    "peak_rss_mb": 512.4,
+    "relations": REL,
+}
+BASE = {"wall_s": 25.0, "xrt": 107.6, "relations": {**REL, "trans_mean": 0.5, "trans_std": 0.25}}
+
+
+def test_table_rows_from_fixed_numbers(bench):
+    row = bench.main_row("intel", RUN, BASE)
+    assert row == [
+        "intel",
+        "13631",
+        "0.0341 ± 0.0312, 0.457",
+        "0.591 ± 1.234, 12.35",
+        "2984 / 2984",
+        "n/a",
+        "26.9",
+        "1.23 / 12.3 / 457",
+        "512",
+        "42",
+        "0.5000 ± 0.2500",
+        "107.6",
+        "4.00",
+    ]
+    assert len(row) == len(bench.MAIN_HEAD)
+    with_wall = bench.main_row("intel", {**RUN, "endpoints_on_wall": 0.8766}, None)
+    assert with_wall[5] == "87.7 %" and with_wall[-3:] == ["—", "—", "—"]
+    sim = {k: v for k, v in RUN.items() if k != "relations"} | {"ate_rmse": 0.01234, "duration_s": 7200.0}
+    assert bench.main_row("sim", sim, None)[2:5] == ["ATE RMSE 0.0123 (simulated, 2.00 h)", "—", "—"]
+    none = {**REL, "matched": 0, "total": 10, "trans_mean": math.nan}
+    assert bench.main_row("x", {**RUN, "relations": none}, None)[2:5] == ["n/a", "n/a", "0 / 10"]
+    assert bench.main_row("x", {"error": "exit 1: boom"}, None)[1] == "failed: exit 1: boom"
+
+
+def test_markdown_tables(bench):
+    text = bench.tables({"intel": {"frslam": RUN, "kiss": {**BASE, "wheel_relations": REL}}})
+    lines = text.splitlines()
+    assert lines[0] == "| " + " | ".join(bench.MAIN_HEAD) + " |"
+    assert lines[1] == "|" + "---|" * len(bench.MAIN_HEAD)
+    assert lines[2].startswith("| intel | 13631 | 0.0341 ± 0.0312, 0.457 |")
+    assert lines[2].count(" | ") == len(bench.MAIN_HEAD) - 1
+    ref = [x for x in lines if x.startswith("| intel | 0.0229")]
+    assert ref == [
+        "| intel | 0.0229 ± 0.0239 m / 0.453 ± 1.335° | 0.031 ± 0.026 m / 1.3 ± 4.7° | 0.0341 ± 0.0312 m / 0.591 ± 1.234° |"
+    ]
+    assert bench.markdown(["a"], [["x|y"]]).splitlines()[2] == "| x\\|y |"
