@@ -1,17 +1,33 @@
 """LiDAR occupancy map from keyframe scans at their current pose estimates (log-odds).
 
 Units: metres, radians, frame ``map``. Each keyframe contributes its planar end points (in
-``base_link``) and the sensor origin; free space is the polygon sensor -> end points (beam order)
-filled with OpenCV at sub-cell precision in a window around the scan (no per-beam Python loop),
-each cell counted at most once per scan; end cells are hits and never carved by their own scan.
+``base_link``, beam order) and the sensor origin. Per scan:
+
+* hits: the cells the end points fall in (each counted once per scan);
+* misses: the star polygon of :func:`free_polygon` filled with OpenCV at sub-cell precision in a
+  window around the scan (no per-beam Python loop), each cell counted at most once per scan. Each
+  beam clears only up to where it comes within ``end_margin`` (1.5 cells) of the surface it hits
+  (``end_margin / sin(incidence)`` before its end point), so the cells next to a hit stay and a
+  beam grazing a wall does not eat it; the wedge between two adjacent beams is cleared only up to the *shorter*
+  of the two (a depth discontinuity does not clear the region behind the near object, a beam
+  grazing a wall does not clear the wall between its neighbours' end points); beams without a
+  return (the gaps in the beam angles: NaN / max range readings are absent from the points)
+  clear up to ``no_return_range`` (3 m): far enough to mark open space near the robot, short
+  enough that a missed return (dark or glass surface) rarely clears through a wall;
+* a cell a beam ends in is never cleared by the same scan.
 
 :class:`OccupancyMapper` keeps per-cell hit / miss counts on a grid that grows as needed and is
 *incremental*: new keyframes are added, keyframes whose pose estimate moved (after a prior or a
 loop closure) are subtracted at their old pose and added at the new one (exact, counts are
 integers), so repeated map requests during a run cost little. Cell log-odds =
-hits · l_hit + misses · l_miss; occupied (100) above ``occupied_logodds``, free (0) below
+hits · l_hit + misses · l_miss, with a hit worth ~40 misses (a wall cell hit by a few scans
+stays occupied although other scans' free space grazes it; an object seen once and then seen
+through many times is cleared); occupied (100) above ``occupied_logodds``, free (0) below
 ``free_logodds``, unknown (-1) otherwise. Output follows nav_msgs/OccupancyGrid: row 0 is the
 lowest y, ``origin`` the lower-left corner of cell (0, 0), yaw 0.
+
+:func:`endpoint_share` measures a map against the scans: the share of end points (at the final
+poses) on or next to an occupied cell.
 """
 
 from __future__ import annotations
@@ -21,17 +37,126 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from frslam_graph.motion_model import compose_many, wrap
+from frslam_graph.motion_model import wrap
 
 L_HIT = 0.85
-L_MISS = -0.4
+L_MISS = -0.02
+END_MARGIN_CELLS = 1.5  # a beam stops clearing this many cells from the surface it hits
+NO_RETURN_RANGE = 3.0  # m: how far a beam without a return clears
+MAX_GAP = np.pi / 2  # rad: adjacent end points further apart in angle bound no free wedge
 _SHIFT = 4
 _SUB = 1 << _SHIFT
 _GROW = 64  # cells of slack added when the grid grows
 
 
+def end_margin_along_beams(vx: np.ndarray, vy: np.ndarray, r: np.ndarray, margin: float) -> np.ndarray:
+    """How far (M,) before its end point each beam stops clearing, so that it stays ``margin``
+    (metres) away from the surface it hits: ``margin / sin(incidence)``, at most the range ``r``.
+
+    ``vx``, ``vy`` (M,): beams sensor -> end point in beam order, ``r`` (M,) their lengths. The
+    surface direction at end point i is that of the chord between the end points two beams either
+    side (less sensitive to range noise than the adjacent ones); at a depth discontinuity that
+    chord is nearly radial, so the beam clears less: the safe side.
+    """
+    px = np.concatenate((vx[:1], vx[:1], vx, vx[-1:], vx[-1:]))
+    py = np.concatenate((vy[:1], vy[:1], vy, vy[-1:], vy[-1:]))
+    tx, ty = px[4:] - px[:-4], py[4:] - py[:-4]
+    sin_inc = np.abs(vx * ty - vy * tx) / np.maximum(r * np.sqrt(tx * tx + ty * ty), 1e-12)
+    return np.minimum(margin / np.maximum(sin_inc, 1e-3), r)
+
+
+def free_polygon(
+    origin: np.ndarray, ends: np.ndarray, end_margin: float, no_return_range: float = NO_RETURN_RANGE
+) -> np.ndarray:
+    """Vertices (P, 2) of the region one scan saw free, a polygon star-shaped about the sensor.
+
+    ``origin`` (2,): the sensor; ``ends`` (M >= 2, 2): end points in beam order (any frame, metres;
+    the result is in the same frame). Beam i clears up to where it comes within ``end_margin`` of
+    the surface it hits (:func:`end_margin_along_beams`). The beam increment is the median angle
+    step between adjacent end points; a step of k increments (k >= 2, within a quarter increment)
+    holds k - 1 beams without a return, which clear up to ``no_return_range``. Between adjacent
+    beams the wedge is cleared up to the shorter of the two clearing ranges (vertices: beam b at
+    its range, beam b at the wedge range, beam b+1 at the wedge range, ...). Adjacent end points
+    whose angle step is <= 0 or > :data:`MAX_GAP` are not joined (the wedge range is 0).
+    """
+    ox, oy = float(origin[0]), float(origin[1])
+    vx, vy = ends[:, 0] - ox, ends[:, 1] - oy
+    r = np.sqrt(vx * vx + vy * vy)
+    th = np.arctan2(vy, vx)
+    clear = r - end_margin_along_beams(vx, vy, r, end_margin)
+    d = (np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi
+    s = 1.0
+    if 2 * np.count_nonzero(d < 0.0) > len(d):  # beams in clockwise order
+        s, d = -1.0, -d
+    joined = (d > 1e-9) & (d <= MAX_GAP)
+    dj = d[joined]
+    inc = float(np.partition(dj, len(dj) // 2)[len(dj) // 2]) if len(dj) else 0.0
+    missing = np.zeros(len(d), np.int64)
+    if inc > 0.0:
+        q = d / inc
+        steps = np.rint(q)
+        gap = joined & (steps >= 2.0) & (np.abs(q - steps) < 0.25)
+        missing[gap] = steps[gap] - 1
+    if missing.any():  # every beam: each return followed by the beams without a return after it
+        counts = np.append(1 + missing, 1)
+        first = np.cumsum(counts) - counts
+        beam = np.repeat(np.arange(len(r)), counts)
+        j = np.arange(len(beam)) - np.repeat(first, counts)  # 0: the return, > 0: no return
+        ang = th[beam] + (s * inc) * j
+        rng = np.where(j == 0, clear[beam], no_return_range)
+        last_of_group = first[1:] - 1
+    else:
+        ang, rng, last_of_group = th, clear, slice(None)
+    wedge = np.minimum(rng[:-1], rng[1:])
+    wedge[last_of_group] *= joined  # pairs of returns not joined: no wedge
+    n = len(ang)
+    a = np.empty(3 * n - 2)
+    rr = np.empty(3 * n - 2)
+    a[0::3], a[1::3], a[2::3] = ang, ang[:-1], ang[1:]
+    rr[0::3], rr[1::3], rr[2::3] = rng, wedge, wedge
+    out = np.empty((3 * n - 1, 2))
+    out[0] = ox, oy
+    out[1:, 0] = ox + rr * np.cos(a)
+    out[1:, 1] = oy + rr * np.sin(a)
+    return out
+
+
+def scan_points_in_map(poses: np.ndarray, scans: Sequence[np.ndarray]) -> np.ndarray:
+    """End points (N, 2) in ``map`` of keyframe scans ``scans[k]`` (M_k, 2, base_link) at ``poses`` (K, 3)."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if len(poses) != len(scans):
+        raise ValueError(f"{len(poses)} poses for {len(scans)} scans")
+    if not len(scans):
+        return np.zeros((0, 2))
+    pts = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in scans])
+    pose = np.repeat(poses, [len(np.asarray(p).reshape(-1, 2)) for p in scans], axis=0)
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    return np.column_stack(
+        (pose[:, 0] + c * pts[:, 0] - s * pts[:, 1], pose[:, 1] + s * pts[:, 0] + c * pts[:, 1])
+    )
+
+
+def endpoint_share(grid, points_in_map: np.ndarray) -> float:
+    """Share of ``points_in_map`` (N, 2, metres, ``map``) in a cell of ``grid`` (OccupancyGrid) that
+    is occupied or 8-adjacent to an occupied one (within one cell); points off the grid count as
+    misses. NaN without points."""
+    pts = np.asarray(points_in_map, dtype=np.float64).reshape(-1, 2)
+    if not len(pts):
+        return float("nan")
+    near = cv2.dilate(grid.occupied_mask().astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    cr = np.floor(grid.world_to_cell(pts)).astype(np.int64)
+    inside = (cr[:, 0] >= 0) & (cr[:, 0] < grid.width) & (cr[:, 1] >= 0) & (cr[:, 1] < grid.height)
+    on = np.zeros(len(pts), bool)
+    on[inside] = near[cr[inside, 1], cr[inside, 0]]
+    return float(on.mean())
+
+
 class OccupancyMapper:
-    """Incremental hit / miss counts of keyframe scans (see module docstring)."""
+    """Incremental hit / miss counts of keyframe scans (see module docstring).
+
+    ``end_margin`` (m, default 1.5 cells): free space stops this far from the surface a beam hits;
+    ``no_return_range`` (m): how far a beam without a return clears.
+    """
 
     def __init__(
         self,
@@ -41,7 +166,9 @@ class OccupancyMapper:
         l_hit: float = L_HIT,
         l_miss: float = L_MISS,
         occupied_logodds: float = 0.5,
-        free_logodds: float = -0.3,
+        free_logodds: float = -0.01,
+        end_margin: float | None = None,
+        no_return_range: float = NO_RETURN_RANGE,
     ):
         if not (np.isfinite(resolution) and resolution > 0):
             raise ValueError(f"resolution must be positive, got {resolution!r}")
@@ -50,6 +177,8 @@ class OccupancyMapper:
         self.tol_th = float(pose_tolerance_theta)
         self.l_hit, self.l_miss = l_hit, l_miss
         self.occupied_logodds, self.free_logodds = occupied_logodds, free_logodds
+        self.end_margin = END_MARGIN_CELLS * self.resolution if end_margin is None else float(end_margin)
+        self.no_return_range = float(no_return_range)
         self._hits = np.zeros((0, 0), np.int32)
         self._misses = np.zeros((0, 0), np.int32)
         self._c0 = np.zeros(2, np.int64)  # global cell (ix, iy) of array element [0, 0]
@@ -110,30 +239,36 @@ class OccupancyMapper:
         return np.zeros(2) if origins is None else np.asarray(origins[k], dtype=np.float64)[:2]
 
     def _insert(self, pose: np.ndarray, pts: np.ndarray, origin: np.ndarray, sign: int) -> bool:
+        """Add (``sign`` +1) or subtract (-1) one scan at ``pose``; False when it has < 2 points."""
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         if len(pts) < 2:
             return False
-        ow = compose_many(pose, np.array([[origin[0], origin[1], 0.0]]))[0, :2]
-        ew = compose_many(pose, np.column_stack((pts, np.zeros(len(pts)))))[:, :2]
-        poly = np.vstack((ow, ew)) / self.resolution  # global cell units
-        lo = np.floor(poly.min(axis=0)).astype(np.int64)
-        hi = np.floor(poly.max(axis=0)).astype(np.int64) + 1
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        ow = np.array([pose[0] + c * origin[0] - s * origin[1], pose[1] + s * origin[0] + c * origin[1]])
+        ew = np.empty_like(pts)  # end points: base_link -> map
+        ew[:, 0] = pose[0] + c * pts[:, 0] - s * pts[:, 1]
+        ew[:, 1] = pose[1] + s * pts[:, 0] + c * pts[:, 1]
+        poly = free_polygon(ow, ew, self.end_margin, self.no_return_range) / self.resolution
+        xs = np.concatenate((poly[:, 0], ew[:, 0] / self.resolution))  # window: polygon and hits
+        ys = np.concatenate((poly[:, 1], ew[:, 1] / self.resolution))
+        lo = np.floor([xs.min(), ys.min()]).astype(np.int64)
+        hi = np.floor([xs.max(), ys.max()]).astype(np.int64) + 1
         self._ensure(lo, hi)
         a0 = lo - self._c0  # window in array indices
         shape = (int(hi[1] - lo[1]), int(hi[0] - lo[0]))
         mask = np.zeros(shape, dtype=np.uint8)
         pix = np.round((poly - lo - 0.5) * _SUB).astype(np.int32)  # cell centres at integer + 0.5
         cv2.fillPoly(mask, [pix.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        hit = np.floor(ew / self.resolution).astype(np.int64) - lo
-        key = np.unique(hit[:, 1] * shape[1] + hit[:, 0])
-        hr, hc = np.divmod(key, shape[1])
-        mask[hr, hc] = 0
-        ys, xs = slice(a0[1], a0[1] + shape[0]), slice(a0[0], a0[0] + shape[1])
+        hc = np.floor(ew[:, 0] / self.resolution).astype(np.int64) - lo[0]
+        hr = np.floor(ew[:, 1] / self.resolution).astype(np.int64) - lo[1]
+        mask[hr, hc] = 0  # a cell a beam ends in is never cleared by the same scan
+        rows, cols = slice(a0[1], a0[1] + shape[0]), slice(a0[0], a0[0] + shape[1])
+        # fancy-index += / -= counts a repeated cell once: each cell one hit per scan at most
         if sign > 0:
-            self._misses[ys, xs] += mask
+            self._misses[rows, cols] += mask
             self._hits[hr + a0[1], hc + a0[0]] += 1
         else:
-            self._misses[ys, xs] -= mask
+            self._misses[rows, cols] -= mask
             self._hits[hr + a0[1], hc + a0[0]] -= 1
         return True
 
@@ -217,4 +352,11 @@ def occupancy_grid(
     return OccupancyGrid(data, res, origin)
 
 
-__all__ = ["OccupancyMapper", "occupancy_arrays", "occupancy_grid"]
+__all__ = [
+    "OccupancyMapper",
+    "endpoint_share",
+    "free_polygon",
+    "occupancy_arrays",
+    "occupancy_grid",
+    "scan_points_in_map",
+]

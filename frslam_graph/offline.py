@@ -92,8 +92,11 @@ def write_outputs(
     save_tum(files["trajectory"], res.trajectory)
     files["odometry"] = out / "odometry.tum"
     save_tum(files["odometry"], res.odometry)
+    map_metrics: dict[str, Any] = {}
     if len(res.keyframes):
-        files["map"] = run.slam.occupancy_grid(0.05).save(out / "map.yaml")
+        grid = run.slam.occupancy_grid(0.05)
+        files["map"] = grid.save(out / "map.yaml")
+        map_metrics = _map_metrics(run.slam, grid)
     plan_in_map = run.slam.registered_plan()
     if plan_in_map is not None:
         files["registered_plan"] = plan_in_map.save(out / "registered_plan.json")
@@ -135,6 +138,8 @@ def write_outputs(
         },
         "floor_plan": run.slam.floor_plan is not None,
     }
+    if map_metrics:
+        metrics["map"] = map_metrics
     st = run.recording_stats
     if st is not None:  # records the reader skipped or flagged: kept with the results
         metrics["recording"] = {
@@ -149,6 +154,19 @@ def write_outputs(
     files["metrics"].write_text(json.dumps(_jsonable(metrics), indent=1))
     run.files, run.metrics = files, metrics
     return run
+
+
+def _map_metrics(slam: FRSlam, grid) -> dict[str, Any]:
+    """The written map against the keyframe scans at the final estimates: share of end points on
+    or next to (8-neighbourhood) an occupied cell, and the occupied / free cell counts."""
+    from frslam_graph.mapping import endpoint_share, scan_points_in_map
+
+    pts, _ = slam.keyframe_scans()
+    return {
+        "endpoints_on_wall": endpoint_share(grid, scan_points_in_map(slam.graph.estimates(), pts)),
+        "occupied_cells": int(grid.occupied_mask().sum()),
+        "free_cells": int(grid.free_mask().sum()),
+    }
 
 
 def evaluate(
