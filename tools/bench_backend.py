@@ -1,4 +1,4 @@
-"""Issue-5 benchmark of the SLAM backend: speed, floor-plan priors, ACES (Markdown tables).
+"""Issue-5 benchmark of the SLAM backend: speed, floor-plan priors (Markdown tables).
 
 Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``results.csv``):
 
@@ -36,13 +36,13 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    houses (odometry + backend per scan, the final refinement and LM batch excluded): the median
    and p99 of each run, the worst scan, the scans over 20 ms (section 1's room has no plan and
    few loop closures; here registrations, relocalisations and closures all run).
-3. **ACES** (``--aces``): relation error of Kümmerle et al. without a floor plan, with and
-   without loop closure (``tools/bench_aces.py``'s ``run``), next to the published figures.
+
+Real logs (ACES, Intel, FR079, the Intel bag) are benchmarked by ``tools/bench_slam.py``.
 
 Issue-5 targets are printed under each table.
 
     .venv/bin/python tools/bench_backend.py --quick --out /tmp/bench5
-    .venv/bin/python tools/bench_backend.py --houses 20 --workers 2 --aces --out /tmp/bench5
+    .venv/bin/python tools/bench_backend.py --houses 20 --workers 2 --out /tmp/bench5
 """
 
 from __future__ import annotations
@@ -595,37 +595,6 @@ def _pct(k: int, n: int) -> str:
     return f"{100 * k / n:.0f} %" if n else "—"
 
 
-# ---------------------------------------------------------------- section 3: ACES
-
-
-def aces_section() -> tuple[str, list[tuple[str, str, str]]]:
-    from bench_aces import DATA, LOGS, PUBLISHED, fmt_rel  # noqa: PLC0415
-    from bench_aces import run as aces_run  # noqa: PLC0415
-    from frslam_graph.datasets import open_recording  # noqa: PLC0415
-
-    path, relations = DATA / LOGS["aces"], DATA / "aces.relations"
-    if not path.exists() or not relations.exists():
-        return f"## 3. ACES\n\nskipped: {path} or {relations} not found\n", []
-    scans = list(open_recording(path))
-    lines = [
-        "## 3. ACES relation error (no floor plan)",
-        "",
-        f"ACES building log, {len(scans)} scans; relation error of Kümmerle et al. (mean ± std).",
-        "",
-        "| run | relation error trans (m) | rot (deg) | × real time wall (CPU) | closures / matched |",
-        "|---|---|---|---|---|",
-    ]
-    csv_rows = []
-    for label, on in (("loop closure", True), ("no loop closure", False)):
-        res = aces_run(scans, on)
-        trans, rot = fmt_rel(res["trajectory"], relations)
-        lc = f"{res['closures']} / {res['attempts']}" if on else "—"
-        lines.append(f"| {label} | {trans} | {rot} | {res['xrt']:.1f} ({res['xrt_cpu']:.1f}) | {lc} |")
-        csv_rows += [(label, "relation trans m", trans), (label, "relation rot deg", rot)]
-    lines += ["", f"Published: {PUBLISHED['aces']}. Target: <= 0.0375 m (with loop closure).", ""]
-    return "\n".join(lines), csv_rows
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--laps", type=int, default=4, help="section 1: laps of the synthetic room")
@@ -666,7 +635,6 @@ def main() -> None:
     ap.add_argument(
         "--time-budget", type=float, default=None, help="section 2: start no house after this many seconds"
     )
-    ap.add_argument("--aces", action="store_true", help="section 3: run ACES (a few minutes)")
     ap.add_argument("--quick", action="store_true", help="2 laps x 1 run, 2 houses")
     ap.add_argument("--skip", nargs="*", default=[], choices=["latency", "priors"], help="sections to skip")
     ap.add_argument("--out", type=Path, default=None, help="write table.md and results.csv here")
@@ -710,11 +678,6 @@ def main() -> None:
                     csv_rows.append([f"priors/{r['regime']}", r["house"], mode, k, f"{r[k]:.6g}"])
         for p, why in skipped:
             csv_rows.append(["priors", p, "", "skipped", why])
-    if args.aces:
-        text, arows = aces_section()
-        print(text, flush=True)
-        parts.append(text)
-        csv_rows += [["aces", "aces", label, k, v] for label, k, v in arows]
     footer = f"Total benchmark time {time.perf_counter() - t_start:.0f} s; command: {' '.join(sys.argv)}"
     print(footer)
     if args.out is not None:
