@@ -15,9 +15,10 @@ Scans without enough valid points (all-NaN) fall back to the motion model. With
 ``scan_matching=False`` the wheel odometry alone drives the motion model (the scans are still
 mapped and used by loop closure and the floor-plan priors); scans without wheel odometry are
 then still matched. Wheel increments that
-are physically impossible, or that the scan rejects in favour of constant velocity (when the two
-disagree both seeds are aligned and the better map fit wins), are *odometry jumps*: ICP is
-trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
+are physically impossible, that the scan rejects in favour of constant velocity (when the two
+disagree both seeds are aligned and the better map fit wins), or that move along the robot's x
+axis against the scan's motion beyond the gate (wheel odometry that lost the sign: a reversal
+logged as forward motion) are *odometry jumps*: ICP is trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamp gaps larger than ``gap_factor`` nominal periods count as dropped scans.
 """
 
@@ -324,21 +325,26 @@ class ScanOdometry:
             if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
                 icp_rejected, z = True, np.zeros(3)
             R = vector_cov(z, R_body)
+            before = self._ekf.snapshot()
             self._ekf.predict(u, cov_u)
-            if (
-                not icp_rejected
-                and cfg.icp_gate == "reject"
-                and used_wheel
-                and not fallback
-                and not degenerate
-            ):
+            if not icp_rejected and used_wheel and not fallback and not degenerate:
                 y, m2 = self._ekf.innovation(z, R)
-                # ICP far from a plausible wheel increment (which agreed with constant velocity,
-                # or the two-seed test would have flagged a jump): ICP fell into a wrong minimum
-                icp_rejected = m2 > cfg.odom_jump_gate**2 and (
+                beyond = m2 > cfg.odom_jump_gate**2 and (
                     np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
                     or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
                 )
+                if beyond and _reversed(between(prev_rel, z), u, cfg.odom_jump_min_m / 4.0):
+                    # the scan moved the robot backwards where the wheels say forwards (or the
+                    # reverse): wheel odometry that lost the sign of the motion (FR079 logs
+                    # reversing at 0.5 m/s as forward motion). A wheel fault: ICP is trusted,
+                    # under the constant-velocity prior
+                    jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
+                    self._ekf.restore(before)
+                    self._ekf.predict(u, cov_u)
+                elif beyond and cfg.icp_gate == "reject":
+                    # ICP far from a plausible wheel increment (which agreed with constant
+                    # velocity, or the two-seed test would have flagged a jump): a wrong minimum
+                    icp_rejected = True
             if icp_rejected:
                 self.stats.icp_rejections += 1
                 fallback = True
@@ -556,6 +562,13 @@ class ScanOdometry:
             n_points,
             icp_rejected,
         )
+
+
+def _reversed(icp_increment: np.ndarray, wheel_increment: np.ndarray, least: float) -> bool:
+    """True when the two increments move along base_link x in opposite directions, each by more
+    than ``least`` metres."""
+    a, b = float(icp_increment[0]), float(wheel_increment[0])
+    return a * b < 0.0 and min(abs(a), abs(b)) > least
 
 
 def _inlier_fractions(
