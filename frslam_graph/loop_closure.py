@@ -202,7 +202,9 @@ class LoopCloser:
         # graph distances of the latest plan: (keyframe, closures, travel, turn)
         self._dist: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
-        self._local: list[np.ndarray | None] = []  # per keyframe: its points in range (_in_range)
+        # per keyframe: its points in range (_in_range), the keyframe's own float32 array when all
+        # are (no copy), else a float32 subset
+        self._local: list[np.ndarray | None] = []
         self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
         self._rng = np.random.default_rng(0)
         # anytime work: candidates planned at a keyframe, matched a few steps per scan
@@ -492,7 +494,7 @@ class LoopCloser:
         sizes = [len(p) for p in local]
         # one transform for all keyframes: per point the same products as transform_points
         rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
-        pts = rigid_points(*rep.T, np.concatenate(local))
+        pts = rigid_points(*rep.T, np.concatenate(local, dtype=np.float64))
         ends = np.split(pts, np.cumsum(sizes)[:-1])
         scans = [
             (transform_points(r, origins[k][None])[0], e) for r, k, e in zip(rels, ks, ends, strict=True)
@@ -500,16 +502,17 @@ class LoopCloser:
         return pts, scans
 
     def _in_range(self, pts_all: list[np.ndarray], origins: list[np.ndarray], k: int) -> np.ndarray:
-        """Keyframe k's end points within ``max_point_range`` of its sensor (float64, base_link;
-        cached: keyframe scans never change)."""
+        """Keyframe k's end points within ``max_point_range`` of its sensor (base_link, the dtype of
+        the keyframe's points; cached: keyframe scans never change). When all are in range the
+        keyframe's own array is returned: the cache holds no copy of the map's points."""
         cache = self._local
         while len(cache) <= k:
             cache.append(None)
         p = cache[k]
         if p is None:
             q = pts_all[k]
-            p = np.asarray(q[np.hypot(*(q - origins[k]).T) <= self.config.max_point_range], np.float64)
-            cache[k] = p
+            ok = np.hypot(*(q - origins[k]).T) <= self.config.max_point_range
+            p = cache[k] = q if ok.all() else q[ok]
         return p
 
     def _reference(self, slam: FRSlam, c: int, i: int) -> Steps[ReferenceSubmap]:

@@ -10,8 +10,10 @@ the relations of Kümmerle et al. Nothing here prints; progress goes through a c
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
@@ -22,6 +24,27 @@ import numpy as np
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import TrajectoryError
 from frslam_graph.pipeline import PRIOR_REMOVAL_CAUSES, FRSlam, SlamResult
+
+#: scans between two returns of freed heap memory to the system during :func:`run_recording`
+TRIM_EVERY_SCANS = 200
+
+
+def _heap_trimmer() -> Callable[[], object] | None:
+    """glibc's ``malloc_trim(0)``, or None without glibc.
+
+    glibc keeps memory freed in the middle of its heap (and, once a large numpy temporary was
+    freed, serves arrays up to that size from the heap instead of ``mmap``: its dynamic mmap
+    threshold, mallopt(3)). On Intel the backend held ~80 MB of freed memory (RSS 288 MB at
+    2,000 scans, 207 MB after a trim; 318 / 237 MB at 6,000). Trimming every few hundred scans
+    gives it back; it moves no live object, so results are unchanged."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return lambda: trim(0)
 
 
 @dataclass
@@ -46,15 +69,20 @@ def run_recording(
     """Run FRSlam over ``recording`` (an iterable of Scan); ``floor_plan`` None = no priors.
 
     ``progress(i)`` is called after each scan is read. ``parallel``: odometry in a worker process
-    (same results; None = where possible, see :meth:`FRSlam.process`).
+    (same results; None = where possible, see :meth:`FRSlam.process`). Every
+    :data:`TRIM_EVERY_SCANS` scans the heap memory freed meanwhile goes back to the system
+    (:func:`_heap_trimmer`). Scans are streamed: none is kept after the backend took it.
     """
     slam = FRSlam(config=config, floor_plan=floor_plan)
+    trim = _heap_trimmer()
 
     def scans():
         for i, scan in enumerate(recording):
             yield scan
             if progress is not None:
                 progress(i + 1)
+            if trim is not None and (i + 1) % TRIM_EVERY_SCANS == 0:
+                trim()
 
     result = slam.process(scans(), batch=True, parallel=parallel)
     return RunOutput(slam, result, recording_stats=getattr(recording, "stats", None))

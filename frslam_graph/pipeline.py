@@ -90,6 +90,74 @@ class SlamResult:
         return self.duration / self.wall_time if self.wall_time > 0 else float("inf")
 
 
+class _Rows:
+    """Rows of a fixed width (None: scalars) appended one at a time, in one array that doubles
+    when full: ``width`` × itemsize bytes per row (at most twice that while it is half-empty),
+    where a Python list of small arrays costs ~130 B per 3-vector and 32 B per float."""
+
+    def __init__(self, width: int | None = None, dtype: Any = np.float64, capacity: int = 256):
+        self._a = np.empty((capacity,) if width is None else (capacity, width), dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row: Any) -> None:
+        if self._n == len(self._a):
+            grown = np.empty((2 * len(self._a), *self._a.shape[1:]), self._a.dtype)
+            grown[: self._n] = self._a
+            self._a = grown
+        self._a[self._n] = row
+        self._n += 1
+
+    @property
+    def array(self) -> np.ndarray:
+        """The rows so far (a view: valid until the next append)."""
+        return self._a[: self._n]
+
+    @property
+    def nbytes(self) -> int:
+        return self._a.nbytes
+
+
+class _ScanTrack:
+    """Per scan what the trajectory needs, nothing more: stamp, keyframe index, pose relative to
+    that keyframe and the odometry pose (64 B per scan, amortised)."""
+
+    def __init__(self) -> None:
+        self._f = _Rows(7)  # stamp, relative (x, y, theta), odometry (x, y, theta)
+        self._kf = _Rows(None, np.int64)
+
+    def __len__(self) -> int:
+        return len(self._kf)
+
+    def append(self, stamp: float, keyframe: int, relative: np.ndarray, odometry: np.ndarray) -> None:
+        row = np.empty(7)
+        row[0], row[1:4], row[4:7] = stamp, relative, odometry
+        self._f.append(row)
+        self._kf.append(keyframe)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self._f.array[:, 0]
+
+    @property
+    def keyframe(self) -> np.ndarray:
+        return self._kf.array
+
+    @property
+    def relative(self) -> np.ndarray:
+        return self._f.array[:, 1:4]
+
+    @property
+    def odometry(self) -> np.ndarray:
+        return self._f.array[:, 4:7]
+
+    @property
+    def nbytes(self) -> int:
+        return self._f.nbytes + self._kf.nbytes
+
+
 @dataclass(slots=True)
 class _Keyframe:
     stamp: float
@@ -122,10 +190,7 @@ class FRSlam:
         self._kfs: list[_Keyframe] = []
         self._kf_points: list[np.ndarray] = []  # per keyframe, for keyframe_scans() (no rebuild)
         self._kf_origins: list[np.ndarray] = []
-        self._stamps: list[float] = []
-        self._scan_kf: list[int] = []
-        self._scan_rel: list[np.ndarray] = []
-        self._scan_odom: list[np.ndarray] = []
+        self._scans = _ScanTrack()
         self._was_degenerate = False
         self._angles_cache: tuple[float, float, int, tuple[np.ndarray, np.ndarray]] | None = None
         self._odometry_elsewhere = False  # process() ran the odometry in a worker process
@@ -299,11 +364,8 @@ class FRSlam:
                 **data,
             )
             self._was_degenerate = res.degenerate
-        scan_index = len(self._stamps)
-        self._stamps.append(stamp)
-        self._scan_kf.append(res.keyframe)
-        self._scan_rel.append(res.relative)
-        self._scan_odom.append(res.pose)
+        scan_index = len(self._scans)
+        self._scans.append(stamp, res.keyframe, res.relative, res.pose)
         if not res.is_keyframe:
             # a hook's deferred work, one step per scan; queued loop-closure work in the rest of
             # the scan's budget
@@ -338,13 +400,23 @@ class FRSlam:
     # ------------------------------------------------------------- outputs
     def pose(self) -> tuple[float, float, float]:
         """Latest base_link pose in map."""
-        if not self._stamps:
+        if not len(self._scans):
             return (0.0, 0.0, 0.0)
-        p = compose(self.graph.estimate(), self._scan_rel[-1])
+        p = compose(self.graph.estimate(), self._scans.relative[-1])
         return (float(p[0]), float(p[1]), float(p[2]))
 
     def __len__(self) -> int:
-        return len(self._stamps)
+        return len(self._scans)
+
+    @property
+    def _scan_kf(self) -> np.ndarray:
+        """Keyframe index of every scan (a view)."""
+        return self._scans.keyframe
+
+    @property
+    def _scan_rel(self) -> np.ndarray:
+        """Pose of every scan relative to its keyframe (N, 3; a view)."""
+        return self._scans.relative
 
     def keyframe(self, i: int) -> KeyframeInfo:
         kf = self._kfs[i]
@@ -365,23 +437,23 @@ class FRSlam:
 
     def trajectory(self) -> np.ndarray:
         """(N, 4) stamp, x, y, theta in map of every accepted scan."""
-        if not self._stamps:
+        if not len(self._scans):
             return np.zeros((0, 4))
         est = self.graph.estimates()
-        kf = np.asarray(self._scan_kf)
-        rel = np.asarray(self._scan_rel)
+        kf = self._scans.keyframe
+        rel = self._scans.relative
         base = est[kf]
         c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
         x = base[:, 0] + c * rel[:, 0] - s * rel[:, 1]
         y = base[:, 1] + s * rel[:, 0] + c * rel[:, 1]
         th = (base[:, 2] + rel[:, 2] + np.pi) % (2 * np.pi) - np.pi
-        return np.column_stack((self._stamps, x, y, th))
+        return np.column_stack((self._scans.stamps, x, y, th))
 
     def odometry_trajectory(self) -> np.ndarray:
         """(N, 4) stamp, x, y, theta in odom (the fused odometry, never corrected)."""
-        if not self._stamps:
+        if not len(self._scans):
             return np.zeros((0, 4))
-        return np.column_stack((self._stamps, np.asarray(self._scan_odom)))
+        return np.column_stack((self._scans.stamps, self._scans.odometry))
 
     def map_to_odom(self) -> tuple[float, float, float]:
         """T_map_odom = T_map_base · T_odom_base⁻¹ at the latest keyframe (x, y, theta)."""
@@ -430,20 +502,20 @@ class FRSlam:
     ) -> DecisionEvent:
         """Append a decision to the log (for the pipeline and the update strategy)."""
         if stamp is None:
-            stamp = self._stamps[-1] if self._stamps else float("nan")
+            stamp = self._scans.stamps[-1] if len(self._scans) else float("nan")
         ev = DecisionEvent(float(stamp), kind, message, keyframe, dict(data))
         self.log.append(ev)
         return ev
 
     def keyframe_at(self, stamp: float, tolerance: float = 1e-6) -> tuple[int, np.ndarray]:
         """(keyframe index, pose of the scan relative to it) of the scan with this stamp."""
-        st = np.asarray(self._stamps)
+        st = self._scans.stamps
         if len(st) == 0:
             raise RecordingError("no scans yet", where="stamp")
         j = int(np.argmin(np.abs(st - stamp)))
         if abs(st[j] - stamp) > tolerance:
             raise RecordingError(f"no scan at stamp {stamp} (nearest {st[j]})", where="stamp")
-        return self._scan_kf[j], self._scan_rel[j]
+        return int(self._scans.keyframe[j]), self._scans.relative[j].copy()
 
     def add_floorplan_prior(
         self,
@@ -568,7 +640,7 @@ class FRSlam:
         from frslam_graph import odometry_worker
 
         can = (
-            not self._stamps
+            not len(self._scans)
             and not self._odometry_elsewhere
             and odometry_worker.available(self.config.odometry)
         )
@@ -579,7 +651,7 @@ class FRSlam:
                 where="parallel",
             )
         parallel = can if parallel is None else parallel
-        lat = []
+        lat = _Rows()
         t_start = time.perf_counter()
         first = last = None
         with contextlib.ExitStack() as stack:
@@ -608,7 +680,7 @@ class FRSlam:
             np.asarray(self.map_to_odom()),
             self.stats,
             self.log,
-            np.asarray(lat),
+            lat.array.copy(),
             wall,
             float(last - first) if first is not None else 0.0,
             bool(parallel),

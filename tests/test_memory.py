@@ -1,0 +1,114 @@
+"""Memory a run keeps grows with the map and the graph only (tracemalloc, no timing).
+
+A run of N and of 2N scans is measured in the same process (the Python heap as tracemalloc sees
+it, numpy arrays included; gtsam's and KISS-ICP's C++ memory is not traced): the growth between
+the two, per scan and per keyframe beyond the keyframes' own points, must stay under the figures
+below. Loop closure is off (its caches are bounded separately: an LRU of reference submaps).
+"""
+
+from __future__ import annotations
+
+import gc
+import tracemalloc
+
+import numpy as np
+import pytest
+from synthetic_world import ROOM_LOOP, cast, room_world, route
+
+from frslam_graph.pipeline import FRSlam
+
+#: retained bytes per scan that is not a keyframe: stamp, keyframe index, pose relative to the
+#: keyframe, odometry pose and latency (72 B), at most twice that while the growable arrays are
+#: half-empty (97 B measured; the lists of small arrays before took 377 B)
+MAX_BYTES_PER_SCAN = 160
+#: retained bytes per keyframe besides its end points (float32) and its scans: the keyframe's
+#: record (stamp, odometry pose, sensor origin), the graph's factor slot and estimates (0.9 kB
+#: measured with the scans at 72 B)
+MAX_BYTES_PER_KEYFRAME = 1500
+
+
+def _config() -> dict:
+    return {"loop_closure": {"enabled": False}}
+
+
+def _traced_during(slam: FRSlam, scans, marks: tuple[int, ...]) -> dict[int, tuple[int, int, int]]:
+    """Run ``scans`` (stamp, ranges, angle_min, inc, odom) through ``slam.process`` (in this
+    process); after scan n of ``marks``: (traced bytes, keyframes, bytes of keyframe points)."""
+    out: dict[int, tuple[int, int, int]] = {}
+
+    class _Scan:
+        __slots__ = ("stamp", "points", "odom", "sensor_offset")
+
+    def feed():
+        for n, (stamp, r, amin, inc, odom) in enumerate(scans, start=1):
+            ang = amin + inc * np.arange(len(r))
+            ok = np.isfinite(r)
+            s = _Scan()
+            s.stamp, s.odom, s.sensor_offset = stamp, odom, (0.0, 0.0, 0.0)
+            s.points = np.column_stack((r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])))
+            yield s
+            if n in marks:  # the scan before is in the backend now
+                del s
+                gc.collect()
+                pts, _ = slam.keyframe_scans()
+                out[n] = (tracemalloc.get_traced_memory()[0], len(pts), sum(p.nbytes for p in pts))
+
+    tracemalloc.start()
+    try:
+        slam.process(feed(), batch=False, parallel=False)
+    finally:
+        tracemalloc.stop()
+    return out
+
+
+def _growth(marks: dict[int, tuple[int, int, int]], n: int) -> tuple[int, int, int, int]:
+    (m0, k0, p0), (m1, k1, p1) = marks[n], marks[2 * n]
+    return n, m1 - m0, k1 - k0, p1 - p0
+
+
+def test_standing_still_retains_a_few_bytes_per_scan():
+    n = 400
+    world = room_world()
+    pose = np.array([4.0, 2.0, 0.3])
+    rng = np.random.default_rng(0)
+    shots = [cast(world, pose, n_beams=360, rng=rng) for _ in range(8)]  # a few noisy scans, reused
+
+    def scans():
+        for i in range(2 * n + 1):
+            r, amin, inc = shots[i % len(shots)]
+            yield 0.1 * i, r, amin, inc, tuple(pose)
+
+    slam = FRSlam(_config())
+    scans_, grown, kfs, _ = _growth(_traced_during(slam, scans(), (n, 2 * n)), n)
+    assert kfs == 0  # standing still: one keyframe, at the start
+    assert grown / scans_ <= MAX_BYTES_PER_SCAN, f"{grown / scans_:.0f} B per scan"
+
+
+def test_moving_retains_per_keyframe_its_points_and_little_else():
+    truth = route(ROOM_LOOP + ROOM_LOOP[1:], speed=0.5, rate=10.0)
+    rng = np.random.default_rng(1)
+    n = 400
+    assert len(truth) > 2 * n
+
+    def scans():
+        for row in truth[: 2 * n + 1]:
+            r, amin, inc = cast(room_world(), row[1:], n_beams=360, rng=rng)
+            yield float(row[0]), r, amin, inc, tuple(row[1:])
+
+    slam = FRSlam(_config())
+    scans_, grown, kfs, point_bytes = _growth(_traced_during(slam, scans(), (n, 2 * n)), n)
+    assert kfs >= 30
+    per_kf = (grown - point_bytes - MAX_BYTES_PER_SCAN * (scans_ - kfs)) / kfs
+    assert per_kf <= MAX_BYTES_PER_KEYFRAME, f"{per_kf:.0f} B per keyframe besides its points"
+
+
+@pytest.mark.parametrize("width", [None, 3])
+def test_growable_rows_keep_every_row_in_order(width):
+    from frslam_graph.pipeline import _Rows
+
+    rows = _Rows(width, capacity=2)
+    want = [np.full(width or (), float(i)) for i in range(37)]
+    for w in want:
+        rows.append(w)
+    assert len(rows) == 37
+    np.testing.assert_array_equal(rows.array, np.array(want))
