@@ -329,11 +329,12 @@ class ScanOdometry:
             self._ekf.predict(u, cov_u)
             if not icp_rejected and used_wheel and not fallback and not degenerate:
                 y, m2 = self._ekf.innovation(z, R)
-                beyond = m2 > cfg.odom_jump_gate**2 and (
+                outside = m2 > cfg.odom_jump_gate**2
+                beyond = outside and (
                     np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
                     or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
                 )
-                if beyond and _reversed(between(prev_rel, z), u, cfg.odom_jump_min_m / 4.0):
+                if outside and _reversed(between(prev_rel, z), u, cfg.odom_jump_min_m / 4.0):
                     # the scan moved the robot backwards where the wheels say forwards (or the
                     # reverse): wheel odometry that lost the sign of the motion (FR079 logs
                     # reversing at 0.5 m/s as forward motion). A wheel fault: ICP is trusted,
