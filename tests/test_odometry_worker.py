@@ -168,11 +168,10 @@ def test_input_errors_survive_pickling():
 
 
 @needs_worker
-@pytest.mark.parametrize("backend_s", [0.0, 0.01])
-def test_prepare_runs_in_the_lighter_stage_with_the_same_results(faulty_recording, backend_s):
-    """The caller prepares the scans while its own work per scan is below the worker's odometry
-    (a light backend) and leaves it to the worker when its work is heavier (10 ms a scan against
-    about 1 ms of odometry); the results are those of the in-process odometry either way."""
+@pytest.mark.parametrize("schedule", ["here", "there", "alternating"])
+def test_prepare_placement_gives_the_same_results(faulty_recording, schedule, monkeypatch):
+    """Whichever stage prepares each chunk (decided per chunk, see the next test), the results are
+    those of the in-process odometry. The placement is forced, so nothing depends on timing."""
     cfg = FRSlamConfig.from_dict(CFG).odometry
     scans = faulty_recording[:250]
     here = ScanOdometry(cfg)
@@ -185,26 +184,42 @@ def test_prepare_runs_in_the_lighter_stage_with_the_same_results(faulty_recordin
     inputs = [(s.stamp, s.points, s.odom, k) for k, s in enumerate(scans)]
     expected = [here.process(s.stamp, s.points, s.odom) for s in scans]
     with odometry_worker.OdometryWorker(cfg, chunk=8) as worker:
+        chunks = iter(range(10**6))
+        place = {
+            "here": lambda: True,
+            "there": lambda: False,
+            "alternating": lambda: next(chunks) % 2 == 0,
+        }[schedule]
+        monkeypatch.setattr(worker, "_prepare_here", place)
         got = []
         for item, res, seconds in worker.run(inputs, prepare):
             got.append((item[3], res))
             assert seconds > 0.0
-            if backend_s:
-                time.sleep(backend_s)
     assert [k for k, _ in got] == list(range(len(scans)))
     for (_, a), b in zip(got, expected, strict=True):
-        if b is None:
-            assert a is None
-        else:
-            np.testing.assert_array_equal(a.pose, b.pose)
-            np.testing.assert_array_equal(a.covariance, b.covariance)
-            assert a.keyframe == b.keyframe
+        np.testing.assert_array_equal(a.pose, b.pose)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        assert a.keyframe == b.keyframe
     assert (
         worker.prepared_here + worker.prepared_there
         == len(scans)
         == len(prepare_calls) + worker.prepared_there
     )
-    if backend_s:
-        assert worker.prepared_there > len(scans) // 2  # the heavy caller handed prepare over
+    if schedule == "here":
+        assert worker.prepared_there == 0
+    elif schedule == "there":
+        assert worker.prepared_here == 0
     else:
-        assert worker.prepared_here > len(scans) // 2  # the light caller kept it
+        assert worker.prepared_here > 0 and worker.prepared_there > 0
+
+
+def test_prepare_goes_to_the_lighter_stage():
+    """The rule, on given moving averages (seconds per scan): the caller prepares while its own
+    work is below the worker's odometry, and before both are measured."""
+    worker = odometry_worker.OdometryWorker.__new__(odometry_worker.OdometryWorker)
+    worker._odometry_s = worker._caller_s = None
+    assert worker._prepare_here()
+    worker._odometry_s, worker._caller_s = 1e-3, 1e-4  # light backend
+    assert worker._prepare_here()
+    worker._odometry_s, worker._caller_s = 1e-3, 1e-2  # heavy backend
+    assert not worker._prepare_here()
