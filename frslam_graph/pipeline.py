@@ -194,7 +194,7 @@ class FRSlam:
         self._was_degenerate = False
         self._angles_cache: tuple[float, float, int, tuple[np.ndarray, np.ndarray]] | None = None
         self._odometry_elsewhere = False  # process() ran the odometry in a worker process
-        self._mappers: dict[float, Any] = {}  # resolution -> OccupancyMapper (incremental map)
+        self._mappers: dict[tuple[float, bool], Any] = {}  # (resolution, free_space) -> OccupancyMapper
         self._deferred: deque[Iterator[Any]] = deque()  # see defer()
         self._head_costed = False  # the first deferred job's last yield gave a cost
         self._steps_run = 0  # deferred steps run so far (a hook that ran some made its scan busy)
@@ -472,21 +472,26 @@ class FRSlam:
         """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""
         return list(self._kf_points), list(self._kf_origins)
 
-    def occupancy_grid(self, resolution: float = 0.05):
+    def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates.
 
-        Incremental: one :class:`~frslam_graph.mapping.OccupancyMapper` per resolution is kept;
-        each call inserts the new keyframes and re-inserts those whose estimate moved.
+        The default keeps walls (a hit outweighs many passing beams: the map a user loads);
+        ``free_space=True`` weighs hits and misses as the floor-plan registration wants it (free
+        space wins over stray hits, see ``mapping.FREE_SPACE_WEIGHTS``). Incremental: one
+        :class:`~frslam_graph.mapping.OccupancyMapper` per resolution and kind is kept; each call
+        inserts the new keyframes and re-inserts those whose estimate moved.
         """
-        from frslam_graph.mapping import OccupancyMapper
+        from frslam_graph.mapping import FREE_SPACE_WEIGHTS, OccupancyMapper
 
         if not isinstance(resolution, int | float) or not np.isfinite(resolution) or resolution <= 0:
             raise ConfigError(
                 f"resolution must be a positive number of metres, got {resolution!r}", where="resolution"
             )
-        mapper = self._mappers.get(float(resolution))
+        key = (float(resolution), bool(free_space))
+        mapper = self._mappers.get(key)
         if mapper is None:
-            mapper = self._mappers[float(resolution)] = OccupancyMapper(float(resolution))
+            weights = FREE_SPACE_WEIGHTS if free_space else {}
+            mapper = self._mappers[key] = OccupancyMapper(float(resolution), **weights)
         pts, origins = self.keyframe_scans()
         poses = self.graph.estimates() if self._kfs else np.zeros((0, 3))
         mapper.update(poses, pts, origins)

@@ -464,7 +464,7 @@ class FloorPlanUpdater:
             grid = self._local_grid(slam)
             reason += f"; on the map of the last {cfg.local_map_distance:.0f} m"
         else:
-            grid = slam.occupancy_grid(cfg.map_resolution)
+            grid = slam.occupancy_grid(cfg.map_resolution, free_space=True)
         if self.accepted is not None:
             self._recheck_accepted(slam, keyframe, grid)
         try:
@@ -569,14 +569,18 @@ class FloorPlanUpdater:
     def _local_grid(self, slam):
         """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
         travelled: less drift accumulated inside it than in the whole map."""
-        from frslam_graph.mapping import occupancy_grid  # noqa: PLC0415
+        from frslam_graph.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
 
         d = np.asarray(self._kf_dist)
         keep = np.nonzero(d >= self._dist - self.config.local_map_distance)[0]
         pts, origins = slam.keyframe_scans()
         est = slam.graph.estimates()
         return occupancy_grid(
-            est[keep], [pts[k] for k in keep], [origins[k] for k in keep], self.config.map_resolution
+            est[keep],
+            [pts[k] for k in keep],
+            [origins[k] for k in keep],
+            self.config.map_resolution,
+            **FREE_SPACE_WEIGHTS,
         )
 
     def _tolerances(self) -> tuple[float, float]:
