@@ -173,3 +173,25 @@ def test_wall_cells_of_a_room_stay_occupied(n_beams):
     scans = _scans(world, poses, n_beams=n_beams, max_range=10.0)
     grid = occupancy_grid(poses, scans, resolution=RES)
     assert endpoint_share(grid, scan_points_in_map(poses, scans)) > 0.99
+
+
+def test_the_registration_map_lets_free_space_win_over_a_stray_hit():
+    """A chair leg hit by 2 scans, crossed by the free space of 20 others: the map a user loads
+    keeps it (hits outweigh misses), the map the floor-plan registration reads (rooms against
+    free space, ``FREE_SPACE_WEIGHTS``) clears it."""
+    from frslam_graph.mapping import FREE_SPACE_WEIGHTS
+
+    world = np.array(
+        [[-5.0, -3.0, 5.0, -3.0], [5.0, -3.0, 5.0, 3.0], [5.0, 3.0, -5.0, 3.0], [-5.0, 3.0, -5.0, -3.0]]
+    )
+    leg = np.array(
+        [[0.0, 0.0, 0.06, 0.0], [0.06, 0.0, 0.06, 0.06], [0.06, 0.06, 0.0, 0.06], [0.0, 0.06, 0.0, 0.0]]
+    )
+    seen = np.array([[-2.0, 0.03, 0.0]] * 2)  # the leg is there
+    later = np.column_stack((np.full(20, -2.0), np.linspace(-0.5, 0.5, 20), np.zeros(20)))  # gone
+    poses = np.vstack((seen, later))
+    scans = _scans(np.vstack((world, leg)), seen) + _scans(world, later)
+    at_leg = np.array([[0.03, 0.03]])
+    keep = occupancy_grid(poses, scans, resolution=RES)
+    clear = occupancy_grid(poses, scans, resolution=RES, **FREE_SPACE_WEIGHTS)
+    assert _value_at(keep, at_leg)[0] == 100 and _value_at(clear, at_leg)[0] == 0
