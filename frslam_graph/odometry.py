@@ -14,12 +14,15 @@ covariance is inflated along the corridor axis so the motion model carries that 
 Scans without enough valid points (all-NaN) fall back to the motion model. With
 ``scan_matching=False`` the wheel odometry alone drives the motion model (the scans are still
 mapped and used by loop closure and the floor-plan priors); scans without wheel odometry are
-then still matched. Wheel increments that
-are physically impossible, that the scan rejects in favour of constant velocity (when the two
-disagree both seeds are aligned and the better map fit wins), or that move along the robot's x
-axis against the scan's motion beyond the gate (wheel odometry that lost the sign: a reversal
-logged as forward motion) are *odometry jumps*: ICP is trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
-failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamp gaps larger than ``gap_factor`` nominal periods count as dropped scans.
+then still matched. Wheel increments that are physically impossible, that the scan rejects in
+favour of constant velocity (when the two disagree both seeds are aligned and the better map fit
+wins), or that move along the robot's x axis against the scan's motion beyond the gate (wheel
+odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
+trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
+failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
+are taken in arrival order through a scan clock robust to bursty and backwards stamps
+(:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``gap_factor`` nominal
+periods count as dropped scans.
 """
 
 from __future__ import annotations
@@ -211,8 +214,9 @@ class ScanOdometry:
             [cfg.icp_sigma_floor_xy**2] * 2 + [np.deg2rad(cfg.icp_sigma_floor_theta_deg) ** 2]
         )
         # state
-        self._stamp: float | None = None
-        self._t_hist: deque[float] = deque(maxlen=_PERIOD_WINDOW)  # recent stamps, never decreasing
+        # recent stamps, never decreasing (a stamp before its predecessor does not rewind the
+        # clock); empty before the first scan
+        self._t_hist: deque[float] = deque(maxlen=_PERIOD_WINDOW)
         self._period = 0.0  # nominal scan period (s), see _clock
         self._steady = True  # recent stamps keep to the period (see _clock)
         self._last_dt = 0.0
@@ -277,7 +281,7 @@ class ScanOdometry:
             if not np.all(np.isfinite(wheel)):
                 wheel = None
         self.stats.scans += 1
-        if self._stamp is None:
+        if not self._t_hist:
             return self._first(stamp, pts, wheel)
         dt, dt_speed, dropped = self._clock(stamp)
 
@@ -394,7 +398,6 @@ class ScanOdometry:
 
     # ----------------------------------------------------------------- helpers
     def _first(self, stamp: float, pts: np.ndarray, wheel: np.ndarray | None) -> OdometryResult:
-        self._stamp = stamp
         self._t_hist.append(stamp)
         self._prev_wheel = wheel
         start = wheel.copy() if wheel is not None else np.zeros(3)
@@ -436,12 +439,11 @@ class ScanOdometry:
         difference, and one over ``gap_factor`` periods counts dropped scans. The speed test
         never gets less than one period, so a burst of stamps is never a wheel-odometry jump.
         """
-        raw = stamp - self._stamp
+        t = self._t_hist
+        raw = stamp - t[-1]
         if raw <= 0.0:
             self.stats.out_of_order += 1
-        t = self._t_hist
-        t.append(max(stamp, self._stamp))
-        self._stamp = t[-1]  # a stamp before its predecessor does not rewind the clock
+        t.append(max(stamp, t[-1]))
         period, steady = self._period, self._steady
         if len(t) > _PERIOD_SPAN:
             # median over the window of the mean step across _PERIOD_SPAN scans: bursts average
