@@ -251,7 +251,7 @@ class FRSlam:
         """Add planar end points (M, 2) in the sensor frame; return base_link in map."""
         self._check_own_odometry()
         pts, off = _body_points(points, sensor_offset)
-        self._accept(stamp, self.odometry.process(stamp, pts, odom), pts, off)
+        self._record(self.odometry.process(stamp, pts, odom), pts, off)
         return self.pose()
 
     # ------------------------------------------------------------ internals
@@ -262,10 +262,6 @@ class FRSlam:
                 "more scans; use process(..., parallel=False) to keep streaming afterwards",
                 where="parallel",
             )
-
-    def _accept(self, stamp: float, res: OdometryResult, pts: np.ndarray, off: np.ndarray) -> None:
-        """Take one scan's odometry result into the backend."""
-        self._record(res, pts, off)
 
     def defer(self, steps: Iterator[Any]) -> None:
         """Run a hook's work as ``steps`` (a generator: the work between two yields is one step)
@@ -329,6 +325,7 @@ class FRSlam:
         return c[3]
 
     def _record(self, res: OdometryResult, pts: np.ndarray, off: np.ndarray) -> None:
+        """Take one scan's odometry result into the backend (log, trajectory, keyframe hooks)."""
         stamp = res.stamp
         if res.dropped:
             self.log_event(
@@ -668,7 +665,7 @@ class FRSlam:
                 staged = self._odometry_here(recording)
             for stamp, res, pts, off, odometry_s in staged:
                 t0 = time.perf_counter()
-                self._accept(stamp, res, pts, off)
+                self._record(res, pts, off)
                 lat.append(odometry_s + time.perf_counter() - t0)
                 first = stamp if first is None else first
                 last = stamp
