@@ -46,3 +46,19 @@ class ConfigError(FrslamError, ValueError):
 
 class TrajectoryError(FrslamError, ValueError):
     """A trajectory / ground-truth / relations file is malformed."""
+
+
+class OutputError(FrslamError):
+    """An output cannot be written: its folder is not writable, the path is a folder, the
+    extension is not one the writer supports, the disk is full."""
+
+
+class Interrupted(BaseException):
+    """SIGINT / SIGTERM arrived (raised by the CLI's signal handler, like KeyboardInterrupt).
+
+    ``outputs`` lists the outputs complete when it arrived (set on its way out of a command)."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self.outputs: list[str] = []
+        super().__init__(signum)

@@ -83,14 +83,17 @@ def load_tum(path: str | Path) -> np.ndarray:
 
 
 def save_tum(path: str | Path, trajectory: np.ndarray) -> None:
-    """Write an (N, 4) ``stamp, x, y, theta`` trajectory as TUM (z = 0, yaw-only quaternion)."""
+    """Write an (N, 4) ``stamp, x, y, theta`` trajectory as TUM (z = 0, yaw-only quaternion),
+    atomically (:func:`~frslam_graph.atomic.atomic_write`)."""
     traj = as_trajectory(trajectory, "trajectory")
     half = traj[:, 3] / 2.0
     zeros = np.zeros(len(traj))
     out = np.column_stack(
         (traj[:, 0], traj[:, 1], traj[:, 2], zeros, zeros, zeros, np.sin(half), np.cos(half))
     )
-    with open(path, "w", encoding="utf-8") as f:
+    from frslam_graph.atomic import atomic_write
+
+    with atomic_write(path) as f:
         f.write("# stamp x y z qx qy qz qw\n")
         np.savetxt(f, out, fmt=["%.9f"] + ["%.9g"] * 7)
 

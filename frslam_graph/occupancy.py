@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
+from frslam_graph.atomic import write_bytes, write_text
 from frslam_graph.errors import MapError
 from frslam_graph.raster import RasterFrame
 from frslam_graph.textfile import read_yaml
@@ -183,7 +184,7 @@ class OccupancyGrid:
 
     def save(self, yaml_path: str | Path, image_format: str = "pgm") -> Path:
         """Write a trinary map_server map: ``<name>.yaml`` + ``<name>.pgm`` (0 occupied, 254 free,
-        205 unknown), as ROS map_saver does. Returns the YAML path."""
+        205 unknown), as ROS map_saver does, each file atomically. Returns the YAML path."""
         yaml_path = Path(yaml_path)
         if image_format not in ("pgm", "png"):
             raise ValueError(f"image_format must be 'pgm' or 'png', got {image_format!r}")
@@ -192,8 +193,10 @@ class OccupancyGrid:
         img = np.full(self.shape, 205, np.uint8)
         img[self.free_mask()] = 254
         img[self.occupied_mask()] = 0
-        if not cv2.imwrite(str(image_path), np.flipud(img)):
-            raise MapError("could not write the map image", str(image_path))
+        ok, encoded = cv2.imencode(f".{image_format}", np.flipud(img))
+        if not ok:
+            raise MapError("could not encode the map image", str(image_path))
+        write_bytes(image_path, encoded.tobytes())
         meta: dict[str, Any] = {
             "image": image_path.name,
             "resolution": float(self.resolution),
@@ -203,7 +206,7 @@ class OccupancyGrid:
             "free_thresh": 0.196,
             "mode": "trinary",
         }
-        yaml_path.write_text(yaml.safe_dump(meta, sort_keys=False))
+        write_text(yaml_path, yaml.safe_dump(meta, sort_keys=False))
         return yaml_path
 
     def __repr__(self) -> str:

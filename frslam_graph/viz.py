@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from frslam_graph.atomic import save_figure
 from frslam_graph.floorplan.render import draw_grid, draw_plan
 from frslam_graph.occupancy import OccupancyGrid
 
@@ -29,8 +30,7 @@ def save_grid_png(grid: OccupancyGrid, out: str | Path, title: str = "") -> Path
     ax.set_aspect("equal")
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    return out
+    return save_figure(fig, out, dpi=120)
 
 
 def save_trajectory_png(
@@ -61,5 +61,4 @@ def save_trajectory_png(
     ax.legend(loc="best", fontsize=8)
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    return out
+    return save_figure(fig, out, dpi=120)

@@ -309,9 +309,10 @@ class House:
             raise FloorPlanError(f"malformed house ({exc})", source) from None
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.write_text(json.dumps(self.to_dict()))
-        return path
+        """Write the house as JSON, atomically."""
+        from frslam_graph.atomic import write_text
+
+        return write_text(path, json.dumps(self.to_dict()))
 
     @classmethod
     def load(cls, path: str | Path) -> House:

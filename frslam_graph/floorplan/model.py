@@ -447,10 +447,12 @@ class FloorPlan:
         )
 
     def save(self, path: str | Path) -> Path:
-        """Write our JSON format (creating parent folders)."""
+        """Write our JSON format atomically (creating parent folders)."""
+        from frslam_graph.atomic import write_text
+
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=1))
+        write_text(path, json.dumps(self.to_dict(), indent=1))
         return path
 
     @classmethod

@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from frslam_graph.atomic import save_figure
 from frslam_graph.floorplan.model import ROOM_TYPES, FloorPlan
 
 _PALETTE = (
@@ -173,5 +174,4 @@ def render_plan(
     ax.set_ylabel(f"y [{units}]")
     ax.set_title(title if title is not None else (plan.name or "floor plan"))
     fig.tight_layout()
-    fig.savefig(out, dpi=dpi)
-    return out
+    return save_figure(fig, out, dpi=dpi)
