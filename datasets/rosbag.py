@@ -347,12 +347,20 @@ class RosBag(Recording):
         return p if p is not None and p.is_file() else None
 
     def ground_truth(self) -> np.ndarray:
-        """(N, 4) ``stamp, x, y, theta`` from a simulator folder's ``ground_truth.tum``."""
+        """(N, 4) ``stamp, x, y, theta`` from a simulator folder's ``ground_truth.tum``; an error
+        when the folder lacks ``meta.json``, its completeness marker (an interrupted simulation)."""
         from frslam_graph.metrics import load_tum
 
-        if self.ground_truth_path is None:
+        path = self.ground_truth_path
+        if path is None:
             raise RecordingError("no ground_truth.tum next to the bag", source=self.path)
-        return load_tum(self.ground_truth_path)
+        if not (path.parent / "meta.json").is_file():
+            raise RecordingError(
+                "simulator output without meta.json, its completeness marker (an interrupted "
+                "frslam simulate?): simulate again",
+                source=path.parent,
+            )
+        return load_tum(path)
 
     def odometry(self) -> np.ndarray:
         """(M, 4) ``stamp, x, y, theta`` of the odometry topic (increasing stamps; others dropped)."""

@@ -4,7 +4,9 @@
 (optionally with a floor plan, whose registrations / relocalisations become priors) and
 ``write_outputs`` saves what a user needs: the trajectory (TUM, ``map`` frame), the LiDAR map
 (map_server YAML + PGM), the registered plan (JSON, map metres), the decision log (JSON lines)
-and a metrics JSON. ``evaluate`` compares a trajectory with ground truth (evo ATE / RPE) or with
+and a metrics JSON, written last with the list of outputs (the folder's completeness marker;
+a rerun into the folder replaces the previous run's outputs as a whole, see
+:class:`~frslam_graph.atomic.OutputFolder`). ``evaluate`` compares a trajectory with ground truth (evo ATE / RPE) or with
 the relations of Kümmerle et al. Nothing here prints; progress goes through a callback.
 """
 
@@ -17,13 +19,29 @@ import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from frslam_graph.atomic import OutputFolder
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import TrajectoryError
 from frslam_graph.pipeline import PRIOR_REMOVAL_CAUSES, FRSlam, SlamResult
+
+if TYPE_CHECKING:
+    from frslam_graph.occupancy import OccupancyGrid
+
+#: what a run writes into its folder (a previous run's files of these names are removed)
+RUN_OUTPUTS = (
+    "trajectory.tum",
+    "odometry.tum",
+    "map.yaml",
+    "map.pgm",
+    "registered_plan.json",
+    "log.jsonl",
+    "trajectory.png",
+    "metrics.json",
+)
 
 #: scans between two returns of freed heap memory to the system during :func:`run_recording`
 TRIM_EVERY_SCANS = 200
@@ -107,31 +125,57 @@ def _jsonable(value: Any) -> Any:
 
 
 def write_outputs(
-    run: RunOutput, out: Path, ground_truth: np.ndarray | None = None, relations: np.ndarray | None = None
+    run: RunOutput,
+    out: Path | OutputFolder,
+    ground_truth: np.ndarray | None = None,
+    relations: np.ndarray | None = None,
+    figures: dict[str, Callable[[Path], object]] | None = None,
 ) -> RunOutput:
-    """Write trajectory, map, registered plan, decision log and metrics into ``out``."""
+    """Write trajectory, map, registered plan, decision log, ``figures`` (name: ``writer(path)``)
+    and metrics into ``out`` (a folder, or an OutputFolder the caller declared), replacing a
+    previous run's outputs as a whole; ``metrics.json`` is written last.
+
+    A ground truth or relations that do not match the trajectory (another recording) do not
+    stop the writing: ``metrics["evaluation_errors"]`` names the problem.
+    """
+    from frslam_graph.atomic import atomic_write
     from frslam_graph.metrics import save_tum
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    folder = out if isinstance(out, OutputFolder) else OutputFolder(out, "metrics.json", RUN_OUTPUTS)
     res = run.result
-    files: dict[str, Path] = {}
-    files["trajectory"] = out / "trajectory.tum"
-    save_tum(files["trajectory"], res.trajectory)
-    files["odometry"] = out / "odometry.tum"
-    save_tum(files["odometry"], res.odometry)
-    map_metrics: dict[str, Any] = {}
-    if len(res.keyframes):
-        grid = run.slam.occupancy_grid(0.05)
-        files["map"] = grid.save(out / "map.yaml")
-        map_metrics = _map_metrics(run.slam, grid)
-    plan_in_map = run.slam.registered_plan()
-    if plan_in_map is not None:
-        files["registered_plan"] = plan_in_map.save(out / "registered_plan.json")
-    files["log"] = out / "log.jsonl"
-    with files["log"].open("w") as fh:
-        for ev in res.log:
-            fh.write(json.dumps(_jsonable(ev)) + "\n")
+    grid = run.slam.occupancy_grid(0.05) if len(res.keyframes) else None
+    metrics = _run_metrics(run, grid, ground_truth, relations)
+    with folder:
+        files = {
+            "trajectory": folder.write("trajectory.tum", lambda p: save_tum(p, res.trajectory)),
+            "odometry": folder.write("odometry.tum", lambda p: save_tum(p, res.odometry)),
+        }
+        if grid is not None:
+            files["map"] = folder.write("map.yaml", grid.save)
+        plan_in_map = run.slam.registered_plan()
+        if plan_in_map is not None:
+            files["registered_plan"] = folder.write("registered_plan.json", plan_in_map.save)
+
+        def write_log(path: Path) -> None:
+            with atomic_write(path) as fh:
+                fh.writelines(json.dumps(_jsonable(ev)) + "\n" for ev in res.log)
+
+        files["log"] = folder.write("log.jsonl", write_log)
+        for name, writer in (figures or {}).items():
+            files[Path(name).stem] = folder.write(name, writer)
+        folder.commit(_jsonable(metrics))
+    files["metrics"] = folder.folder / "metrics.json"
+    run.files, run.metrics = files, metrics
+    return run
+
+
+def _run_metrics(
+    run: RunOutput, grid: OccupancyGrid | None, ground_truth: np.ndarray | None, relations: np.ndarray | None
+) -> dict[str, Any]:
+    """The content of ``metrics.json``: counts, timing, decisions, priors, map (``grid``, None
+    without keyframes), evaluation."""
+    res = run.result
+    map_metrics = _map_metrics(run.slam, grid) if grid is not None else {}
     lat = res.latencies * 1e3 if len(res.latencies) else np.zeros(1)
     kinds: dict[str, int] = {}
     removed = dict.fromkeys(PRIOR_REMOVAL_CAUSES, 0)
@@ -177,11 +221,15 @@ def write_outputs(
             "invalid_beams": int(st.invalid_beams),
             "beams": int(st.beams),
         }
-    metrics.update(evaluate(res.trajectory, ground_truth, relations))
-    files["metrics"] = out / "metrics.json"
-    files["metrics"].write_text(json.dumps(_jsonable(metrics), indent=1))
-    run.files, run.metrics = files, metrics
-    return run
+    errors: dict[str, str] = {}
+    for what, gt, rel in (("ground_truth", ground_truth, None), ("relations", None, relations)):
+        try:
+            metrics.update(evaluate(res.trajectory, gt, rel))
+        except TrajectoryError as exc:  # another recording's: the run's outputs are still written
+            errors[what] = exc.message
+    if errors:
+        metrics["evaluation_errors"] = errors
+    return metrics
 
 
 def _map_metrics(slam: FRSlam, grid) -> dict[str, Any]:

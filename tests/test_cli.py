@@ -115,7 +115,8 @@ def test_compare_with_unusable_plan_still_reports_both(small_log, tmp_path, caps
         == 0
     )
     summary = json.loads((out / "compare.json").read_text())
-    assert set(summary) == {"without priors", "with priors"}
+    assert set(summary) == {"without priors", "with priors", "outputs"}
+    assert summary["outputs"] == ["compare.png", "compare.json"]
     assert summary["with priors"]["ate"]["rmse"] < 0.2
     assert (out / "compare.png").exists()
     assert "with priors" in capsys.readouterr().out

@@ -60,6 +60,6 @@ def test_errors_are_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(bad) in err and "line 2" in err and "Traceback" not in err
     assert main(["plan", "convert", str(R2V), str(tmp_path / "out.png")]) == 2
-    assert "must be a .json" in capsys.readouterr().err
+    assert "unsupported extension '.png' (expected .json)" in capsys.readouterr().err
     assert main(["plan", "show", str(tmp_path / "nothere.json")]) == 2
     assert "not found" in capsys.readouterr().err

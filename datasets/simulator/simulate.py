@@ -16,13 +16,14 @@ also writes ``out_dir``:
 - ``house.json``: the true house and the distortion (:class:`House` JSON);
 - ``map.yaml`` + ``map.pgm``: the partial LiDAR map (map_server) in the ``map`` frame;
 - ``plan.json``: the plan as given (plan units); ``meta.json``: options, seed, lidar, counts.
+
+The files are staged and moved into place together (:class:`~frslam_graph.atomic.OutputFolder`),
+``meta.json`` last with the list of outputs: a folder without it is not a complete simulation.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -38,6 +39,7 @@ from frslam_graph.datasets.simulator.partial_map import explored_fraction, parti
 from frslam_graph.datasets.simulator.route import Route, RouteParams, plan_route
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from frslam_graph.atomic import OutputFolder, atomic_write
 from frslam_graph.errors import ConfigError, RecordingError
 from frslam_graph.floorplan import FloorPlan
 from frslam_graph.occupancy import OccupancyGrid
@@ -392,7 +394,7 @@ def write_tum(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Path:
             qw,
         )
     )
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw  (base_link in map, simulator ground truth)\n")
         for r in rows:
             fh.write(f"{r[0]:.9f} {r[1]:.17g} {r[2]:.17g} 0 0 0 {r[6]:.17g} {r[7]:.17g}\n")
@@ -413,7 +415,7 @@ def check_output_dir(out: Path, overwrite: bool) -> list[str]:
 
 def simulate(
     plan: FloorPlan | str | Path,
-    out_dir: str | Path,
+    out_dir: str | Path | OutputFolder,
     seed: int = 0,
     options: SimulationOptions | None = None,
     overwrite: bool = False,
@@ -423,25 +425,48 @@ def simulate(
     """Simulate a recording on ``plan`` and write it to ``out_dir`` (see the module docstring).
 
     ``overwrite`` replaces the simulator's files in an existing folder; without it an existing
-    bag or ground truth there is an error. ``keep_run`` attaches the in-memory run to the result.
+    bag or ground truth there is an error. ``out_dir`` may be an :class:`OutputFolder` declared
+    (and checked) by the caller. ``keep_run`` attaches the in-memory run to the result.
     """
     if not isinstance(plan, FloorPlan):
         plan = FloorPlan.load(plan)
-    out = Path(out_dir)
-    present = check_output_dir(out, overwrite)
+    folder = (
+        out_dir if isinstance(out_dir, OutputFolder) else OutputFolder(out_dir, "meta.json", OUTPUT_FILES)
+    )
+    out = folder.folder
+    check_output_dir(out, overwrite)
     options = options or SimulationOptions()
     run = simulate_run(plan, seed, options, progress)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in present:
-        target = out / name
-        shutil.rmtree(target) if target.is_dir() else target.unlink()
     report = progress or (lambda stage, frac: None)
-    write_bag(run, out / "bag", progress=report)
-    gt = write_tum(out / "ground_truth.tum", run.stamps, run.true_poses)
-    house_path = run.house.save(out / "house.json")
-    map_yaml = run.grid.save(out / "map.yaml")
-    plan_path = plan.save(out / "plan.json")
-    meta = {
+    with folder:
+        folder.write("bag", lambda p: write_bag(run, p, progress=report))
+        folder.write("ground_truth.tum", lambda p: write_tum(p, run.stamps, run.true_poses))
+        folder.write("house.json", run.house.save)
+        folder.write("map.yaml", run.grid.save)
+        folder.write("plan.json", plan.save)
+        folder.commit(_meta(run, plan, options))
+    return SimulationResult(
+        out_dir=out,
+        bag=out / "bag",
+        ground_truth=out / "ground_truth.tum",
+        house=out / "house.json",
+        meta=out / "meta.json",
+        map_yaml=out / "map.yaml",
+        plan=out / "plan.json",
+        scans=len(run),
+        odometry=len(run.odometry.stamps),
+        route_length=run.route.length,
+        duration=run.route.duration,
+        map_completeness=run.map_completeness,
+        map_rooms=list(run.map_rooms),
+        distortion=run.distortion,
+        run=run if keep_run else None,
+    )
+
+
+def _meta(run: SimulatedRun, plan: FloorPlan, options: SimulationOptions) -> dict[str, Any]:
+    """The content of ``meta.json`` (the folder's manifest)."""
+    return {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
         "seed": run.seed,
@@ -477,25 +502,6 @@ def simulate(
             "plan": "plan.json",
         },
     }
-    meta_path = out / "meta.json"
-    meta_path.write_text(json.dumps(meta, indent=1), encoding="utf-8")
-    return SimulationResult(
-        out_dir=out,
-        bag=out / "bag",
-        ground_truth=gt,
-        house=house_path,
-        meta=meta_path,
-        map_yaml=map_yaml,
-        plan=plan_path,
-        scans=len(run),
-        odometry=len(run.odometry.stamps),
-        route_length=run.route.length,
-        duration=run.route.duration,
-        map_completeness=run.map_completeness,
-        map_rooms=list(run.map_rooms),
-        distortion=run.distortion,
-        run=run if keep_run else None,
-    )
 
 
 def write_bag(run: SimulatedRun, path: Path, progress: Progress | None = None) -> Path:

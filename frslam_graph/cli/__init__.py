@@ -7,14 +7,19 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
+import signal
 import sys
+import threading
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from rich.markup import escape
 
 from frslam_graph.cli.app import app, err_console
 from frslam_graph.datasets.recording import RecordingWarning
-from frslam_graph.errors import FrslamError
+from frslam_graph.errors import FrslamError, Interrupted
 
 # One module per command group; each adds its commands to ``app`` when imported.
 COMMAND_MODULES = (
@@ -48,20 +53,54 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 _default_show = warnings.showwarning
 
 
+@contextmanager
+def _signals_interrupt() -> Iterator[None]:
+    """SIGINT and SIGTERM raise :class:`Interrupted` in this process while the block runs (a
+    forked child, e.g. the odometry worker, dies of them as by default); handlers restored after.
+    Outside the main thread (where Python cannot set handlers) nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    owner = os.getpid()
+
+    def handler(signum: int, frame: object) -> None:
+        if os.getpid() != owner:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line.
 
     Usage errors are printed by typer (its own copy of click) with exit code 2; a
-    :class:`~frslam_graph.errors.FrslamError` (bad input file / field) becomes one red line and
-    exit code 2; any other exception is a bug and keeps its traceback.
+    :class:`~frslam_graph.errors.FrslamError` (bad input file / field, an output that cannot be
+    written) becomes one red line and exit code 2; SIGINT / SIGTERM stop the command with one line
+    naming the outputs complete by then (unfinished ones are not left behind) and exit code 130 /
+    143; any other exception is a bug and keeps its traceback.
     """
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _signals_interrupt():
             warnings.showwarning = _show_warning
             app(args=argv, standalone_mode=True)
     except FrslamError as exc:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
+    except Interrupted as exc:
+        name = signal.Signals(exc.signum).name
+        left = ", ".join(exc.outputs) or "none"
+        err_console.print(
+            f"frslam: interrupted ({name}); outputs left: {escape(left)}", highlight=False, soft_wrap=True
+        )
+        return 128 + exc.signum
     except SystemExit as exc:
         code = exc.code
         return code if isinstance(code, int) else (0 if code is None else 1)

@@ -21,6 +21,8 @@ from frslam_graph.cli.app import app, console
 from frslam_graph.resources import bundled
 
 DEMO_PLAN = "r2v/000209a30b61b563f93faf6a6466ffab_0001.txt"
+#: the SLAM runs' output folders inside the demo's folder
+SLAM_RUNS = ("without_priors", "with_priors")
 
 
 @app.command()
@@ -30,32 +32,41 @@ def demo(
     length: float = typer.Option(200.0, help="Minimum length of the simulated route, metres."),
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
+    from frslam_graph.atomic import Outputs
+    from frslam_graph.offline import RUN_OUTPUTS
+
+    with Outputs() as outputs:
+        runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}
+        _plans_demo(outputs, out, seed, length, runs)
+    console.print(f"[bold green]demo outputs in {out}[/]")
+
+
+def _plans_demo(outputs, out: Path, seed: int, length: float, runs: dict) -> None:
+    """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders)."""
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.render import render_plan
     from frslam_graph.occupancy import OccupancyGrid
 
-    out.mkdir(parents=True, exist_ok=True)
     console.rule("[bold]1. floor plans")
     apartment = FloorPlan.load(bundled(DEMO_PLAN))
-    render_plan(apartment, out / "apartment_plan.png")
+    outputs.write(out / "apartment_plan.png", lambda p: render_plan(apartment, p))
     types = ", ".join(sorted({r.type for r in apartment.rooms}))
     console.print(f"apartment (R2V): {len(apartment.rooms)} rooms ({types}), {len(apartment.doors)} doors")
     office = FloorPlan.from_room_segmentation(bundled("prbonn/FMapRoomSeg.png"), bundled("prbonn/FMap.yaml"))
-    render_plan(office, out / "office_plan.png")
+    outputs.write(out / "office_plan.png", lambda p: render_plan(office, p))
     gmap = OccupancyGrid.load(bundled("prbonn/GMap.yaml"))
     console.print(
         f"office (PRBonn): {len(office.rooms)} rooms; gmapping map {gmap.height}×{gmap.width} cells"
     )
 
     console.rule("[bold]2. registration of a distorted plan to a real LiDAR map")
-    _registration_demo(office, gmap, out, seed)
+    _registration_demo(outputs, office, gmap, out, seed)
 
     console.rule("[bold]3. SLAM with and without floor-plan priors (simulated run in the apartment)")
-    _slam_demo(apartment, out, seed, length)
-    console.print(f"[bold green]demo outputs in {out}[/]")
+    _slam_demo(outputs, apartment, out, seed, length, runs)
 
 
-def _registration_demo(office, gmap, out: Path, seed: int) -> None:
+def _registration_demo(outputs, office, gmap, out: Path, seed: int) -> None:
     from frslam_graph.datasets.simulator import Distortion
     from frslam_graph.floorplan.render import render_plan
     from frslam_graph.registration import register
@@ -71,12 +82,15 @@ def _registration_demo(office, gmap, out: Path, seed: int) -> None:
         return
     err_deg = abs((reg.rotation_deg - np.degrees(np.arctan2(truth[1, 0], truth[0, 0])) + 180) % 360 - 180)
     score = iou_a(distorted, reg.matrix, truth)
-    render_plan(
-        distorted,
+    outputs.write(
         out / "office_registered.png",
-        transform=reg.matrix,
-        grid=gmap,
-        title=f"MFR on the real PRBonn map: IoU_a {score:.1%}",
+        lambda p: render_plan(
+            distorted,
+            p,
+            transform=reg.matrix,
+            grid=gmap,
+            title=f"MFR on the real PRBonn map: IoU_a {score:.1%}",
+        ),
     )
     console.print(
         f"distortion: flip={d.flip} rotation={np.degrees(d.rotation):.1f}° aspect=({d.sx:.2f}, {d.sy:.2f}); "
@@ -85,7 +99,7 @@ def _registration_demo(office, gmap, out: Path, seed: int) -> None:
     )
 
 
-def _slam_demo(apartment, out: Path, seed: int, length: float) -> None:
+def _slam_demo(outputs, apartment, out: Path, seed: int, length: float, folders: dict) -> None:
     from frslam_graph.cli.run import _print_metrics
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs
@@ -102,16 +116,22 @@ def _slam_demo(apartment, out: Path, seed: int, length: float) -> None:
     for name, plan in (("without priors", None), ("with priors", apartment)):
         with console.status(f"SLAM {name}"):
             runs[name] = run_recording(sim.scans, floor_plan=plan)
-        write_outputs(runs[name], out / name.replace(" ", "_"), sim.ground_truth)
+        write_outputs(runs[name], folders[name.replace(" ", "_")], sim.ground_truth)
     with_ = runs["with priors"]
     plan_in_map = with_.slam.registered_plan()
-    save_trajectory_png(
+    trajectories = {name: r.result.trajectory for name, r in runs.items()}
+    gt_in_map = _ground_truth_in_map(with_, sim) if plan_in_map is not None else None
+    grid = with_.slam.occupancy_grid(0.05)
+    outputs.write(
         out / "slam_compare.png",
-        {name: r.result.trajectory for name, r in runs.items()},
-        _ground_truth_in_map(with_, sim) if plan_in_map is not None else None,
-        grid=with_.slam.occupancy_grid(0.05),
-        plan=plan_in_map,
-        title="apartment: trajectories in the map frame",
+        lambda p: save_trajectory_png(
+            p,
+            trajectories,
+            gt_in_map,
+            grid=grid,
+            plan=plan_in_map,
+            title="apartment: trajectories in the map frame",
+        ),
     )
     _print_metrics({name: r.metrics for name, r in runs.items()})
 

@@ -15,11 +15,14 @@ def show(
     out: Path = typer.Option(Path("map.png"), "--out", "-o", help="PNG to write."),
 ) -> None:
     """Render a map_server occupancy map to PNG with metric axes, and print its summary."""
+    from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs
     from frslam_graph.occupancy import OccupancyGrid
     from frslam_graph.viz import save_grid_png
 
+    outputs = Outputs()
+    outputs.file(out, FIGURE_SUFFIXES)
     grid = OccupancyGrid.load(map_yaml)
-    save_grid_png(grid, out, title=map_yaml.name)
+    outputs.write(out, lambda p: save_grid_png(grid, p, title=map_yaml.name))
     free = int(grid.free_mask().sum())
     occ = int(grid.occupied_mask().sum())
     area = free * grid.resolution**2

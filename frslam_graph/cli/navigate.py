@@ -36,11 +36,14 @@ def navigate(
     """Plan a path through the plan's doors to a room (or point); print length and rooms."""
     from matplotlib.figure import Figure
 
+    from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs, save_figure
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.render import draw_plan
     from frslam_graph.navigation import plan_path as plan_route
     from frslam_graph.navigation import room_graph
 
+    outputs = Outputs()
+    outputs.file(out, FIGURE_SUFFIXES)
     plan = FloorPlan.load(plan_path)
     goal = _goal(to)
     path = plan_route(plan, start, goal, grid_resolution=resolution, clearance=clearance)
@@ -57,8 +60,7 @@ def navigate(
     ax.legend(loc="best", fontsize=8)
     ax.set_title(f"{plan_path.name}: to {to}")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    outputs.write(out, lambda p: save_figure(fig, p, dpi=110))
     if not path.ok:
         links = room_graph(plan)
         doors = ", ".join(f"{a}-{b}" for a in sorted(links) for b in sorted(links[a]) if a < b) or "none"

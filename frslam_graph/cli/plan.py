@@ -57,10 +57,13 @@ def show(
     labels: bool = typer.Option(True, "--labels/--no-labels", help="Write room ids and types."),
 ) -> None:
     """Render a floor plan (rooms coloured by type, doors, walls, labels) and print its summary."""
+    from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs
     from frslam_graph.floorplan.render import render_plan
 
+    outputs = Outputs()
+    outputs.file(out, FIGURE_SUFFIXES)
     plan, note = _load(plan_path, yaml)
-    render_plan(plan, out, title=plan_path.name, labels=labels)
+    outputs.write(out, lambda p: render_plan(plan, p, title=plan_path.name, labels=labels))
     console.print(_summary(plan, plan_path), highlight=False, soft_wrap=True)
     if note:
         console.print(note, highlight=False, soft_wrap=True)
@@ -74,12 +77,12 @@ def convert(
     yaml: Path | None = typer.Option(None, "--yaml", help=_YAML_HELP),
 ) -> None:
     """Convert a floor plan to our JSON format (frslam-floorplan v1)."""
-    if dst.suffix.lower() != ".json":
-        from frslam_graph.errors import FloorPlanError
+    from frslam_graph.atomic import Outputs
 
-        raise FloorPlanError("the output must be a .json file (our floor-plan format)", source=dst)
+    outputs = Outputs()
+    outputs.file(dst, (".json",), option="OUT.json")
     plan, note = _load(src, yaml)
-    plan.save(dst)
+    outputs.write(dst, plan.save)
     console.print(_summary(plan, src), highlight=False, soft_wrap=True)
     if note:
         console.print(note, highlight=False, soft_wrap=True)

@@ -4,18 +4,21 @@ Writes into DIR: ``registered_plan.json`` (the plan in map metres, our JSON form
 ``overlay.png`` (the map in grey, the registered rooms coloured; matched rooms outlined) and
 ``report.json`` (the registration: matrix plan -> map, flip, rotation, scales, score, ambiguity,
 covariance, matched rooms, timing). A failed match still writes the report (``ok: false`` and the
-reason) and exits with code 1; bad input files exit with code 2 and a one-line message.
+reason) and exits with code 1; bad input files exit with code 2 and a one-line message. The
+report is written last and lists the outputs; they replace a previous registration's as a whole.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
+
+#: what register writes (a previous registration's files of these names are replaced)
+OUTPUTS = ("registered_plan.json", "overlay.png", "report.json")
 
 
 def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
@@ -25,6 +28,8 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Polygon as MplPolygon
+
+    from frslam_graph.atomic import save_figure
 
     img = np.full(grid.shape, 0.6)
     img[grid.free_mask()] = 1.0
@@ -59,7 +64,7 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     ax.set_ylabel("y (m)")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(out)
+    save_figure(fig, out)
     plt.close(fig)
 
 
@@ -79,34 +84,35 @@ def register_cmd(
     ),
 ) -> None:
     """Register a floor plan (unknown scale, aspect, rotation, flip) to a partial occupancy map."""
+    from frslam_graph.atomic import Outputs
     from frslam_graph.cli.plan import _load
     from frslam_graph.occupancy import OccupancyGrid
     from frslam_graph.registration import register
 
-    plan, _ = _load(plan_path, plan_yaml)
-    grid = OccupancyGrid.load(map_yaml)
-    options = {"seed_rooms": list(seed_room)} if seed_room else {}
-    reg = register(plan, grid, method=method, **options)
-    out.mkdir(parents=True, exist_ok=True)
-    report = {
-        "plan": str(plan_path),
-        "map": str(map_yaml),
-        "n_rooms": len(plan.rooms),
-        "registration": reg.to_dict(),
-    }
-    (out / "report.json").write_text(json.dumps(report, indent=2))
-    if reg.ok:
-        plan_m = reg.apply(plan)
-        plan_m.save(out / "registered_plan.json")
-    else:
-        plan_m = None
-    title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + (
-        f"score {reg.score:.3f}, ambiguity {reg.ambiguity:.2f}, flip {reg.flipped}, "
-        f"rot {reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.4g}/{reg.scale[1]:.4g} m/unit"
-        if reg.ok
-        else f"FAILED: {reg.reason}"
-    )
-    _overlay(grid, plan_m, reg, out / "overlay.png", title)
+    with Outputs() as outputs:
+        folder = outputs.folder(out, "report.json", OUTPUTS)
+        plan, _ = _load(plan_path, plan_yaml)
+        grid = OccupancyGrid.load(map_yaml)
+        options = {"seed_rooms": list(seed_room)} if seed_room else {}
+        reg = register(plan, grid, method=method, **options)
+        report = {
+            "plan": str(plan_path),
+            "map": str(map_yaml),
+            "n_rooms": len(plan.rooms),
+            "registration": reg.to_dict(),
+        }
+        plan_m = reg.apply(plan) if reg.ok else None
+        title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + (
+            f"score {reg.score:.3f}, ambiguity {reg.ambiguity:.2f}, flip {reg.flipped}, "
+            f"rot {reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.4g}/{reg.scale[1]:.4g} m/unit"
+            if reg.ok
+            else f"FAILED: {reg.reason}"
+        )
+        with folder:
+            if plan_m is not None:
+                folder.write("registered_plan.json", plan_m.save)
+            folder.write("overlay.png", lambda p: _overlay(grid, plan_m, reg, p, title))
+            folder.commit(report)
     if reg.ok:
         console.print(
             f"registered {len(reg.rooms)}/{len(plan.rooms)} rooms: flip {reg.flipped}, rotation "

@@ -1,8 +1,13 @@
-"""``frslam run`` and ``frslam compare``: process a recording with / without floor-plan priors."""
+"""``frslam run`` and ``frslam compare``: process a recording with / without floor-plan priors.
+
+Inputs and the output folder are checked before the run; the outputs replace a previous run's
+in the folder as a whole, ``metrics.json`` last (:mod:`frslam_graph.atomic`). A ground truth or
+relations file that does not match the recording is reported (exit 2) after the outputs are
+written: the mismatch shows only once the recording has been read, and the run is kept.
+"""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -47,21 +52,45 @@ def _run_one(rec, plan, config, label: str, progress: Progress, sequential: bool
 def _inputs(recording: Path, config: Path | None, ground_truth: Path | None, relations: Path | None):
     """Open and check every input before the run (which may take long): the recording, the
     configuration, the ground truth (``--ground-truth`` or the recording's own) and the relations.
-    A bad one is reported now, not after the run with its outputs lost."""
+    A bad one is reported now, not after the run with its outputs lost. Returns (recording,
+    config, ground truth, relations, sources: how to name the ground truth / relations)."""
     from frslam_graph.config import FRSlamConfig
     from frslam_graph.datasets import open_recording
     from frslam_graph.metrics import load_relations, load_tum
 
     rec = open_recording(recording)
     cfg = FRSlamConfig.load(config) if config is not None else None
+    sources = {"relations": f"--relations {relations}"}
     if ground_truth is not None:
         gt = load_tum(ground_truth)
+        sources["ground_truth"] = f"--ground-truth {ground_truth}"
     elif getattr(rec, "ground_truth_path", None) is not None:
         gt = rec.ground_truth()
+        sources["ground_truth"] = f"ground truth {rec.ground_truth_path}"
     else:
         gt = None
     rel = load_relations(relations) if relations is not None else None
-    return rec, cfg, gt, rel
+    return rec, cfg, gt, rel, sources
+
+
+def _check_evaluation(metrics: dict, sources: dict[str, str], out: Path) -> None:
+    """TrajectoryError naming the ground truth / relations file that did not match the run."""
+    from frslam_graph.errors import TrajectoryError
+
+    for what, message in metrics.get("evaluation_errors", {}).items():
+        raise TrajectoryError(
+            f"does not match the recording ({message}); the run's other outputs are in {out}",
+            source=sources[what],
+        )
+
+
+def _trajectory_figure(trajectories: dict, gt, result, title: str = ""):
+    """A writer of the trajectory plot over ``result``'s map and registered plan."""
+    from frslam_graph.viz import save_trajectory_png
+
+    grid = result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None
+    plan = result.slam.registered_plan()
+    return lambda path: save_trajectory_png(path, trajectories, gt, grid=grid, plan=plan, title=title)
 
 
 def _load_plan(path: Path | None):
@@ -93,24 +122,21 @@ def run(
     ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
-    from frslam_graph.offline import write_outputs
-    from frslam_graph.viz import save_trajectory_png
+    from frslam_graph.atomic import Outputs
+    from frslam_graph.offline import RUN_OUTPUTS, write_outputs
 
-    plan = None if no_priors else _load_plan(floor_plan)
-    rec, cfg, gt, rel = _inputs(recording, config, ground_truth, relations)
-    with _progress() as progress:
-        label = "with priors" if plan is not None else "no priors"
-        result = _run_one(rec, plan, cfg, label, progress, sequential)
-    write_outputs(result, out, gt, rel)
-    save_trajectory_png(
-        out / "trajectory.png",
-        {"estimate": result.result.trajectory},
-        gt,
-        grid=result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None,
-        plan=result.slam.registered_plan(),
-    )
+    with Outputs() as outputs:
+        folder = outputs.folder(out, "metrics.json", RUN_OUTPUTS)
+        plan = None if no_priors else _load_plan(floor_plan)
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
+        with _progress() as progress:
+            label = "with priors" if plan is not None else "no priors"
+            result = _run_one(rec, plan, cfg, label, progress, sequential)
+        figure = _trajectory_figure({"estimate": result.result.trajectory}, gt, result)
+        write_outputs(result, folder, gt, rel, figures={"trajectory.png": figure})
     _print_metrics({"run": result.metrics})
     console.print(f"outputs in {out}: " + ", ".join(sorted(p.name for p in result.files.values())))
+    _check_evaluation(result.metrics, sources, out)
 
 
 @app.command()
@@ -129,27 +155,31 @@ def compare(
     ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
-    from frslam_graph.offline import write_outputs
-    from frslam_graph.viz import save_trajectory_png
+    from frslam_graph.atomic import Outputs
+    from frslam_graph.offline import RUN_OUTPUTS, write_outputs
 
-    plan = _load_plan(floor_plan)
-    rec, cfg, gt, rel = _inputs(recording, config, ground_truth, relations)
-    with _progress() as progress:
-        without = _run_one(rec, None, cfg, "without priors", progress, sequential)
-        write_outputs(without, out / "without_priors", gt, rel)  # kept whatever the second run does
-        with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
-    write_outputs(with_, out / "with_priors", gt, rel)
-    save_trajectory_png(
-        out / "compare.png",
-        {"without priors": without.result.trajectory, "with priors": with_.result.trajectory},
-        gt,
-        grid=with_.slam.occupancy_grid(0.05) if len(with_.result.keyframes) else None,
-        plan=with_.slam.registered_plan(),
-    )
-    summary = {"without priors": without.metrics, "with priors": with_.metrics}
-    (out / "compare.json").write_text(json.dumps({k: _summary(v) for k, v in summary.items()}, indent=1))
+    with Outputs() as outputs:
+        top = outputs.folder(out, "compare.json", ("compare.png",))
+        runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in RUN_FOLDERS}
+        plan = _load_plan(floor_plan)
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
+        with _progress() as progress:
+            without = _run_one(rec, None, cfg, "without priors", progress, sequential)
+            write_outputs(without, runs["without_priors"], gt, rel)  # kept whatever the second run does
+            with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
+        write_outputs(with_, runs["with_priors"], gt, rel)
+        trajectories = {"without priors": without.result.trajectory, "with priors": with_.result.trajectory}
+        summary = {"without priors": without.metrics, "with priors": with_.metrics}
+        with top:
+            top.write("compare.png", _trajectory_figure(trajectories, gt, with_))
+            top.commit({k: _summary(v) for k, v in summary.items()})
     _print_metrics(summary)
     console.print(f"outputs in {out}")
+    _check_evaluation(with_.metrics, sources, out)
+
+
+#: compare's run folders inside its output folder
+RUN_FOLDERS = ("without_priors", "with_priors")
 
 
 def _summary(m: dict) -> dict:

@@ -65,8 +65,16 @@ def simulate_cmd(
     """Simulate a LiDAR + odometry recording through a house built from a floor plan."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from frslam_graph.datasets.simulator.simulate import SimulationOptions, check_output_dir, simulate
+    from frslam_graph.atomic import Outputs
+    from frslam_graph.datasets.simulator.simulate import (
+        OUTPUT_FILES,
+        SimulationOptions,
+        check_output_dir,
+        simulate,
+    )
 
+    outputs = Outputs()
+    folder = outputs.folder(out, "meta.json", OUTPUT_FILES)
     plan = _load_plan(plan_path)
     values: dict[str, Any] = dict(
         rooms=[r.strip() for r in rooms.split(",") if r.strip()] if rooms else None,
@@ -95,14 +103,17 @@ def simulate_cmd(
     options = SimulationOptions(**values)
     check_output_dir(out, overwrite)
     stages = ("house", "route", "lidar", "map", "bag")
-    with Progress(
-        TextColumn("[bold]{task.description:<6}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>3.0f}%"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=False,
-    ) as progress:
+    with (
+        Progress(
+            TextColumn("[bold]{task.description:<6}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        ) as progress,
+        outputs,
+    ):
         tasks = {s: progress.add_task(s, total=1.0) for s in stages}
 
         def report(stage: str, frac: float) -> None:
@@ -110,7 +121,7 @@ def simulate_cmd(
                 progress.update(tasks[s], completed=1.0)
             progress.update(tasks[stage], completed=frac)
 
-        res = simulate(plan, out, seed=seed, options=options, overwrite=overwrite, progress=report)
+        res = simulate(plan, folder, seed=seed, options=options, overwrite=overwrite, progress=report)
         for s in stages:
             progress.update(tasks[s], completed=1.0)
     d = res.distortion
