@@ -203,10 +203,11 @@ class OutputFolder:
         return [self.folder / n for n in content["outputs"]]
 
 
-def check_folder(path: str | Path, option: str = "--out") -> None:
-    """OutputError unless ``path`` is a folder one can write in, or one that can be created."""
+def check_folder(path: str | Path, option: str = "--out", where: str | None = None) -> None:
+    """OutputError (naming ``where``, default the option and path) unless ``path`` is a folder
+    one can write in, or one that can be created."""
     path = Path(path)
-    where = f"{option} {path}"
+    where = where or f"{option} {path}"
     if path.exists() and not path.is_dir():
         raise OutputError("exists and is not a folder (expected an output folder)", source=where)
     probe = path.absolute()
@@ -233,7 +234,7 @@ def check_file(path: str | Path, suffixes: Iterable[str], option: str = "--out")
         )
     if path.is_dir():
         raise OutputError("is a folder (expected a file to write)", source=where)
-    check_folder(path.parent, option)
+    check_folder(path.parent, option, where)
 
 
 class Outputs:

@@ -32,9 +32,10 @@ def demo(
     length: float = typer.Option(200.0, help="Minimum length of the simulated route, metres."),
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
-    from frslam_graph.atomic import Outputs
+    from frslam_graph.atomic import Outputs, check_folder
     from frslam_graph.offline import RUN_OUTPUTS
 
+    check_folder(out)
     with Outputs() as outputs:
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}
         _plans_demo(outputs, out, seed, length, runs)
