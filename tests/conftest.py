@@ -60,3 +60,38 @@ def five_room_sim():
         @ run.house.distortion.matrix
     )
     return plan, run, true_matrix
+
+
+def _write_carmen(path: Path, truth, odom, ranges) -> None:
+    """A CARMEN log of FLASER lines (180 beams of the 360 given, odometry = the pose fields)."""
+    import numpy as np
+
+    lines = []
+    for row, o, r in zip(truth, odom, ranges, strict=True):
+        beams = np.nan_to_num(r[90:270], nan=81.9)  # CARMEN: 180 beams, -90..+89 deg; 81.9 = no return
+        vals = " ".join(f"{v:.3f}" for v in beams)
+        lines.append(
+            f"FLASER 180 {vals} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} "
+            f"{row[0] + 1000:.6f} host {row[0] + 1000:.6f}"
+        )
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="session")
+def small_log(tmp_path_factory):
+    """(CARMEN log, TUM ground truth): a drifting robot looping a synthetic room (5 Hz, 360 beams)."""
+    from tests import synthetic_world as sw
+
+    d = tmp_path_factory.mktemp("log")
+    world = sw.room_world()
+    truth = sw.route(sw.ROOM_LOOP, speed=0.6, rate=5.0)
+    odom = sw.drifting_odometry(truth, scale=0.02)
+    ranges, _, _ = zip(*(sw.cast(world, p[1:], n_beams=360, max_range=20.0) for p in truth), strict=True)
+    log = d / "room.clf"
+    _write_carmen(log, truth, odom, ranges)
+    gt = truth.copy()
+    gt[:, 0] += 1000
+    from frslam_graph.metrics import save_tum
+
+    save_tum(d / "gt.tum", gt)
+    return log, d / "gt.tum"

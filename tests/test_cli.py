@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from frslam_graph.cli import main
 from frslam_graph.resources import bundled
-from tests import synthetic_world as sw
 
 COMMANDS = ["demo", "run", "compare", "register", "simulate", "plan", "map", "inspect", "navigate"]
 
@@ -36,35 +34,6 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     assert str(bad) in err and "does not exist" in err and "Traceback" not in err
     assert main(["run", str(tmp_path / "missing.clf"), "--out", str(tmp_path / "o")]) == 2
     assert "missing.clf" in capsys.readouterr().err
-
-
-def _write_carmen(path, truth, odom, ranges):
-    lines = []
-    for row, o, r in zip(truth, odom, ranges, strict=True):
-        beams = np.nan_to_num(r[90:270], nan=81.9)  # CARMEN: 180 beams, -90..+89 deg; 81.9 = no return
-        vals = " ".join(f"{v:.3f}" for v in beams)
-        lines.append(
-            f"FLASER 180 {vals} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} {o[0]:.4f} {o[1]:.4f} {o[2]:.5f} "
-            f"{row[0] + 1000:.6f} host {row[0] + 1000:.6f}"
-        )
-    path.write_text("\n".join(lines) + "\n")
-
-
-@pytest.fixture(scope="module")
-def small_log(tmp_path_factory):
-    d = tmp_path_factory.mktemp("log")
-    world = sw.room_world()
-    truth = sw.route(sw.ROOM_LOOP, speed=0.6, rate=5.0)
-    odom = sw.drifting_odometry(truth, scale=0.02)
-    ranges, _, _ = zip(*(sw.cast(world, p[1:], n_beams=360, max_range=20.0) for p in truth), strict=True)
-    log = d / "room.clf"
-    _write_carmen(log, truth, odom, ranges)
-    gt = truth.copy()
-    gt[:, 0] += 1000
-    from frslam_graph.metrics import save_tum
-
-    save_tum(d / "gt.tum", gt)
-    return log, d / "gt.tum"
 
 
 def test_run_writes_every_output(small_log, tmp_path, capsys):
