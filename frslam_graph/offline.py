@@ -162,7 +162,7 @@ def write_outputs(
 
         files["log"] = folder.write("log.jsonl", write_log)
         for name, writer in (figures or {}).items():
-            files[Path(name).stem] = folder.write(name, writer)
+            files[name] = folder.write(name, writer)
         folder.commit(_jsonable(metrics))
     files["metrics"] = folder.folder / "metrics.json"
     run.files, run.metrics = files, metrics
