@@ -13,12 +13,16 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
 from frslam_graph.resources import bundled
+
+if TYPE_CHECKING:
+    from frslam_graph.atomic import OutputFolder, Outputs
 
 DEMO_PLAN = "r2v/000209a30b61b563f93faf6a6466ffab_0001.txt"
 #: the SLAM runs' output folders inside the demo's folder
@@ -42,7 +46,7 @@ def demo(
     console.print(f"[bold green]demo outputs in {out}[/]")
 
 
-def _plans_demo(outputs, out: Path, seed: int, length: float, runs: dict) -> None:
+def _plans_demo(outputs: Outputs, out: Path, seed: int, length: float, runs: dict[str, OutputFolder]) -> None:
     """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders)."""
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.render import render_plan
@@ -67,7 +71,7 @@ def _plans_demo(outputs, out: Path, seed: int, length: float, runs: dict) -> Non
     _slam_demo(outputs, apartment, out, seed, length, runs)
 
 
-def _registration_demo(outputs, office, gmap, out: Path, seed: int) -> None:
+def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> None:
     from frslam_graph.datasets.simulator import Distortion
     from frslam_graph.floorplan.render import render_plan
     from frslam_graph.registration import register
@@ -100,7 +104,9 @@ def _registration_demo(outputs, office, gmap, out: Path, seed: int) -> None:
     )
 
 
-def _slam_demo(outputs, apartment, out: Path, seed: int, length: float, folders: dict) -> None:
+def _slam_demo(
+    outputs: Outputs, apartment, out: Path, seed: int, length: float, folders: dict[str, OutputFolder]
+) -> None:
     from frslam_graph.cli.run import _print_metrics
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs

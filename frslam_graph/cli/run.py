@@ -8,13 +8,20 @@ written: the mismatch shows only once the recording has been read, and the run i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from frslam_graph.cli.app import app, console
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from frslam_graph.offline import RunOutput
 
 
 def _progress() -> Progress:
@@ -84,7 +91,9 @@ def _check_evaluation(metrics: dict, sources: dict[str, str], out: Path) -> None
         )
 
 
-def _trajectory_figure(trajectories: dict, gt, result, title: str = ""):
+def _trajectory_figure(
+    trajectories: dict[str, np.ndarray], gt: np.ndarray | None, result: RunOutput, title: str = ""
+) -> Callable[[Path], object]:
     """A writer of the trajectory plot over ``result``'s map and registered plan."""
     from frslam_graph.viz import save_trajectory_png
 
