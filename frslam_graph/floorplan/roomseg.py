@@ -222,20 +222,27 @@ def _doors(polys: dict[str, Polygon], min_width: float) -> list[Door]:
     return doors
 
 
+def yaml_beside(png: str | Path) -> tuple[Path | None, list[Path]]:
+    """(the map YAML beside a segmentation image or None, the names looked for): ``<stem>.yaml``
+    or, for ``XRoomSeg.png``, ``X.yaml``."""
+    png = Path(png)
+    stem = png.stem
+    cands = [png.with_suffix(".yaml")]
+    if stem.lower().endswith("roomseg"):
+        cands.append(png.with_name(stem[: -len("roomseg")] + ".yaml"))
+    found = [c for c in cands if c.exists()]
+    return (found[0] if found else None), cands
+
+
 def load_room_segmentation(png: str | Path, yaml: str | Path | None = None, **options: Any) -> FloorPlan:
     """Like :func:`from_room_segmentation`; without ``yaml`` the YAML beside the image is used:
     ``<stem>.yaml`` or, for ``XRoomSeg.png``, ``X.yaml``."""
     png = Path(png)
     if yaml is None:
-        stem = png.stem
-        cands = [png.with_suffix(".yaml")]
-        if stem.lower().endswith("roomseg"):
-            cands.append(png.with_name(stem[: -len("roomseg")] + ".yaml"))
-        found = [c for c in cands if c.exists()]
-        if not found:
+        yaml, cands = yaml_beside(png)
+        if yaml is None:
             raise FloorPlanError(
                 f"no map YAML beside the image (looked for {', '.join(c.name for c in cands)})",
                 source=str(png),
             )
-        yaml = found[0]
     return from_room_segmentation(png, yaml, **options)
