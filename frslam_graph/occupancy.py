@@ -8,7 +8,8 @@ the ``map`` frame; ``resolution`` in metres per cell.
 Files follow map_server: a YAML (``image``, ``resolution``, ``origin``, ``negate``,
 ``occupied_thresh``, ``free_thresh``, optional ``mode``: trinary | scale | raw) and a PGM/PNG
 image. Loading applies map_server's rules (p = (255 - v) / 255, or v / 255 when negated;
-p > occupied_thresh -> occupied, p < free_thresh -> free, otherwise unknown).
+p > occupied_thresh -> occupied, p < free_thresh -> free, otherwise unknown). An image without a
+YAML is read by the same rules with the resolution and origin given (:meth:`OccupancyGrid.from_image`).
 """
 
 from __future__ import annotations

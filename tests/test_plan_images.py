@@ -51,6 +51,13 @@ def test_two_rooms_with_a_door_gap_give_two_rooms_and_one_door(tmp_path):
     assert plan.walls is not None and len(plan.walls) >= 8
 
 
+def test_a_jpeg_plan_reads_like_the_png(tmp_path):
+    jpeg = FloorPlan.load(write(tmp_path, "two.jpg", two_rooms()))
+    png = FloorPlan.load(write(tmp_path, "two.png", two_rooms()))
+    assert len(jpeg.rooms) == len(png.rooms) == 2 and len(jpeg.doors) == 1
+    assert jpeg.area == pytest.approx(png.area, rel=0.02)
+
+
 def test_a_gap_wider_than_the_door_width_joins_the_rooms(tmp_path):
     path = write(tmp_path, "wide.png", two_rooms(door=60))
     assert len(FloorPlan.from_image(path).rooms) == 1
@@ -118,11 +125,14 @@ def test_bad_images_raise_one_error_naming_the_file(tmp_path):
     (tmp_path / "text.png").write_text("not an image at all")
     (tmp_path / "huge.png").write_bytes(_png_header(30_000, 30_000))
     (tmp_path / "truncated.png").write_bytes(_png_header(50, 50))
+    # a JPEG whose frame header says 100 px wide, 40,000 px high
+    (tmp_path / "tall.jpg").write_bytes(b"\xff\xd8\xff\xc0\x00\x11\x08" + struct.pack(">HH", 40_000, 100))
     cases = {
         tmp_path / "empty.png": "empty",
         tmp_path / "text.png": "not a readable image",
         tmp_path / "huge.png": "30000x30000 px; the limit is 20000 px a side",
         tmp_path / "truncated.png": "damaged",
+        tmp_path / "tall.jpg": "100x40000 px",
         write(tmp_path, "black.png", np.zeros((50, 50), np.uint8)): "no free space",
         write(tmp_path, "white.png", np.full((50, 50), 255, np.uint8)): "no closed room",
         tmp_path / "missing.png": "not found",
