@@ -82,7 +82,7 @@ def load_image_plan_detailed(
     ``segmentation``: None (rooms from the free space), a path, or "auto" (``<stem>_gt_segmentation``
     beside the image, also for a ``<stem>_furnitures`` image). ``door_width`` (px; default
     max(30, 4 × wall thickness)), ``furniture_size`` (px, default 0.6 × door width),
-    ``min_room_area`` (px², default door_width² / 2), ``simplify`` (Douglas-Peucker, px).
+    ``min_room_area`` (px², default door_width²), ``simplify`` (Douglas-Peucker, px).
     """
     path = Path(path)
     src = str(path)
@@ -109,7 +109,7 @@ def load_image_plan_detailed(
     thickness = wall_thickness(dark)
     dw = float(door_width) if door_width is not None else max(MIN_DOOR_WIDTH_PX, DOOR_PER_WALL * thickness)
     free, dark, n_furniture = _remove_furniture(free, dark, furniture_size or 0.6 * dw)
-    min_area = float(min_room_area) if min_room_area is not None else dw * dw / 2.0
+    min_area = float(min_room_area) if min_room_area is not None else dw * dw
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
         labels = _rooms_from_free_space(free, dw, min_area)
