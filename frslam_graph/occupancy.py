@@ -8,7 +8,8 @@ the ``map`` frame; ``resolution`` in metres per cell.
 Files follow map_server: a YAML (``image``, ``resolution``, ``origin``, ``negate``,
 ``occupied_thresh``, ``free_thresh``, optional ``mode``: trinary | scale | raw) and a PGM/PNG
 image. Loading applies map_server's rules (p = (255 - v) / 255, or v / 255 when negated;
-p > occupied_thresh -> occupied, p < free_thresh -> free, otherwise unknown).
+p > occupied_thresh -> occupied, p < free_thresh -> free, otherwise unknown). An image without a
+YAML is read by the same rules with the resolution and origin given (:meth:`OccupancyGrid.from_image`).
 """
 
 from __future__ import annotations
@@ -23,11 +24,13 @@ import numpy as np
 import yaml
 
 from frslam_graph.atomic import write_bytes, write_text
-from frslam_graph.errors import MapError
+from frslam_graph.errors import FrslamError, MapError
+from frslam_graph.image_files import grey_levels, read_image
 from frslam_graph.raster import RasterFrame
 from frslam_graph.textfile import read_yaml
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
+IMAGE_SUFFIXES = (".png", ".pgm", ".jpg", ".jpeg")  # map images OccupancyGrid.load reads without a YAML
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,10 +153,27 @@ class OccupancyGrid:
 
     # ------------------------------------------------------------------ files
     @classmethod
-    def load(cls, yaml_path: str | Path) -> OccupancyGrid:
-        """Read a map_server YAML and its image."""
+    def load(
+        cls, yaml_path: str | Path, resolution: float | None = None, **image_options: Any
+    ) -> OccupancyGrid:
+        """Read a map_server YAML and its image; or, for an image (``.png``, ``.pgm``, ``.jpg``)
+        given with ``resolution`` (metres per pixel), :meth:`from_image` with ``image_options``."""
         yaml_path = Path(yaml_path)
         src = str(yaml_path)
+        if yaml_path.suffix.lower() in IMAGE_SUFFIXES:
+            if resolution is None:
+                raise MapError(
+                    "an image map without a YAML needs its resolution in metres per pixel "
+                    "(OccupancyGrid.from_image(path, resolution); frslam: --resolution)",
+                    src,
+                )
+            return cls.from_image(yaml_path, resolution, **image_options)
+        if resolution is not None or image_options:
+            raise MapError(
+                "a map_server YAML states its own resolution, origin and thresholds; "
+                "resolution / image options are only for an image map without a YAML",
+                src,
+            )
         meta = read_yaml(yaml_path, MapError, "a map_server YAML with image, resolution, origin")
         if not isinstance(meta, dict):
             raise MapError("expected a YAML mapping with image, resolution, origin", src)
@@ -168,18 +188,35 @@ class OccupancyGrid:
         negate = int(_number(meta.get("negate", 0), src, "negate"))
         occ_t = _number(meta.get("occupied_thresh", 0.65), src, "occupied_thresh")
         free_t = _number(meta.get("free_thresh", 0.196), src, "free_thresh")
-        if not (0.0 <= free_t <= occ_t <= 1.0):
-            raise MapError(
-                f"need 0 <= free_thresh ({free_t}) <= occupied_thresh ({occ_t}) <= 1", src, "free_thresh"
-            )
         mode = str(meta.get("mode", "trinary"))
-        if mode not in ("trinary", "scale", "raw"):
-            raise MapError(f"unknown mode {mode!r} (expected trinary, scale or raw)", src, "mode")
+        check_reading(occ_t, free_t, mode, src)
         image_path = Path(str(meta["image"]))
         if not image_path.is_absolute():
             image_path = yaml_path.parent / image_path
         img = _read_image(image_path, src)
-        data = _image_to_occupancy(img, negate, occ_t, free_t, mode)
+        data = image_to_occupancy(img, negate, occ_t, free_t, mode)
+        return cls(np.flipud(data).copy(), resolution, origin, src)
+
+    @classmethod
+    def from_image(
+        cls,
+        path: str | Path,
+        resolution: float,
+        origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        negate: bool = False,
+        occupied_thresh: float = 0.65,
+        free_thresh: float = 0.196,
+        mode: str = "trinary",
+    ) -> OccupancyGrid:
+        """A map image without a YAML, read as ROS map_server reads one: ``resolution`` metres
+        per pixel, ``origin`` (x, y, yaw) of the lower-left corner of the image's bottom-left
+        pixel; image row 0 (the top) is the highest y, so the grid's row 0 is the image's last
+        row. Dark is occupied, light free, in between unknown (``negate`` swaps dark and light;
+        thresholds and ``mode`` as in a map_server YAML)."""
+        src = str(path)
+        check_reading(occupied_thresh, free_thresh, mode, src)
+        img = grey_levels(read_image(path, MapError, "an occupancy map image"))
+        data = image_to_occupancy(img, int(bool(negate)), occupied_thresh, free_thresh, mode)
         return cls(np.flipud(data).copy(), resolution, origin, src)
 
     def save(self, yaml_path: str | Path, image_format: str = "pgm") -> Path:
@@ -222,24 +259,32 @@ def _number(value: Any, src: str, field: str, positive: bool = False) -> float:
     return float(value)
 
 
+def check_reading(
+    occ_t: float, free_t: float, mode: str, src: str, error: type[FrslamError] = MapError
+) -> None:
+    """Raise ``error`` naming ``src`` unless 0 <= free_t <= occ_t <= 1 and ``mode`` is a
+    map_server mode (trinary, scale, raw)."""
+    for field, value in (("occupied_thresh", occ_t), ("free_thresh", free_t)):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise error(f"expected a finite number, got {value!r}", src, field)
+    if not (0.0 <= free_t <= occ_t <= 1.0):
+        raise error(f"need 0 <= free_thresh ({free_t}) <= occupied_thresh ({occ_t}) <= 1", src, "free_thresh")
+    if mode not in ("trinary", "scale", "raw"):
+        raise error(f"unknown mode {mode!r} (expected trinary, scale or raw)", src, "mode")
+
+
 def _read_image(path: Path, src: str) -> np.ndarray:
+    """Grey levels of a YAML's image; errors name the YAML and the image."""
     if not path.is_file():
         raise MapError(f"the YAML's image {str(path)!r} does not exist", src, "image")
-    if path.stat().st_size == 0:
-        raise MapError(f"the image {str(path)!r} is an empty file", src, "image")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise MapError(f"{str(path)!r} is not a readable image (expected PGM or PNG)", src, "image")
-    if img.ndim == 3:
-        if img.shape[2] == 4:  # map_server: alpha ignored in trinary mode, colour averaged
-            img = img[:, :, :3]
-        img = img.mean(axis=2)
-    if img.dtype == np.uint16:
-        img = img / 257.0
-    return img.astype(np.float64)
+    try:
+        return grey_levels(read_image(path, MapError, "a map image"))
+    except MapError as err:
+        raise MapError(f"{str(path)!r}: {err.message}", src, "image") from None
 
 
-def _image_to_occupancy(img: np.ndarray, negate: int, occ_t: float, free_t: float, mode: str) -> np.ndarray:
+def image_to_occupancy(img: np.ndarray, negate: int, occ_t: float, free_t: float, mode: str) -> np.ndarray:
+    """int8 occupancy (-1, 0..100) of grey levels 0..255 by map_server's rules, image rows as given."""
     if mode == "raw":
         out = np.clip(img, 0, 255)
         out = np.where(out > 100, -1, out)

@@ -1,7 +1,9 @@
 """``frslam plan show PLAN --out plan.png`` and ``frslam plan convert IN OUT.json``.
 
-PLAN is our JSON, a HouseExpo JSON, an R2V ``.txt`` or a room-segmentation ``.png`` (its map
-YAML given with ``--yaml`` or found beside it: ``X.yaml`` for ``XRoomSeg.png``).
+PLAN is our JSON, a HouseExpo JSON, an R2V ``.txt``, a room-segmentation ``.png`` (its map
+YAML given with ``--yaml`` or found beside it: ``X.yaml`` for ``XRoomSeg.png``) or, without a
+YAML, a drawn plan image (``.png``, ``.jpg``, ``.pgm``; pixels; ``--segmentation``,
+``--door-width``).
 """
 
 from __future__ import annotations
@@ -14,13 +16,18 @@ import typer
 from frslam_graph.cli.app import console, plan_app
 
 _YAML_HELP = "map_server YAML of a room-segmentation PNG (default: beside it, X.yaml for XRoomSeg.png)."
+_SEG_HELP = "Plan image: rooms from this segmentation image (one colour a room), or 'auto': <stem>_gt_segmentation.png."
+_DOOR_HELP = "Plan image: widest door gap in pixels (default: max(30, 4 x wall thickness))."
 
 
-def _load(path: Path, yaml: Path | None):
-    """(plan, note): the plan and a line about how it was built (R2V: labels found, strategy)."""
+def _load(path: Path, yaml: Path | None, segmentation: str | None = None, door_width: float | None = None):
+    """(plan, note): the plan and a line about how it was built (R2V: labels found, strategy;
+    plan image: door width, furniture removed)."""
     from frslam_graph.floorplan import FloorPlan
+    from frslam_graph.floorplan.model import IMAGE_SUFFIXES
+    from frslam_graph.floorplan.plan_image import load_image_plan_detailed
     from frslam_graph.floorplan.r2v import load_r2v_detailed
-    from frslam_graph.floorplan.roomseg import load_room_segmentation
+    from frslam_graph.floorplan.roomseg import load_room_segmentation, yaml_beside
 
     suffix = path.suffix.lower()
     if suffix == ".txt" and path.is_file():
@@ -30,8 +37,17 @@ def _load(path: Path, yaml: Path | None):
         if missing:
             note += "; not found: " + ", ".join(missing)
         return res.plan, note
-    if suffix in (".png", ".pgm") and path.is_file():
+    is_seg = suffix in (".png", ".pgm") and (yaml is not None or yaml_beside(path)[0] is not None)
+    if is_seg and path.is_file():
         return load_room_segmentation(path, yaml), None
+    if suffix in IMAGE_SUFFIXES:
+        res = load_image_plan_detailed(path, segmentation=segmentation, door_width=door_width)
+        note = (
+            f"plan image: door width {res.door_width:.0f} px (walls {res.wall_thickness:.0f} px), "
+            f"{res.furniture_removed} furniture blobs removed, rooms from "
+            + (f"the segmentation {res.segmentation}" if res.segmentation else "the free space")
+        )
+        return res.plan, note
     return FloorPlan.load(path), None
 
 
@@ -50,11 +66,13 @@ def _summary(plan, path: Path) -> str:
 @plan_app.command("show")
 def show(
     plan_path: Path = typer.Argument(
-        ..., metavar="PLAN", help="Floor plan: .json, R2V .txt or room-seg .png."
+        ..., metavar="PLAN", help="Floor plan: .json, R2V .txt, room-seg .png or a plan image."
     ),
     out: Path = typer.Option(Path("plan.png"), "--out", "-o", help="PNG to write."),
     yaml: Path | None = typer.Option(None, "--yaml", help=_YAML_HELP),
     labels: bool = typer.Option(True, "--labels/--no-labels", help="Write room ids and types."),
+    segmentation: str | None = typer.Option(None, "--segmentation", help=_SEG_HELP),
+    door_width: float | None = typer.Option(None, "--door-width", help=_DOOR_HELP),
 ) -> None:
     """Render a floor plan (rooms coloured by type, doors, walls, labels) and print its summary."""
     from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs
@@ -62,7 +80,7 @@ def show(
 
     outputs = Outputs()
     outputs.file(out, FIGURE_SUFFIXES)
-    plan, note = _load(plan_path, yaml)
+    plan, note = _load(plan_path, yaml, segmentation, door_width)
     outputs.write(out, lambda p: render_plan(plan, p, title=plan_path.name, labels=labels))
     console.print(_summary(plan, plan_path), highlight=False, soft_wrap=True)
     if note:
@@ -72,16 +90,20 @@ def show(
 
 @plan_app.command("convert")
 def convert(
-    src: Path = typer.Argument(..., metavar="IN", help="Floor plan: .json, R2V .txt or room-seg .png."),
+    src: Path = typer.Argument(
+        ..., metavar="IN", help="Floor plan: .json, R2V .txt, room-seg .png or a plan image."
+    ),
     dst: Path = typer.Argument(..., metavar="OUT.json", help="Our JSON floor-plan file to write."),
     yaml: Path | None = typer.Option(None, "--yaml", help=_YAML_HELP),
+    segmentation: str | None = typer.Option(None, "--segmentation", help=_SEG_HELP),
+    door_width: float | None = typer.Option(None, "--door-width", help=_DOOR_HELP),
 ) -> None:
     """Convert a floor plan to our JSON format (frslam-floorplan v1)."""
     from frslam_graph.atomic import Outputs
 
     outputs = Outputs()
     outputs.file(dst, (".json",), option="OUT.json")
-    plan, note = _load(src, yaml)
+    plan, note = _load(src, yaml, segmentation, door_width)
     outputs.write(dst, plan.save)
     console.print(_summary(plan, src), highlight=False, soft_wrap=True)
     if note:

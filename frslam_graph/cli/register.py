@@ -1,5 +1,8 @@
 """``frslam register PLAN MAP.yaml --out DIR``: register a floor plan to an occupancy map.
 
+MAP is a map_server YAML, or a map image without one (``MAP.png --resolution R``, R metres per
+pixel, read as map_server reads it: top row highest y, dark occupied, light free).
+
 Writes into DIR: ``registered_plan.json`` (the plan in map metres, our JSON format),
 ``overlay.png`` (the map in grey, the registered rooms coloured; matched rooms outlined) and
 ``report.json`` (the registration: matrix plan -> map, flip, rotation, scales, score, ambiguity,
@@ -71,9 +74,14 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
 @app.command("register")
 def register_cmd(
     plan_path: Path = typer.Argument(
-        ..., metavar="PLAN", help="Floor plan: .json, R2V .txt or room-seg .png."
+        ..., metavar="PLAN", help="Floor plan: .json, R2V .txt, room-seg .png or a plan image."
     ),
-    map_yaml: Path = typer.Argument(..., metavar="MAP.yaml", help="Occupancy map (map_server YAML)."),
+    map_yaml: Path = typer.Argument(
+        ..., metavar="MAP.yaml", help="Occupancy map: map_server YAML, or an image with --resolution."
+    ),
+    resolution: float | None = typer.Option(
+        None, "--resolution", help="Metres per pixel of a map image without a YAML (not for a YAML map)."
+    ),
     out: Path = typer.Option(Path("register_out"), "--out", "-o", help="Output directory."),
     method: str = typer.Option("mfr", "--method", "-m", help="mfr (ours) or paper (paper-faithful)."),
     plan_yaml: Path | None = typer.Option(
@@ -92,7 +100,7 @@ def register_cmd(
     with Outputs() as outputs:
         folder = outputs.folder(out, "report.json", OUTPUTS)
         plan, _ = _load(plan_path, plan_yaml)
-        grid = OccupancyGrid.load(map_yaml)
+        grid = OccupancyGrid.load(map_yaml, resolution=resolution)
         options = {"seed_rooms": list(seed_room)} if seed_room else {}
         reg = register(plan, grid, method=method, **options)
         report = {

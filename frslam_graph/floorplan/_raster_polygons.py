@@ -1,4 +1,5 @@
-"""Label image -> shapely polygons with exact pixel-edge boundaries (shared by the plan loaders).
+"""Label image -> shapely polygons with exact pixel-edge boundaries, and geodesic region growing
+(shared by the raster plan loaders).
 
 Pixel (col c, row r) is the unit square [c, c+1] x [r, r+1] in *image* coordinates (x right,
 y = row, down). Each label's pixels are cut into horizontal runs, the runs become boxes and the
@@ -9,6 +10,7 @@ edges and keeps right-angle corners. Callers map image coordinates to their plan
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon
@@ -90,3 +92,25 @@ def labels_to_polygons(
             geom = shapely.make_valid(geom)
         out[int(lab)] = geom
     return out
+
+
+def geodesic_split(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """Share ``mask`` between the seed labels (uint16, 0 = none) by geodesic (4-connected)
+    distance: a marker flood (cv2.watershed) on an image that is flat inside the mask and a
+    wall outside it, so the flood fills the mask from the seeds before it crosses a wall."""
+    k = int(seeds.max())
+    img = np.zeros((*mask.shape, 3), dtype=np.uint8)
+    img[~mask] = 255
+    markers = np.where(mask, seeds, k + 1).astype(np.int32)
+    cv2.watershed(img, markers)
+    lab = np.where(mask & (markers > 0) & (markers <= k), markers, 0).astype(np.uint16)
+    kernel = np.ones((3, 3), np.uint8)
+    todo = mask & (lab == 0)  # the flood's dividing lines (-1) and anything unreached
+    for _ in range(4):
+        if not todo.any():
+            break
+        dil = cv2.dilate(lab, kernel)
+        grow = todo & (dil > 0)
+        lab[grow] = dil[grow]
+        todo &= ~grow
+    return lab

@@ -34,6 +34,7 @@ from frslam_graph.textfile import read_json
 
 FORMAT_NAME = "frslam-floorplan"
 FORMAT_VERSION = 1
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm")  # plan images FloorPlan.load reads
 MAX_ABS_COORD = 1e7  # beyond this a coordinate is absurd in any unit we support (px, mm, m)
 
 ROOM_TYPES = (
@@ -458,8 +459,10 @@ class FloorPlan:
     @classmethod
     def load(cls, path: str | Path, **options: Any) -> FloorPlan:
         """Load a plan, choosing the reader from the file: our ``.json`` (or HouseExpo JSON with
-        ``verts``), an R2V vector ``.txt``, or a room-segmentation ``.png`` (with ``yaml=`` the
-        map_server YAML of its map, or a ``.yaml`` of the same stem beside it)."""
+        ``verts``), an R2V vector ``.txt``, a room-segmentation ``.png`` / ``.pgm`` (pixel value =
+        room id; with ``yaml=`` the map_server YAML of its map, or one beside it: ``<stem>.yaml``,
+        ``X.yaml`` for ``XRoomSeg.png``), or else a drawn plan image (``.png``, ``.jpg``, ``.pgm``:
+        :meth:`from_image`, options passed on)."""
         path = Path(path)
         if not path.exists():
             raise _fail("file not found", str(path))
@@ -477,17 +480,32 @@ class FloorPlan:
             from frslam_graph.floorplan.r2v import load_r2v
 
             return load_r2v(path, **options)
-        if suffix in (".png", ".pgm"):
+        if suffix in IMAGE_SUFFIXES:
+            from frslam_graph.floorplan.plan_image import load_image_plan
+            from frslam_graph.floorplan.roomseg import load_room_segmentation, yaml_beside
+
             yaml_path = options.pop("yaml", None)
-            if yaml_path is None:
-                raise _fail(
-                    "a room-segmentation image needs its map YAML: FloorPlan.from_room_segmentation(png, yaml)",
-                    str(path),
-                )
-            return cls.from_room_segmentation(path, yaml_path, **options)
+            if yaml_path is not None or (suffix in (".png", ".pgm") and yaml_beside(path)[0] is not None):
+                return load_room_segmentation(path, yaml_path, **options)
+            return load_image_plan(path, **options)
         raise _fail(
-            f"unknown floor-plan file type {suffix!r} (expected .json, .txt (R2V) or .png)", str(path)
+            f"unknown floor-plan file type {suffix!r} (expected .json, .txt (R2V) or an image: "
+            f"{', '.join(IMAGE_SUFFIXES)})",
+            str(path),
         )
+
+    @classmethod
+    def from_image(
+        cls, path: str | Path, segmentation: str | Path | None = None, **options: Any
+    ) -> FloorPlan:
+        """Rooms, doors and walls of a drawn plan image, in pixels (x = column, y = height - row:
+        the top row is the highest y, as in map_server maps). ``segmentation``: None (rooms from
+        the free space, door gaps up to ``door_width`` px closed), an image path (one colour a
+        room) or "auto" (``<stem>_gt_segmentation.png`` beside it). Options and method:
+        :mod:`frslam_graph.floorplan.plan_image`."""
+        from frslam_graph.floorplan.plan_image import load_image_plan
+
+        return load_image_plan(path, segmentation=segmentation, **options)
 
     @classmethod
     def from_room_segmentation(cls, png: str | Path, yaml: str | Path, **options: Any) -> FloorPlan:

@@ -44,7 +44,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from frslam_graph.errors import FloorPlanError
-from frslam_graph.floorplan._raster_polygons import labels_to_polygons, largest_polygon
+from frslam_graph.floorplan._raster_polygons import geodesic_split, labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
 
 ICON_CATEGORIES = frozenset(
@@ -508,28 +508,6 @@ def _regions(walls_img: np.ndarray, frame: _Frame, labels: list[R2VLabel], opts:
     return _Regions(comp, outside, _assign_labels(comp, outside, frame, labels, opts), stats)
 
 
-def _geodesic_split(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Share ``mask`` between the seed labels (uint16, 0 = none) by geodesic (4-connected)
-    distance: a marker flood (cv2.watershed) on an image that is flat inside the mask and a
-    wall outside it, so the flood fills the mask from the seeds before it crosses a wall."""
-    k = int(seeds.max())
-    img = np.zeros((*mask.shape, 3), dtype=np.uint8)
-    img[~mask] = 255
-    markers = np.where(mask, seeds, k + 1).astype(np.int32)
-    cv2.watershed(img, markers)
-    lab = np.where(mask & (markers > 0) & (markers <= k), markers, 0).astype(np.uint16)
-    kernel = np.ones((3, 3), np.uint8)
-    todo = mask & (lab == 0)  # the flood's dividing lines (-1) and anything unreached
-    for _ in range(4):
-        if not todo.any():
-            break
-        dil = cv2.dilate(lab, kernel)
-        grow = todo & (dil > 0)
-        lab[grow] = dil[grow]
-        todo &= ~grow
-    return lab
-
-
 def _room_image(
     reg: _Regions, frame: _Frame, labels: list[R2VLabel], opts: R2VOptions
 ) -> tuple[np.ndarray, dict[int, str], np.ndarray]:
@@ -577,7 +555,7 @@ def _room_image(
             types[next_id] = labels[i].type
             label_room[i] = next_id
             next_id += 1
-        part = _geodesic_split(mask, seeds)
+        part = geodesic_split(mask, seeds)
         ids_arr = np.array([0, *ids], dtype=np.int32)
         sub = room[r0:r1, c0:c1]
         sub[mask] = ids_arr[part[mask]]
@@ -694,7 +672,7 @@ def _box_rooms(
     r0, r1, c0, c1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
     crop = union[r0:r1, c0:c1]
     seeds = _centre_seeds(crop, _label_pixels(frame, [labels[i] for i in boxes]) - (c0, r0))
-    part = _geodesic_split(crop, seeds)
+    part = geodesic_split(crop, seeds)
     out = {}
     for k, i in enumerate(boxes, start=1):
         mask = np.zeros(union.shape, dtype=bool)

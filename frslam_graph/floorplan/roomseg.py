@@ -23,25 +23,14 @@ from shapely.geometry import LineString, Polygon
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
+from frslam_graph.image_files import image_size, read_image
 from frslam_graph.textfile import read_yaml
 
 
 def read_label_image(png: str | Path) -> np.ndarray:
     """Read a label image as a 2-D integer array (grey PNG/PGM; RGB only when all channels agree)."""
-    path = Path(png)
-    src = str(path)
-    if not path.exists():
-        raise FloorPlanError("file not found (expected a room-segmentation image)", source=src)
-    if path.is_dir():
-        raise FloorPlanError("expected an image file, got a directory", source=src)
-    if path.stat().st_size == 0:
-        raise FloorPlanError("file is empty (expected a room-segmentation image)", source=src)
-    buf = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FloorPlanError(
-            "not a readable image (expected PNG/PGM with one grey value per room)", source=src
-        )
+    src = str(png)
+    img = read_image(png, FloorPlanError, "a room-segmentation image with one grey value per room")
     if img.ndim == 3:
         chans = img.shape[2]
         if chans == 4:
@@ -119,10 +108,10 @@ def from_room_segmentation(
     labels = read_label_image(png)
     h, w = labels.shape
     if map_image is not None and map_image.is_file():
-        shape = _image_shape(map_image)
-        if shape is not None and shape != (h, w):
+        size = image_size(map_image)  # (width, height) from the header, or None
+        if size is not None and size != (w, h):
             raise FloorPlanError(
-                f"segmentation is {w}x{h} px but the map image {map_image.name} of {yaml} is {shape[1]}x{shape[0]} px",
+                f"segmentation is {w}x{h} px but the map image {map_image.name} of {yaml} is {size[0]}x{size[1]} px",
                 source=src,
             )
     lab = labels.astype(np.int64)
@@ -134,6 +123,43 @@ def from_room_segmentation(
         raise FloorPlanError(
             f"no room labels (grey values 1..{max_id} with >= {min_pixels} pixels)", source=src
         )
+    # image (u right, v down, pixel edges) -> map: rotate by yaw about the origin
+    c, s = math.cos(yaw), math.sin(yaw)
+    # p = (u*res, (h - v)*res); world = R p + o
+    params = [c * res, s * res, s * res, -c * res, ox - s * h * res, oy + c * h * res]
+    rooms, doors = rooms_from_labels(
+        lab, ids, params, simplify, room_type, min_door_width, fill_holes_below / (res * res), src
+    )
+    return FloorPlan(
+        rooms=rooms,
+        doors=doors,
+        walls=None,
+        units="m",
+        metres_per_unit=1.0,
+        name=name if name is not None else Path(png).stem,
+        source=src,
+    )
+
+
+def rooms_from_labels(
+    lab: np.ndarray,
+    ids: np.ndarray,
+    params: list[float],
+    simplify: float = 1.0,
+    room_type: str = "unknown",
+    min_door_width: float = 0.0,
+    fill_holes_below: float = 0.0,
+    source: str | None = None,
+    id_format: str = "room_{}",
+) -> tuple[list[Room], list[Door]]:
+    """Rooms and doors of a label image (int, 0 = no room) in the plan frame.
+
+    ``params``: shapely affine [a, b, d, e, xoff, yoff] from image coordinates (x = column,
+    y = row, pixel edges) to the plan frame. One room per label in ``ids`` (its largest
+    4-connected part), id ``id_format.format(label)``; ``simplify`` (Douglas-Peucker) and
+    ``fill_holes_below`` (area) in pixels; ``min_door_width`` in plan units: a door wherever
+    two rooms share that much boundary.
+    """
     # keep the largest 4-connected part of each label, so every room is one simple polygon
     keep = np.zeros_like(lab)
     for v in ids.tolist():
@@ -141,10 +167,6 @@ def from_room_segmentation(
         big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         keep[comp == big] = v
     exact = labels_to_polygons(keep, ids=ids)
-    # image (u right, v down, pixel edges) -> map: rotate by yaw about the origin
-    c, s = math.cos(yaw), math.sin(yaw)
-    # p = (u*res, (h - v)*res); world = R p + o
-    params = [c * res, s * res, s * res, -c * res, ox - s * h * res, oy + c * h * res]
     rooms: list[Room] = []
     exact_world: dict[str, Polygon] = {}
     rtype = normalise_room_type(room_type)
@@ -157,9 +179,9 @@ def from_room_segmentation(
         if simple is None:
             continue
         if fill_holes_below > 0 and simple.interiors:
-            keep_holes = [h for h in simple.interiors if Polygon(h).area * res * res >= fill_holes_below]
+            keep_holes = [h for h in simple.interiors if Polygon(h).area >= fill_holes_below]
             simple = Polygon(simple.exterior, keep_holes)
-        rid = f"room_{v}"
+        rid = id_format.format(v)
         rooms.append(
             Room(
                 rid, rtype, shapely.geometry.polygon.orient(shapely.affinity.affine_transform(simple, params))
@@ -167,22 +189,8 @@ def from_room_segmentation(
         )
         exact_world[rid] = shapely.affinity.affine_transform(poly, params)
     if not rooms:
-        raise FloorPlanError("no room polygon could be built", source=src)
-    doors = _doors(exact_world, min_door_width)
-    return FloorPlan(
-        rooms=rooms,
-        doors=doors,
-        walls=None,
-        units="m",
-        metres_per_unit=1.0,
-        name=name if name is not None else Path(png).stem,
-        source=src,
-    )
-
-
-def _image_shape(path: Path) -> tuple[int, int] | None:
-    img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    return None if img is None else img.shape[:2]
+        raise FloorPlanError("no room polygon could be built", source=source)
+    return rooms, _doors(exact_world, min_door_width)
 
 
 def _doors(polys: dict[str, Polygon], min_width: float) -> list[Door]:
@@ -214,20 +222,27 @@ def _doors(polys: dict[str, Polygon], min_width: float) -> list[Door]:
     return doors
 
 
+def yaml_beside(png: str | Path) -> tuple[Path | None, list[Path]]:
+    """(the map YAML beside a segmentation image or None, the names looked for): ``<stem>.yaml``
+    or, for ``XRoomSeg.png``, ``X.yaml``."""
+    png = Path(png)
+    stem = png.stem
+    cands = [png.with_suffix(".yaml")]
+    if stem.lower().endswith("roomseg"):
+        cands.append(png.with_name(stem[: -len("roomseg")] + ".yaml"))
+    found = [c for c in cands if c.exists()]
+    return (found[0] if found else None), cands
+
+
 def load_room_segmentation(png: str | Path, yaml: str | Path | None = None, **options: Any) -> FloorPlan:
     """Like :func:`from_room_segmentation`; without ``yaml`` the YAML beside the image is used:
     ``<stem>.yaml`` or, for ``XRoomSeg.png``, ``X.yaml``."""
     png = Path(png)
     if yaml is None:
-        stem = png.stem
-        cands = [png.with_suffix(".yaml")]
-        if stem.lower().endswith("roomseg"):
-            cands.append(png.with_name(stem[: -len("roomseg")] + ".yaml"))
-        found = [c for c in cands if c.exists()]
-        if not found:
+        yaml, cands = yaml_beside(png)
+        if yaml is None:
             raise FloorPlanError(
                 f"no map YAML beside the image (looked for {', '.join(c.name for c in cands)})",
                 source=str(png),
             )
-        yaml = found[0]
     return from_room_segmentation(png, yaml, **options)

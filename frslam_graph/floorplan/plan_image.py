@@ -1,0 +1,289 @@
+"""Floor plans from images (PNG, JPEG, PGM): rooms, doors and walls in pixels, scale unknown.
+
+Frame: x = column, y = image height - row, in pixels (pixel edges), so the image's top row is
+the highest y and a plan image and an :meth:`OccupancyGrid.from_image` map of the same building
+differ by a similarity without a flip (registration handles flips anyway). ``units`` "px",
+``metres_per_unit`` None.
+
+Grey levels are read as ROS map_server reads a map (colour averaged, alpha ignored; p = (255 -
+v) / 255): p < ``free_thresh`` is free space, p > ``occupied_thresh`` a wall (dark), anything
+between (grey outside, hatched or filled areas) is neither. Then:
+
+1. Furniture: blobs of non-free pixels smaller than ``furniture_size`` on both sides and not
+   touching the image border (chairs, dots, small boxes) become free space.
+2. Rooms: the free space eroded by a disc of diameter ``door_width`` (so a gap in a wall up to
+   that width closes) splits into room cores; the core connected to the image border is the
+   outside; cores smaller than (door_width / 2)² are dropped; the cores grow back over the free
+   space (geodesic), so neighbouring rooms meet in their door gap. Free regions no core reaches
+   are rooms of their own when at least ``min_room_area`` px² and half a door wide. With a
+   ``segmentation`` image instead (same size; each room one colour, or white regions separated
+   by dark lines as the IPA ``*_gt_segmentation.png``), its regions are the cores.
+3. Doors: where two rooms meet over at least ``door_width / 4`` px.
+4. Walls: outlines of the dark pixels, as segments.
+
+Default ``door_width``: max(30 px, 4 × the wall thickness), the thickness being the median
+width of the dark strokes; 30 px is about 1.5 m at the 5 cm per pixel of room-segmentation plans
+and ROS maps, at least as wide as the door gaps of the IPA plans.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from frslam_graph.errors import FloorPlanError
+from frslam_graph.floorplan._raster_polygons import geodesic_split
+from frslam_graph.floorplan.model import FloorPlan
+from frslam_graph.floorplan.roomseg import rooms_from_labels
+from frslam_graph.image_files import grey_levels, read_image
+from frslam_graph.occupancy import FREE, OCCUPIED, check_reading, image_to_occupancy
+
+MIN_DOOR_WIDTH_PX = 30.0
+DOOR_PER_WALL = 4.0  # default door width / wall thickness
+SEGMENTATION_SUFFIX = "_gt_segmentation"
+_SATURATED = 30  # max - min channel above this: a colour, not a grey
+
+
+@dataclass(frozen=True)
+class ImagePlanResult:
+    """A plan read from an image and the parameters it was built with (pixels)."""
+
+    plan: FloorPlan
+    door_width: float
+    wall_thickness: float
+    furniture_removed: int
+    segmentation: Path | None
+
+
+def load_image_plan(path: str | Path, **options) -> FloorPlan:
+    """The :class:`FloorPlan` of a plan image (see :func:`load_image_plan_detailed`)."""
+    return load_image_plan_detailed(path, **options).plan
+
+
+def load_image_plan_detailed(
+    path: str | Path,
+    segmentation: str | Path | None = None,
+    door_width: float | None = None,
+    furniture_size: float | None = None,
+    min_room_area: float | None = None,
+    simplify: float = 1.0,
+    negate: bool = False,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.196,
+    name: str | None = None,
+) -> ImagePlanResult:
+    """Rooms (polygons, type "unknown"), doors and walls of a plan image, in pixels (module doc).
+
+    ``segmentation``: None (rooms from the free space), a path, or "auto" (``<stem>_gt_segmentation``
+    beside the image, also for a ``<stem>_furnitures`` image). ``door_width`` (px; default
+    max(30, 4 × wall thickness)), ``furniture_size`` (px, default 0.6 × door width),
+    ``min_room_area`` (px², default door_width²), ``simplify`` (Douglas-Peucker, px).
+    """
+    path = Path(path)
+    src = str(path)
+    for field, value in (
+        ("door_width", door_width),
+        ("furniture_size", furniture_size),
+        ("min_room_area", min_room_area),
+    ):
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int | float) or not value > 0
+        ):
+            raise FloorPlanError(f"expected a positive number of pixels, got {value!r}", src, field)
+    check_reading(occupied_thresh, free_thresh, "trinary", src, FloorPlanError)
+    occ = image_to_occupancy(
+        grey_levels(read_image(path, FloorPlanError, "a floor-plan image")),
+        int(bool(negate)),
+        occupied_thresh,
+        free_thresh,
+        "trinary",
+    )
+    free, dark = occ == FREE, occ == OCCUPIED
+    if not free.any():
+        raise FloorPlanError("no free space (light pixels): expected white rooms and dark walls", src)
+    thickness = wall_thickness(dark)
+    dw = float(door_width) if door_width is not None else max(MIN_DOOR_WIDTH_PX, DOOR_PER_WALL * thickness)
+    free, dark, n_furniture = _remove_furniture(free, dark, furniture_size or 0.6 * dw)
+    min_area = float(min_room_area) if min_room_area is not None else dw * dw
+    seg_path = _segmentation_path(path, segmentation)
+    if seg_path is None:
+        labels = _rooms_from_free_space(free, dw, min_area)
+    else:
+        labels = _rooms_from_segmentation(seg_path, free, min_area)
+    ids = np.unique(labels)
+    ids = ids[ids > 0]
+    if len(ids) == 0:
+        raise FloorPlanError(
+            "no closed room: all free space is outside (touches the image border) or smaller "
+            f"than {min_area:.0f} px²; expected rooms enclosed by walls"
+            + (f" (segmentation {seg_path})" if seg_path else ""),
+            src,
+        )
+    h = labels.shape[0]
+    rooms, doors = rooms_from_labels(
+        labels.astype(np.int64),
+        ids,
+        [1.0, 0.0, 0.0, -1.0, 0.0, float(h)],
+        simplify=simplify,
+        min_door_width=dw / 4.0,
+        source=src,
+        id_format="r{}",
+    )
+    plan = FloorPlan(
+        rooms=rooms,
+        doors=doors,
+        walls=_wall_segments(dark),
+        units="px",
+        metres_per_unit=None,
+        name=name if name is not None else path.stem,
+        source=src,
+    )
+    return ImagePlanResult(plan, dw, thickness, n_furniture, seg_path)
+
+
+def wall_thickness(dark: np.ndarray) -> float:
+    """Median width (px) of the dark strokes: twice the distance transform on their ridge; 0
+    without dark pixels."""
+    if not dark.any():
+        return 0.0
+    dt = cv2.distanceTransform(dark.astype(np.uint8), cv2.DIST_L2, 5)
+    ridge = (dt > 0) & (dt >= cv2.dilate(dt, np.ones((3, 3), np.uint8)))
+    return float(2.0 * np.median(dt[ridge]))
+
+
+def _remove_furniture(free: np.ndarray, dark: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Non-free blobs (8-connected) under ``size`` px on both sides, not on the border, become free."""
+    h, w = free.shape
+    n, comp, stats, _ = cv2.connectedComponentsWithStats((~free).astype(np.uint8), connectivity=8)
+    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    bw, bh = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    inner = (left > 0) & (top > 0) & (left + bw < w) & (top + bh < h)
+    small = inner & (bw < size) & (bh < size)
+    small[0] = False  # the free space itself
+    blob = small[comp]
+    return free | blob, dark & ~blob, int(small.sum())
+
+
+def _rooms_from_free_space(free: np.ndarray, door_width: float, min_area: float) -> np.ndarray:
+    """Room labels (uint16, 0 = none): cores of the free space eroded by a door-wide disc, grown
+    back over it; the outside (the core at the border) dropped; unreached regions added."""
+    r = int(math.ceil(door_width / 2.0))
+    pad = r + 2
+    # pad with free space: free space at the border joins the pad ring, which is the outside
+    padded = np.pad(free, pad, constant_values=True).astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    n, cores, stats, _ = cv2.connectedComponentsWithStats(cv2.erode(padded, disc), connectivity=4)
+    outside = int(cores[0, 0])
+    keep = stats[:, cv2.CC_STAT_AREA] >= r * r
+    keep[0] = False
+    keep[outside] = True
+    lut = np.zeros(n, np.uint16)
+    lut[keep] = np.arange(1, int(keep.sum()) + 1)
+    grown = geodesic_split(padded.astype(bool), lut[cores])[pad:-pad, pad:-pad].astype(np.int64)
+    grown[grown == lut[outside]] = 0
+    # free regions no core reached (closets narrower than a door): rooms when large enough
+    rest = _big_regions(free & (grown == 0), min_area, door_width / 4.0)
+    return _renumber(np.where(rest > 0, rest + grown.max(), grown))
+
+
+def _big_regions(mask: np.ndarray, min_area: float, min_width: float) -> np.ndarray:
+    """4-connected regions of ``mask`` not touching the border, at least ``min_area`` px² and
+    ``min_width`` px wide (twice the largest distance to their edge); labels (int, 0 = none)."""
+    n, comp, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=4)
+    if n <= 1:
+        return np.zeros(mask.shape, np.int64)
+    dt = cv2.distanceTransform(np.pad(mask, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    width = 2.0 * np.asarray(ndimage.maximum(dt, comp, np.arange(n)))
+    h, w = mask.shape
+    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    inner = (left > 0) & (top > 0)
+    inner &= (left + stats[:, cv2.CC_STAT_WIDTH] < w) & (top + stats[:, cv2.CC_STAT_HEIGHT] < h)
+    keep = inner & (stats[:, cv2.CC_STAT_AREA] >= min_area) & (width >= min_width)
+    keep[0] = False
+    lut = np.zeros(n, np.int64)
+    lut[keep] = np.arange(1, int(keep.sum()) + 1)
+    return lut[comp]
+
+
+def _renumber(labels: np.ndarray) -> np.ndarray:
+    """Labels 1..K in order of first appearance in raster order (deterministic room ids)."""
+    flat = labels.ravel()
+    vals, first = np.unique(flat, return_index=True)
+    order = vals[np.argsort(first)]
+    order = order[order > 0]
+    lut = np.zeros(int(labels.max()) + 1, np.int64)
+    lut[order] = np.arange(1, len(order) + 1)
+    return lut[labels]
+
+
+def _segmentation_path(path: Path, segmentation: str | Path | None) -> Path | None:
+    if segmentation is None:
+        return None
+    if str(segmentation) != "auto":
+        return Path(segmentation)
+    stems = [path.stem]
+    if path.stem.endswith("_furnitures"):
+        stems.append(path.stem[: -len("_furnitures")])
+    cands = [path.with_name(s + SEGMENTATION_SUFFIX + path.suffix) for s in stems]
+    for cand in cands:
+        if cand.is_file():
+            return cand
+    raise FloorPlanError(
+        f"no segmentation beside the image (looked for {', '.join(c.name for c in cands)})", str(path)
+    )
+
+
+def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) -> np.ndarray:
+    """Room labels from a segmentation image: each region of one colour (white, or a saturated
+    colour; greys and dark lines are not rooms) is a room core; the cores grow over the plan's
+    free space so rooms meet where the segmentation drew a line across a door."""
+    img = read_image(seg_path, FloorPlanError, "a room-segmentation image (one colour a room)")
+    if img.shape[:2] != free.shape:
+        raise FloorPlanError(
+            f"segmentation is {img.shape[1]}x{img.shape[0]} px but the plan image is "
+            f"{free.shape[1]}x{free.shape[0]} px",
+            str(seg_path),
+        )
+    bgr = (
+        img[:, :, :3].astype(np.int64) if img.ndim == 3 else np.repeat(img[:, :, None], 3, 2).astype(np.int64)
+    )
+    if img.dtype == np.uint16:
+        bgr //= 257
+    key = (bgr[:, :, 0] << 16) | (bgr[:, :, 1] << 8) | bgr[:, :, 2]
+    saturated = (bgr.max(axis=2) - bgr.min(axis=2)) > _SATURATED
+    white = image_to_occupancy(grey_levels(img), 0, 0.65, 0.196, "trinary") == FREE
+    key = np.where(saturated, key + 1, np.where(white, 1, 0))  # white regions: one class
+    # cut every pixel whose right or lower neighbour has another class: same-class regions
+    # become 4-connected components of their own
+    cut = np.zeros(key.shape, bool)
+    cut[:, :-1] |= key[:, :-1] != key[:, 1:]
+    cut[:-1, :] |= key[:-1, :] != key[1:, :]
+    cores = _big_regions((key > 0) & ~cut, min_area, 4.0)
+    if cores.max() == 0:
+        return cores
+    grown = geodesic_split(free | (cores > 0), cores.astype(np.uint16))
+    return _renumber(grown.astype(np.int64))
+
+
+def _wall_segments(dark: np.ndarray) -> np.ndarray:
+    """Outlines of the dark pixels as (K, 4) segments x1 y1 x2 y2 in the plan frame (px)."""
+    h = dark.shape[0]
+    contours, _ = cv2.findContours(dark.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    segs = []
+    for c in contours:
+        pts = cv2.approxPolyDP(c, 1.0, True).reshape(-1, 2).astype(np.float64)
+        if len(pts) < 2:
+            continue
+        pts = np.column_stack([pts[:, 0] + 0.5, h - pts[:, 1] - 0.5])  # pixel centres, y up
+        segs.append(
+            np.hstack([pts, np.roll(pts, -1, axis=0)]) if len(pts) > 2 else np.hstack([pts[:1], pts[1:]])
+        )
+    if not segs:
+        return np.zeros((0, 4))
+    out = np.vstack(segs)
+    return out[np.hypot(out[:, 2] - out[:, 0], out[:, 3] - out[:, 1]) > 0]

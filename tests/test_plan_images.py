@@ -1,0 +1,185 @@
+"""Floor plans from images (``FloorPlan.from_image`` / ``FloorPlan.load`` on a PNG without a YAML):
+rooms from the free space with door gaps closed, furniture ignored, rooms from a segmentation
+image, the axis convention, bad images, ``frslam plan show/convert``, and real IPA plans."""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from frslam_graph.cli import main
+from frslam_graph.errors import FloorPlanError
+from frslam_graph.floorplan import FloorPlan
+from frslam_graph.floorplan.plan_image import load_image_plan_detailed
+
+GREY, WHITE, BLACK = 128, 255, 0
+
+
+def two_rooms(door: int = 20) -> np.ndarray:
+    """200 x 300 px: grey outside, two white rooms (120 and 140 px wide) split by a wall at
+    x = 140 with a ``door`` px gap (0: no gap); walls 3 px, black."""
+    img = np.full((200, 300), GREY, np.uint8)
+    cv2.rectangle(img, (20, 20), (280, 180), WHITE, -1)
+    cv2.rectangle(img, (20, 20), (280, 180), BLACK, 3)
+    cv2.line(img, (140, 20), (140, 180), BLACK, 3)
+    if door:
+        img[90 : 90 + door, 138:143] = WHITE
+    return img
+
+
+def write(tmp_path, name: str, img: np.ndarray):
+    path = tmp_path / name
+    assert cv2.imwrite(str(path), img)
+    return path
+
+
+def test_two_rooms_with_a_door_gap_give_two_rooms_and_one_door(tmp_path):
+    plan = FloorPlan.load(write(tmp_path, "two.png", two_rooms()))
+    assert len(plan.rooms) == 2 and len(plan.doors) == 1
+    assert plan.units == "px" and plan.metres_per_unit is None
+    assert set(plan.doors[0].rooms) == {r.id for r in plan.rooms}
+    # the door is the 20 px gap in the wall at x = 140
+    assert plan.doors[0].width == pytest.approx(20, abs=3)
+    assert np.mean([plan.doors[0].a[0], plan.doors[0].b[0]]) == pytest.approx(140, abs=3)
+    areas = sorted(r.area for r in plan.rooms)
+    assert areas[0] == pytest.approx(115 * 155, rel=0.08) and areas[1] == pytest.approx(135 * 155, rel=0.08)
+    assert plan.walls is not None and len(plan.walls) >= 8
+
+
+def test_a_jpeg_plan_reads_like_the_png(tmp_path):
+    jpeg = FloorPlan.load(write(tmp_path, "two.jpg", two_rooms()))
+    png = FloorPlan.load(write(tmp_path, "two.png", two_rooms()))
+    assert len(jpeg.rooms) == len(png.rooms) == 2 and len(jpeg.doors) == 1
+    assert jpeg.area == pytest.approx(png.area, rel=0.02)
+
+
+def test_a_gap_wider_than_the_door_width_joins_the_rooms(tmp_path):
+    path = write(tmp_path, "wide.png", two_rooms(door=60))
+    assert len(FloorPlan.from_image(path).rooms) == 1
+    assert len(FloorPlan.from_image(path, door_width=70).rooms) == 2
+
+
+def test_furniture_blobs_are_not_rooms_nor_walls(tmp_path):
+    img = two_rooms()
+    for x in range(40, 130, 12):  # a row of chair dots across the left room, 12 px apart
+        cv2.circle(img, (x, 100), 2, BLACK, -1)
+    cv2.rectangle(img, (200, 60), (210, 70), 200, -1)  # a small grey box (table) in the right room
+    cv2.rectangle(img, (200, 60), (210, 70), BLACK, 1)
+    res = load_image_plan_detailed(write(tmp_path, "furnished.png", img))
+    assert len(res.plan.rooms) == 2 and len(res.plan.doors) == 1
+    assert res.furniture_removed == 9
+    plain = FloorPlan.from_image(write(tmp_path, "plain.png", two_rooms()))
+    assert res.plan.area == pytest.approx(plain.area, rel=0.01)  # no holes where the furniture was
+
+
+def test_segmentation_image_gives_one_room_per_colour(tmp_path):
+    plan_img = two_rooms(door=0)  # the plan has one big room on the left ... and one on the right
+    seg = cv2.cvtColor(plan_img, cv2.COLOR_GRAY2BGR)
+    seg[22:179, 22:80] = (0, 0, 255)  # the left room split into red and green halves
+    seg[22:179, 80:139] = (0, 255, 0)
+    path = write(tmp_path, "split.png", plan_img)
+    write(tmp_path, "split_gt_segmentation.png", seg)
+    assert len(FloorPlan.from_image(path).rooms) == 2
+    plan = FloorPlan.from_image(path, segmentation="auto")
+    assert len(plan.rooms) == 3  # red, green, and the white right room
+    assert len(plan.doors) == 1  # red and green meet; the white room is behind a wall
+    assert plan.rooms == FloorPlan.from_image(path, segmentation=tmp_path / "split_gt_segmentation.png").rooms
+
+
+def test_white_regions_separated_by_lines_are_rooms_of_a_grey_segmentation(tmp_path):
+    plan_img = two_rooms()
+    seg = plan_img.copy()
+    cv2.line(seg, (140, 90), (140, 110), BLACK, 1)  # the door closed by a line, as IPA ground truth
+    path = write(tmp_path, "g.png", plan_img)
+    plan = FloorPlan.from_image(path, segmentation=write(tmp_path, "g_seg.png", seg))
+    assert len(plan.rooms) == 2 and len(plan.doors) == 1
+
+
+def test_top_of_the_image_is_the_highest_y(tmp_path):
+    img = np.full((200, 100), GREY, np.uint8)
+    cv2.rectangle(img, (10, 10), (90, 60), WHITE, -1)  # a small room at the top of the image
+    cv2.rectangle(img, (10, 10), (90, 60), BLACK, 2)
+    cv2.rectangle(img, (10, 90), (90, 190), WHITE, -1)  # a large one at the bottom
+    cv2.rectangle(img, (10, 90), (90, 190), BLACK, 2)
+    plan = FloorPlan.from_image(write(tmp_path, "axis.png", img))
+    small = min(plan.rooms, key=lambda r: r.area)
+    large = max(plan.rooms, key=lambda r: r.area)
+    assert small.centroid[1] == pytest.approx(200 - 35, abs=2)  # y = height - row
+    assert large.centroid[1] == pytest.approx(200 - 140, abs=2)
+    assert small.centroid[0] == pytest.approx(50, abs=2)
+
+
+def _png_header(width: int, height: int) -> bytes:
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    return b"\x89PNG\r\n\x1a\n" + chunk
+
+
+def test_bad_images_raise_one_error_naming_the_file(tmp_path):
+    (tmp_path / "empty.png").write_bytes(b"")
+    (tmp_path / "text.png").write_text("not an image at all")
+    (tmp_path / "huge.png").write_bytes(_png_header(30_000, 30_000))
+    (tmp_path / "truncated.png").write_bytes(_png_header(50, 50))
+    # a JPEG whose frame header says 100 px wide, 40,000 px high
+    (tmp_path / "tall.jpg").write_bytes(b"\xff\xd8\xff\xc0\x00\x11\x08" + struct.pack(">HH", 40_000, 100))
+    cases = {
+        tmp_path / "empty.png": "empty",
+        tmp_path / "text.png": "not a readable image",
+        tmp_path / "huge.png": "30000x30000 px; the limit is 20000 px a side",
+        tmp_path / "truncated.png": "damaged",
+        tmp_path / "tall.jpg": "100x40000 px",
+        write(tmp_path, "black.png", np.zeros((50, 50), np.uint8)): "no free space",
+        write(tmp_path, "white.png", np.full((50, 50), 255, np.uint8)): "no closed room",
+        tmp_path / "missing.png": "not found",
+    }
+    for path, what in cases.items():
+        with pytest.raises(FloorPlanError) as err:
+            FloorPlan.load(path)
+        assert str(path) in str(err.value) and what in str(err.value), str(err.value)
+    with pytest.raises(FloorPlanError, match="door_width: expected a positive"):
+        FloorPlan.from_image(write(tmp_path, "ok.png", two_rooms()), door_width=-3)
+    with pytest.raises(FloorPlanError, match="no segmentation beside the image"):
+        FloorPlan.from_image(tmp_path / "ok.png", segmentation="auto")
+    write(tmp_path, "small_seg.png", np.full((10, 10), 255, np.uint8))
+    with pytest.raises(
+        FloorPlanError, match="small_seg.png: segmentation is 10x10 px but the plan image is 300x200"
+    ):
+        FloorPlan.from_image(tmp_path / "ok.png", segmentation=tmp_path / "small_seg.png")
+
+
+def test_cli_show_and_convert_a_plan_image(tmp_path, capsys):
+    path = write(tmp_path, "two.png", two_rooms())
+    assert main(["plan", "show", str(path), "-o", str(tmp_path / "shown.png")]) == 0
+    out = capsys.readouterr().out
+    assert "2 rooms" in out and "1 doors" in out and "door width 30 px" in out
+    assert main(["plan", "convert", str(path), str(tmp_path / "two.json"), "--door-width", "10"]) == 0
+    data = json.loads((tmp_path / "two.json").read_text())
+    assert data["units"] == "px" and len(data["rooms"]) == 1  # a 20 px gap stays open at 10 px
+    (tmp_path / "bad.png").write_text("nope")
+    assert main(["plan", "show", str(tmp_path / "bad.png"), "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert str(tmp_path / "bad.png") in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+IPA = "floorplans/ipa"
+
+
+@pytest.mark.parametrize("stem", ["lab_intel", "office_a"])
+def test_real_ipa_plans_free_space_furniture_and_ground_truth(shared_data, stem):
+    """Free-space rooms ≈ ground-truth rooms; the furnished plan gives about the same rooms."""
+    folder = shared_data / IPA
+    if not (folder / f"{stem}.png").is_file():
+        pytest.skip(f"{folder / stem}.png not in the shared data")
+    plain = FloorPlan.load(folder / f"{stem}.png")
+    furnished = FloorPlan.load(folder / f"{stem}_furnitures.png")
+    truth = FloorPlan.from_image(folder / f"{stem}.png", segmentation="auto")
+    assert abs(len(furnished.rooms) - len(plain.rooms)) <= max(3, len(plain.rooms) // 8)
+    assert furnished.area == pytest.approx(plain.area, rel=0.1)
+    # open-plan rooms (a whole wall missing) cannot be split by closing door gaps: fewer rooms
+    assert 0.5 * len(truth.rooms) <= len(plain.rooms) <= len(truth.rooms) + 2
+    assert len(plain.doors) >= len(plain.rooms) - 1  # rooms reached through doors
