@@ -385,6 +385,19 @@ class LoopClosureConfig(_Section):
     # 74 / 144 / 177 -> 12 / 2 / 59 closures pruned). With 3, ACES lost a true 7 m correction
     # that seven recent closures disagreed with (relation error 0.0474 -> 0.0485 m); 10 keeps it.
     prune_pair_contradictions: int = Field(10, ge=1)
+    final_alignment_rounds: int = Field(
+        2,
+        ge=0,
+        description="rounds of dense scan-to-submap constraints between passes when a run finishes "
+        "(frslam_graph.final_alignment): each matches every keyframe against the keyframes of other "
+        "passes near it and re-optimises; 0 = off (finish() only runs the LM batch, faster)",
+    )
+    final_alignment_radius: float = Field(
+        2.0,
+        gt=0.0,
+        description="m; keyframes of other passes within this distance of a keyframe are matched to it "
+        "by the final alignment; larger ties more places (more time at finish)",
+    )
     # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (every
     # attempt_every keyframes); every scan then runs *steps* of the queued work (a submap build,
     # a chunk of the correlative search of at most max_lookups_per_step field look-ups, the ICP

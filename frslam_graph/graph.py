@@ -295,6 +295,19 @@ class PoseGraph:
         self.settle(extra_iterations)
         return idx
 
+    def replace_factors(self, remove: list[int], factors: list[gtsam.NonlinearFactor]) -> list[int]:
+        """Remove factors by their iSAM2 indices and add ``factors`` (between existing keyframes)
+        in one iSAM2 update, without relinearising steps (an LM batch is meant to follow)."""
+        for index in remove:
+            if not 0 <= index < len(self._factors) or self._factors[index] is None:
+                raise FrslamError(f"no factor at index {index}", where="index")
+        return self._update(list(factors), remove=list(remove))
+
+    def factor_indices(self, factors: list[gtsam.NonlinearFactor]) -> list[int]:
+        """Current iSAM2 indices of factor objects added earlier (-1 for those not in the graph)."""
+        where = {id(f): i for i, f in enumerate(self._factors) if f is not None}
+        return [where.get(id(f), -1) for f in factors]
+
     def remove_factor(self, index: int, extra_iterations: int = 10) -> None:
         """Remove a factor added with :meth:`add_factor` by its iSAM2 index."""
         self.remove_factors([index], extra_iterations)

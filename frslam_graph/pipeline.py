@@ -625,7 +625,35 @@ class FRSlam:
                 error_after=self.graph.error(),
                 seconds=time.perf_counter() - t0,
             )
+            self._final_alignment()
         return self.trajectory()
+
+    def _final_alignment(self) -> None:
+        """Dense constraints between passes at the converged estimate, re-optimised
+        (:mod:`frslam_graph.final_alignment`); the previous round's constraints are replaced."""
+        from frslam_graph.final_alignment import constraint_factor, dense_constraints
+
+        lc = self.config.loop_closure
+        odom = np.array([k.pose_odom for k in self._kfs])
+        factors: list = []
+        for round_ in range(lc.final_alignment_rounds):
+            t0 = time.perf_counter()
+            cons = dense_constraints(
+                self.graph.estimates(), odom, self._kf_points, lc.final_alignment_radius, lc.max_point_range
+            )
+            new = [constraint_factor(c) for c in cons]
+            self.graph.replace_factors([i for i in self.graph.factor_indices(factors) if i >= 0], new)
+            factors = new
+            before = self.graph.error()
+            self.graph.optimize_batch()
+            self.log_event(
+                "final_alignment",
+                f"round {round_ + 1}: {len(cons)} constraints between passes",
+                constraints=len(cons),
+                error_before=before,
+                error_after=self.graph.error(),
+                seconds=time.perf_counter() - t0,
+            )
 
     def process(
         self, recording: Iterable[Any], batch: bool = True, parallel: bool | None = None
