@@ -142,7 +142,11 @@ def align_pairs(
         if c != ref_index:
             ref_index = int(c)
             pts = _submap(poses, points, ref_index, REFERENCE_SPAN, max_range)
-            ref = ReferenceSubmap(pts, RESOLUTION, INLIER_DISTANCE, ICP_MAX_DISTANCE) if len(pts) >= 30 else None
+            ref = (
+                ReferenceSubmap(pts, RESOLUTION, INLIER_DISTANCE, ICP_MAX_DISTANCE)
+                if len(pts) >= 30
+                else None
+            )
         if ref is None:
             continue
         query = _submap(poses, points, int(k), QUERY_SPAN, max_range)
@@ -153,7 +157,10 @@ def align_pairs(
         if res is None:
             continue
         x, cov = res
-        if np.hypot(*(x[:2] - start[:2])) > MAX_CORRECTION_XY or abs(wrap(x[2] - start[2])) > MAX_CORRECTION_THETA:
+        if (
+            np.hypot(*(x[:2] - start[:2])) > MAX_CORRECTION_XY
+            or abs(wrap(x[2] - start[2])) > MAX_CORRECTION_THETA
+        ):
             continue
         inliers = ref.inlier_fraction(query, x, INLIER_DISTANCE)
         if inliers < MIN_INLIER_FRACTION or not np.all(np.isfinite(cov)):
