@@ -11,7 +11,8 @@ reference submap. A match that converges with most points on the reference and m
 estimate by little is a between-factor under a Huber kernel; the graph is re-optimised (LM
 batch) and the constraints are computed again at the new estimate (``final_alignment_rounds``).
 This is the dense constraint set offline mappers end with (Cartographer's final optimisation,
-Karto's and GraphMapping's scan matching against all near poses).
+Karto's and GraphMapping's scan matching against all near poses). It runs only with loop
+closure on (``loop_closure.enabled``): these are loop closures too.
 
 Frames: keyframe points are (M, 2) in ``base_link``; poses are ``base_link`` in ``map``
 (x, y, theta; metres, radians). The constraint ``relative`` is x_reference⁻¹ ⊕ x_query with

@@ -625,7 +625,8 @@ class FRSlam:
                 error_after=self.graph.error(),
                 seconds=time.perf_counter() - t0,
             )
-            self._final_alignment()
+            if self.loop_closer is not None:  # constraints between passes are loop closures
+                self._final_alignment()
         return self.trajectory()
 
     def _final_alignment(self) -> None:

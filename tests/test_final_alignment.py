@@ -70,7 +70,7 @@ def test_constraints_measure_the_true_relative_pose_of_two_passes():
     assert min(c.inlier_fraction for c in across) >= 0.7
 
 
-def test_finish_adds_the_constraints_and_rounds_zero_turns_it_off():
+def test_finish_adds_the_constraints_and_rounds_zero_or_no_loop_closure_turn_it_off():
     from frslam_graph import FRSlam
 
     world = sw.room_world()
@@ -78,14 +78,15 @@ def test_finish_adds_the_constraints_and_rounds_zero_turns_it_off():
     odom = sw.drifting_odometry(truth, scale=0.02)
     scans, amin, inc = sw.scans_along(world, truth, max_range=15.0)
     events, errors = {}, {}
-    for rounds in (0, 2):
-        slam = FRSlam({"loop_closure": {"final_alignment_rounds": rounds}})
+    for rounds in (0, 2, "off"):
+        lc = {"enabled": False} if rounds == "off" else {"final_alignment_rounds": rounds}
+        slam = FRSlam({"loop_closure": lc})
         for row, o, r in zip(truth, odom, scans, strict=True):
             slam.add_scan(row[0], r, amin, inc, odom=tuple(o))
         est = slam.finish()
         events[rounds] = [e for e in slam.log if e.kind == "final_alignment"]
         errors[rounds] = np.hypot(*(est[:, 1:3] - truth[:, 1:3]).T).mean()
-    assert events[0] == []
+    assert events[0] == [] and events["off"] == []  # off, and off with loop closure
     assert len(events[2]) == 2
     assert all(e.data["constraints"] > 0 for e in events[2])
     assert errors[2] <= errors[0] + 0.005
