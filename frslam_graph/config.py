@@ -9,6 +9,7 @@ mapping. Any invalid value raises :class:`frslam_graph.errors.ConfigError` namin
 
 from __future__ import annotations
 
+import difflib
 import json
 from pathlib import Path
 from typing import Any, Literal
@@ -931,7 +932,7 @@ class FRSlamConfig(_Section):
         data = self.model_dump()
         for name, values in sections.items():
             if name not in data:
-                raise ConfigError(f"unknown section (expected one of {sorted(data)})", where=name)
+                raise ConfigError(unknown_key_message([name]), where=name)
             data[name].update(values)
         return type(self).from_dict(data)
 
@@ -954,7 +955,9 @@ def _config_error(exc: ValidationError, source: str | Path | None, prefix: str |
         loc.insert(0, prefix)
     where = ".".join(loc) or None
     msg = err.get("msg", "invalid value")
-    if err.get("type") == "value_error":
+    if err.get("type") == "extra_forbidden" and loc:
+        msg = unknown_key_message(loc)
+    elif err.get("type") == "value_error":
         msg = msg.removeprefix("Value error, ")
     elif "input" in err and err.get("type") != "missing":
         msg = f"{msg} (got {err['input']!r})"
@@ -962,3 +965,38 @@ def _config_error(exc: ValidationError, source: str | Path | None, prefix: str |
     if more:
         msg += f"; and {more} more error(s)"
     return ConfigError(msg, source=source, where=where)
+
+
+_LIST_HINT = "frslam config dump --all lists every key"
+
+
+def unknown_key_message(loc: list[str]) -> str:
+    """What to say about the unknown key ``loc`` (``["section"]`` or ``["section", "key"]``):
+    the closest valid keys of its section (or, with none there, of the other sections)."""
+    *parents, key = loc
+    model: type[BaseModel] = FRSlamConfig
+    for name in parents:
+        inner = model.model_fields.get(name)
+        if (
+            inner is None
+            or not isinstance(inner.annotation, type)
+            or not issubclass(inner.annotation, BaseModel)
+        ):
+            return f"unknown key ({_LIST_HINT})"
+        model = inner.annotation
+    what = "section" if model is FRSlamConfig else "key"
+    prefix = "".join(f"{name}." for name in parents)
+    close = [prefix + k for k in difflib.get_close_matches(key, list(model.model_fields), n=3)]
+    if not close and parents:  # a key of another section?
+        elsewhere = {
+            f"{section}.{name}": name
+            for section, field in FRSlamConfig.model_fields.items()
+            for name in field.annotation.model_fields
+        }
+        hits = set(difflib.get_close_matches(key, set(elsewhere.values()), n=3))
+        close = sorted(k for k, name in elsewhere.items() if name in hits)
+    if close:
+        return f"unknown {what}; did you mean {' or '.join(close)}? ({_LIST_HINT})"
+    if what == "section":
+        return f"unknown section (expected one of {', '.join(FRSlamConfig.model_fields)})"
+    return f"unknown key ({_LIST_HINT})"

@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from frslam_graph.config import FRSlamConfig
+import pytest
+
+from frslam_graph.cli import main
+from frslam_graph.config import FRSlamConfig, OdometryConfig
+from frslam_graph.errors import ConfigError
 
 DATA = Path(__file__).parent / "data"
 
@@ -27,3 +31,41 @@ def _all_fields():
         yield section, field
         for name, inner in field.annotation.model_fields.items():
             yield f"{section}.{name}", inner
+
+
+@pytest.mark.parametrize(
+    ("data", "where", "hint"),
+    [
+        ({"odometry": {"voxel_sise": 0.1}}, "odometry.voxel_sise", "did you mean odometry.voxel_size?"),
+        ({"loop_closure": {"enable": False}}, "loop_closure.enable", "did you mean loop_closure.enabled?"),
+        ({"odmetry": {"voxel_size": 0.1}}, "odmetry", "unknown section; did you mean odometry?"),
+        ({"odometry": {"prior_kernel": "huber"}}, "odometry.prior_kernel", "did you mean graph.prior_kernel"),
+    ],
+)
+def test_a_mistyped_key_names_it_and_the_closest_valid_keys(data, where, hint):
+    with pytest.raises(ConfigError) as err:
+        FRSlamConfig.from_dict(data, source="cfg.yaml")
+    assert err.value.where == where
+    assert hint in err.value.message and "frslam config dump --all" in err.value.message
+    assert "Extra inputs" not in str(err.value)
+
+
+def test_an_unknown_key_without_a_close_match_points_to_the_list():
+    with pytest.raises(ConfigError, match=r"odometry\.qqqq: unknown key \(frslam config dump --all"):
+        FRSlamConfig.from_dict({"odometry": {"qqqq": 1}})
+    with pytest.raises(ConfigError, match="unknown section .expected one of odometry, graph"):
+        FRSlamConfig.from_dict({"zzz": {}})
+    with pytest.raises(ConfigError, match=r"odometry\.voxel_sise: unknown key; did you mean"):
+        OdometryConfig(voxel_sise=0.1)
+
+
+def test_run_with_a_mistyped_config_key_exits_2_with_one_line(small_log, tmp_path, capsys, monkeypatch):
+    import frslam_graph.offline as offline
+
+    monkeypatch.setattr(offline, "run_recording", lambda *a, **k: pytest.fail("the run started"))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("odometry:\n  voxel_sise: 0.2\n")
+    assert main(["run", str(small_log[0]), "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert f"{bad}: odometry.voxel_sise: unknown key; did you mean odometry.voxel_size?" in err
