@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import difflib
 import json
+import re
+import textwrap
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any, Literal
 
@@ -874,7 +877,8 @@ class LoopClosureConfig(_Section):
 
 def _first_line(section: type[BaseModel]) -> str:
     """The first sentence of a section's docstring (its description in the dump)."""
-    return " ".join((section.__doc__ or "").split("\n\n")[0].split()).rstrip(".")
+    text = " ".join((section.__doc__ or "").split("\n\n")[0].split()).rstrip(".")
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text)  # :mod:`name` -> name
 
 
 class FRSlamConfig(_Section):
@@ -927,6 +931,28 @@ class FRSlamConfig(_Section):
 
             path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
 
+    def to_yaml(self, keys: Collection[str] | None = None) -> str:
+        """YAML of this config, sections nested, each field's description as a ``#`` comment above
+        it; ``keys`` (dotted, e.g. ``BASIC_KEYS``) limits it to those fields (default: every field).
+        :meth:`load` reads it back to this config (the fields left out at their defaults)."""
+        data = self.model_dump()
+        scope = "every key" if keys is None else "the common keys; frslam config dump --all lists every key"
+        lines = [
+            "# frslam configuration (FRSlamConfig), " + scope,
+            "# units: m, s, degrees where the key ends in _deg; use with: frslam run --config FILE",
+        ]
+        for section, field in type(self).model_fields.items():
+            fields = field.annotation.model_fields
+            names = [n for n in fields if keys is None or f"{section}.{n}" in keys]
+            if names:
+                lines += ["", *_comment(field.description, ""), f"{section}:"]
+            for name in names:
+                lines += [
+                    *_comment(fields[name].description, "  "),
+                    f"  {name}: {_yaml_scalar(data[section][name])}",
+                ]
+        return "\n".join(lines) + "\n"
+
     def with_updates(self, **sections: dict[str, Any]) -> FRSlamConfig:
         """A copy with some fields changed, e.g. ``cfg.with_updates(odometry={"voxel_size": 0.2})``."""
         data = self.model_dump()
@@ -935,6 +961,39 @@ class FRSlamConfig(_Section):
                 raise ConfigError(unknown_key_message([name]), where=name)
             data[name].update(values)
         return type(self).from_dict(data)
+
+
+#: the fields a user commonly changes (``frslam config dump`` without ``--all``): the sensor's
+#: range, map and keyframe density, wheel-only odometry, whether and when the floor plan is used,
+#: loop closure on / off, its per-scan budget and the final alignment, the plan priors' kernel
+BASIC_KEYS: tuple[str, ...] = (
+    "odometry.max_range",
+    "odometry.min_range",
+    "odometry.voxel_size",
+    "odometry.keyframe_distance",
+    "odometry.keyframe_angle_deg",
+    "odometry.scan_matching",
+    "graph.prior_kernel",
+    "updates.enabled",
+    "updates.first_register_area_m2",
+    "updates.register_min_growth_m2",
+    "updates.relocation_distance_D",
+    "loop_closure.enabled",
+    "loop_closure.budget_ms",
+    "loop_closure.final_alignment_rounds",
+)
+
+
+def _comment(text: str | None, indent: str) -> list[str]:
+    """``text`` as YAML comment lines at ``indent``, wrapped at 100 characters."""
+    return [f"{indent}# {line}" for line in textwrap.wrap(text or "", 98 - len(indent))]
+
+
+def _yaml_scalar(value: Any) -> str:
+    """One value in YAML's own spelling (PyYAML reads ``1e-06`` as a string, ``1.0e-06`` as a float)."""
+    import yaml
+
+    return yaml.safe_dump(value, default_flow_style=True).removesuffix("...\n").strip()
 
 
 _SECTION_NAMES = {
