@@ -9,7 +9,11 @@ mapping. Any invalid value raises :class:`frslam_graph.errors.ConfigError` namin
 
 from __future__ import annotations
 
+import difflib
 import json
+import re
+import textwrap
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any, Literal
 
@@ -39,70 +43,177 @@ class _Section(BaseModel):
 class OdometryConfig(_Section):
     """KISS-ICP scan odometry (planar scans as z = 0 points) and keyframe selection."""
 
-    voxel_size: float = Field(0.1, gt=0.0, le=5.0)
-    max_range: float = Field(30.0, gt=0.0)
-    min_range: float = Field(0.05, ge=0.0)
-    initial_threshold: float = Field(2.0, gt=0.0)
-    fixed_threshold: float | None = Field(None, gt=0.0)
-    min_motion: float = Field(0.1, ge=0.0)
-    # KISS-ICP's 20 suits 3D voxels of 0.5-1 m; a 0.1 m voxel of a planar scan holds a short
-    # wall segment, which 5 points describe: each ICP step then searches a quarter of the points
-    # (worker CPU per scan 2.23 -> 1.58 ms on the synthetic room; odometry ATE there 0.041 ->
-    # 0.028 m; regime B over 8 houses mean ATE 0.228 -> 0.215 m without the plan, 0.045 ->
-    # 0.033 m with it; regime A 0.032 -> 0.025 / 0.020 -> 0.015 m; ACES 0.0456 -> 0.0471 m, the
-    # spread of its loop closures under small perturbations, short relations 0.0415 -> 0.0411 m)
-    max_points_per_voxel: int = Field(5, ge=1)
-    max_iterations: int = Field(500, ge=1)
-    convergence_criterion: float = Field(1e-4, gt=0.0)
-    num_threads: int = Field(1, ge=0)  # 0 = all cores; the first KissICP fixes it process-wide
-    min_points: int = Field(20, ge=3)  # fewer valid beams -> no ICP, motion-model fallback
-    # False: wheel odometry alone drives the motion model (no KISS-ICP); scans are still mapped
-    # and used by loop closure and floor-plan priors. Ignored for scans without wheel odometry.
-    scan_matching: bool = True
-    keyframe_distance: float = Field(0.3, gt=0.0)
-    keyframe_angle_deg: float = Field(10.0, gt=0.0, le=180.0)
-    # a keyframe at least this often (s) even when standing still, so the per-keyframe hooks (loop
-    # closure, floor-plan update strategy) still run when progress is obstructed; None = never
-    keyframe_max_interval_s: float | None = Field(None, gt=0.0)
-    # ICP noise model: point-to-line residual sigma (m) -> covariance from the scan's Hessian,
-    # inflated by ``icp_cov_inflation`` and floored by the sigma floors below.
-    icp_sigma: float = Field(0.03, gt=0.0)
-    icp_cov_inflation: float = Field(1.0, ge=1.0)
-    icp_sigma_floor_xy: float = Field(0.001, gt=0.0)
-    icp_sigma_floor_theta_deg: float = Field(0.01, gt=0.0)
-    # Degeneracy: smallest / largest eigenvalue of the summed point normals' outer products.
-    degeneracy_threshold: float = Field(0.04, gt=0.0, lt=0.5)
-    degenerate_sigma: float = Field(10.0, gt=0.0)  # ICP sigma (m) along a degenerate axis
-    normal_neighbours: int = Field(2, ge=1, le=10)
-    # Wheel odometry noise: sigma_d = dist_frac * d, sigma_theta = rot_per_m * d + rot_frac * |dtheta|.
-    wheel_dist_frac: float = Field(0.02, gt=0.0)
-    wheel_rot_per_m_deg: float = Field(1.0, ge=0.0)
-    wheel_rot_frac: float = Field(0.02, ge=0.0)
-    wheel_sigma_floor_xy: float = Field(0.002, gt=0.0)
-    # Distance (m) over which wheel errors (a wrong wheel radius, a heading bias) stay correlated;
-    # used where the wheels alone carry the motion (scan_matching off, or no usable scan), so that
-    # a chain of wheel increments allows wheel_dist_frac of every stretch up to this length (see
-    # motion_model.wheel_noise). Fused with ICP, the per-increment noise applies.
-    wheel_correlation_length: float = Field(5.0, ge=0.0)
-    # Per-step heading floor: wheel heading errors are systematic (not white), so a generous floor
-    # keeps ICP in charge of the heading wherever the scan observes it.
-    wheel_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
-    # Constant-velocity prediction (no wheel odometry): per-second random-walk sigmas.
-    cv_sigma_xy_per_s: float = Field(0.5, gt=0.0)
-    cv_sigma_theta_deg_per_s: float = Field(30.0, gt=0.0)
-    # Fault gates.
-    # Jump / ICP-failure gate: Mahalanobis sigmas on wheel-vs-constant-velocity (two-seed check)
-    # and, with icp_gate="reject", on ICP-vs-wheel; the disagreement must also exceed the minima.
-    odom_jump_gate: float = Field(5.0, gt=0.0)
-    odom_jump_min_m: float = Field(0.15, ge=0.0)  # and the disagreement is at least this large
-    odom_jump_min_deg: float = Field(5.0, ge=0.0)
-    # What an ICP result beyond the gate from an accepted wheel increment means: "fuse" (plain EKF
-    # update; on real logs with lagging odometry stamps ICP is usually the right one) or "reject"
-    # (ICP fell into a wrong minimum: the motion model carries the step, the scan is not mapped).
-    icp_gate: Literal["fuse", "reject"] = "fuse"
-    max_speed: float = Field(3.0, gt=0.0)  # m/s; faster wheel increments are jumps
-    max_turn_rate_deg: float = Field(360.0, gt=0.0)
-    gap_factor: float = Field(2.5, gt=1.0)  # stamp gap > gap_factor * nominal period -> dropped scans
+    # KISS-ICP scan matching
+    voxel_size: float = Field(
+        0.1,
+        gt=0.0,
+        le=5.0,
+        description="m; voxel of KISS-ICP's local map and of the scan downsampling; larger = fewer points, faster, coarser ICP",
+    )
+    max_range: float = Field(
+        30.0,
+        gt=0.0,
+        description="m; beams longer than this are dropped; larger = more far points (noisier at range)",
+    )
+    min_range: float = Field(
+        0.05,
+        ge=0.0,
+        description="m; beams shorter than this are dropped (robot body, sensor noise); must be < max_range",
+    )
+    initial_threshold: float = Field(
+        2.0,
+        gt=0.0,
+        description="m; KISS-ICP correspondence distance before its adaptive threshold has seen motion; larger = tolerates larger first jumps",
+    )
+    fixed_threshold: float | None = Field(
+        None,
+        gt=0.0,
+        description="m; fixed KISS-ICP correspondence distance instead of the adaptive one; null = adaptive",
+    )
+    min_motion: float = Field(
+        0.1,
+        ge=0.0,
+        description="m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt",
+    )
+    max_points_per_voxel: int = Field(
+        5,
+        ge=1,
+        description="points kept per voxel of the local map; larger = denser map, slower ICP (KISS-ICP uses 20 in 3D)",
+    )
+    max_iterations: int = Field(
+        500, ge=1, description="ICP iterations per scan at most; larger = more time on hard scans"
+    )
+    convergence_criterion: float = Field(
+        1e-4,
+        gt=0.0,
+        description="ICP stops when its step is below this (KISS-ICP units); larger = fewer iterations, less exact",
+    )
+    num_threads: int = Field(
+        1, ge=0, description="KISS-ICP threads; 0 = all cores; the first KissICP fixes it process-wide"
+    )
+    min_points: int = Field(
+        20,
+        ge=3,
+        description="valid beams needed for ICP; fewer -> no ICP, the motion model carries the step; larger = ICP skipped more often",
+    )
+    scan_matching: bool = Field(
+        True,
+        description="false: wheel odometry alone drives the motion model (no KISS-ICP), scans still mapped and used by loop closure and plan priors; ignored without wheel odometry",
+    )
+    # keyframes
+    keyframe_distance: float = Field(
+        0.3,
+        gt=0.0,
+        description="m; keyframe every this much travel; larger = fewer keyframes, faster, coarser graph",
+    )
+    keyframe_angle_deg: float = Field(
+        10.0,
+        gt=0.0,
+        le=180.0,
+        description="deg; keyframe every this much turning; larger = fewer keyframes, coarser graph",
+    )
+    keyframe_max_interval_s: float | None = Field(
+        None,
+        gt=0.0,
+        description="s; a keyframe at least this often even when standing still, so loop closure and plan updates still run when progress is obstructed; null = never",
+    )
+    # ICP noise model: covariance from the scan's Hessian, inflated, floored
+    icp_sigma: float = Field(
+        0.03,
+        gt=0.0,
+        description="m; point-to-line residual sigma of the ICP covariance; larger = ICP steps trusted less",
+    )
+    icp_cov_inflation: float = Field(
+        1.0, ge=1.0, description="factor on the ICP covariance; larger = ICP steps trusted less"
+    )
+    icp_sigma_floor_xy: float = Field(
+        0.001, gt=0.0, description="m; smallest ICP translation sigma; larger = ICP never trusted beyond this"
+    )
+    icp_sigma_floor_theta_deg: float = Field(
+        0.01,
+        gt=0.0,
+        description="deg; smallest ICP heading sigma; larger = ICP heading never trusted beyond this",
+    )
+    degeneracy_threshold: float = Field(
+        0.04,
+        gt=0.0,
+        lt=0.5,
+        description="smallest / largest eigenvalue of the summed point normals' outer products below which a scan is degenerate (a corridor); larger = more scans degenerate",
+    )
+    degenerate_sigma: float = Field(
+        10.0,
+        gt=0.0,
+        description="m; ICP sigma along a degenerate axis; larger = the motion model carries that axis more",
+    )
+    normal_neighbours: int = Field(
+        2,
+        ge=1,
+        le=10,
+        description="beam offset k: a point's normal is perpendicular to p[i+k] - p[i-k] (degeneracy test); larger = smoother normals",
+    )
+    # wheel odometry noise: sigma_d = dist_frac * d, sigma_theta = rot_per_m * d + rot_frac * |dtheta|
+    wheel_dist_frac: float = Field(
+        0.02,
+        gt=0.0,
+        description="translation sigma per metre travelled (fraction); larger = wheels trusted less",
+    )
+    wheel_rot_per_m_deg: float = Field(
+        1.0, ge=0.0, description="deg per m travelled of heading sigma; larger = wheel heading trusted less"
+    )
+    wheel_rot_frac: float = Field(
+        0.02,
+        ge=0.0,
+        description="heading sigma per radian turned (fraction); larger = wheel turns trusted less",
+    )
+    wheel_sigma_floor_xy: float = Field(
+        0.002, gt=0.0, description="m; smallest wheel translation sigma per step"
+    )
+    wheel_correlation_length: float = Field(
+        5.0,
+        ge=0.0,
+        description="m; distance over which wheel errors (wheel radius, heading bias) stay correlated where the wheels alone carry the motion; larger = wheel chains trusted less",
+    )
+    wheel_sigma_floor_theta_deg: float = Field(
+        0.5,
+        gt=0.0,
+        description="deg; smallest wheel heading sigma per step (wheel heading errors are systematic); larger = ICP keeps the heading",
+    )
+    # constant-velocity prediction (no wheel odometry)
+    cv_sigma_xy_per_s: float = Field(
+        0.5, gt=0.0, description="m per s; random-walk translation sigma of the constant-velocity prediction"
+    )
+    cv_sigma_theta_deg_per_s: float = Field(
+        30.0, gt=0.0, description="deg per s; random-walk heading sigma of the constant-velocity prediction"
+    )
+    # fault gates
+    odom_jump_gate: float = Field(
+        5.0,
+        gt=0.0,
+        description="sigmas (Mahalanobis) of the jump / ICP-failure gate: wheel vs constant velocity and, with icp_gate reject, ICP vs wheel; larger = fewer jumps detected",
+    )
+    odom_jump_min_m: float = Field(
+        0.15,
+        ge=0.0,
+        description="m; a jump must also disagree by at least this much; larger = fewer jumps detected",
+    )
+    odom_jump_min_deg: float = Field(
+        5.0, ge=0.0, description="deg; ... or turn at least this much; larger = fewer jumps detected"
+    )
+    icp_gate: Literal["fuse", "reject"] = Field(
+        "fuse",
+        description="an ICP result beyond the gate from the wheel increment: fuse (plain EKF update) or reject (the motion model carries the step, the scan is not mapped)",
+    )
+    max_speed: float = Field(
+        3.0, gt=0.0, description="m/s; faster wheel increments are jumps; larger = fewer jumps detected"
+    )
+    max_turn_rate_deg: float = Field(
+        360.0, gt=0.0, description="deg/s; faster wheel turns are jumps; larger = fewer jumps detected"
+    )
+    gap_factor: float = Field(
+        2.5,
+        gt=1.0,
+        description="a stamp gap above this times the nominal scan period counts as dropped scans; larger = fewer gaps reported",
+    )
 
     @model_validator(mode="after")
     def _ranges(self) -> OdometryConfig:
@@ -114,24 +225,76 @@ class OdometryConfig(_Section):
 class GraphConfig(_Section):
     """GTSAM Pose2 graph: noise floors, robust prior kernel, iSAM2 settings."""
 
-    between_sigma_floor_xy: float = Field(0.002, gt=0.0)
-    between_sigma_floor_theta_deg: float = Field(0.05, gt=0.0)
-    anchor_sigma_xy: float = Field(1e-3, gt=0.0)  # prior on the first keyframe (map == odom at start)
-    anchor_sigma_theta_deg: float = Field(1e-3, gt=0.0)
-    prior_kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
-    prior_kernel_param: float = Field(2.0, gt=0.0)  # in whitened units (sigmas)
-    prior_sigma_floor_xy: float = Field(0.02, gt=0.0)
-    prior_sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
-    relinearize_threshold: float = Field(0.01, gt=0.0)
-    relinearize_skip: int = Field(10, ge=1)  # streaming; settle() after priors forces it
-    # a floor-plan prior that agrees with the estimate this well gets only this many forced
-    # relinearising iSAM2 steps (each costs a few ms on a large graph); others get 10
-    prior_settle_near_xy: float = Field(0.05, ge=0.0)
-    prior_settle_near_theta_deg: float = Field(1.0, ge=0.0)
-    prior_settle_near_iterations: int = Field(1, ge=0)
-    factorization: Literal["QR", "CHOLESKY"] = "QR"
-    batch_max_iterations: int = Field(100, ge=1)
-    batch_relative_tolerance: float = Field(1e-6, gt=0.0)
+    between_sigma_floor_xy: float = Field(
+        0.002,
+        gt=0.0,
+        description="m; smallest translation sigma of an odometry between-factor; larger = odometry trusted less",
+    )
+    between_sigma_floor_theta_deg: float = Field(
+        0.05,
+        gt=0.0,
+        description="deg; smallest heading sigma of an odometry between-factor; larger = odometry trusted less",
+    )
+    anchor_sigma_xy: float = Field(
+        1e-3,
+        gt=0.0,
+        description="m; sigma of the prior on the first keyframe (map == odom at start); larger = a looser anchor",
+    )
+    anchor_sigma_theta_deg: float = Field(
+        1e-3, gt=0.0, description="deg; heading sigma of the prior on the first keyframe"
+    )
+    prior_kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = Field(
+        "cauchy", description="robust kernel of floor-plan priors (none = plain Gaussian)"
+    )
+    prior_kernel_param: float = Field(
+        2.0,
+        gt=0.0,
+        description="sigmas (whitened units); width of the prior kernel; larger = outlying priors pull harder",
+    )
+    prior_sigma_floor_xy: float = Field(
+        0.02,
+        gt=0.0,
+        description="m; smallest translation sigma of a floor-plan prior; larger = priors trusted less",
+    )
+    prior_sigma_floor_theta_deg: float = Field(
+        0.5,
+        gt=0.0,
+        description="deg; smallest heading sigma of a floor-plan prior; larger = priors trusted less",
+    )
+    relinearize_threshold: float = Field(
+        0.01,
+        gt=0.0,
+        description="iSAM2 relinearises variables whose update exceeds this; larger = faster, less exact streaming estimate",
+    )
+    relinearize_skip: int = Field(
+        10,
+        ge=1,
+        description="iSAM2 relinearises every this many updates while streaming (settle() after priors forces it); larger = faster",
+    )
+    prior_settle_near_xy: float = Field(
+        0.05,
+        ge=0.0,
+        description="m; a floor-plan prior within this of the estimate (and prior_settle_near_theta_deg) gets only prior_settle_near_iterations forced iSAM2 steps (others 10)",
+    )
+    prior_settle_near_theta_deg: float = Field(
+        1.0, ge=0.0, description="deg; heading part of the 'near' test of prior_settle_near_xy"
+    )
+    prior_settle_near_iterations: int = Field(
+        1,
+        ge=0,
+        description="forced relinearising iSAM2 steps after a near prior (each a few ms on a large graph); larger = slower, settles more",
+    )
+    factorization: Literal["QR", "CHOLESKY"] = Field(
+        "QR", description="iSAM2 linear solver: QR (stabler) or CHOLESKY (faster)"
+    )
+    batch_max_iterations: int = Field(
+        100, ge=1, description="Levenberg-Marquardt batch iterations at most; larger = slower on hard graphs"
+    )
+    batch_relative_tolerance: float = Field(
+        1e-6,
+        gt=0.0,
+        description="LM batch stops when the error drops by less than this fraction; larger = stops earlier",
+    )
 
 
 class UpdatesConfig(_Section):
@@ -146,245 +309,524 @@ class UpdatesConfig(_Section):
     unambiguous match passing the chi² gate (``inconsistent_chi2``) becomes a robust prior.
     """
 
-    enabled: bool = True
-    register_min_growth_m2: float = Field(4.0, ge=0.0)
-    relocation_distance_D: float = Field(1.0, gt=0.0)
-    relocation_angle_deg: float = Field(30.0, gt=0.0)  # also relocalise after turning this much
-    obstruction_speed: float = Field(0.02, ge=0.0)
-    obstruction_time_s: float = Field(5.0, gt=0.0)
-    max_ambiguity: float = Field(0.9, gt=0.0, le=1.0)
-    min_score: float = Field(0.5, ge=0.0, le=1.0)
-    inconsistent_chi2: float = Field(11.34, gt=0.0)  # chi2(3 dof, 99 %)
-    map_resolution: float = Field(0.05, gt=0.0)
+    enabled: bool = Field(
+        True, description="register the floor plan and add its priors (false = plain SLAM even with a plan)"
+    )
+    register_min_growth_m2: float = Field(
+        4.0,
+        ge=0.0,
+        description="m²; the map must grow by this (and register_growth_frac) before another registration; larger = fewer attempts",
+    )
+    relocation_distance_D: float = Field(
+        1.0,
+        gt=0.0,
+        description="m; relocalise the scan on the plan every this much travel; larger = fewer priors, less CPU",
+    )
+    relocation_angle_deg: float = Field(
+        30.0, gt=0.0, description="deg; also relocalise after turning this much; larger = fewer priors"
+    )
+    obstruction_speed: float = Field(
+        0.02,
+        ge=0.0,
+        description="m/s; progress slower than this for obstruction_time_s counts as obstructed (triggers a registration)",
+    )
+    obstruction_time_s: float = Field(
+        5.0, gt=0.0, description="s; how long progress must be slow to count as obstructed"
+    )
+    max_ambiguity: float = Field(
+        0.9,
+        gt=0.0,
+        le=1.0,
+        description="registration ambiguity (runner-up / best) accepted at most; larger = more ambiguous registrations accepted",
+    )
+    min_score: float = Field(
+        0.5, ge=0.0, le=1.0, description="registration score needed (0..1); larger = stricter acceptance"
+    )
+    inconsistent_chi2: float = Field(
+        11.34,
+        gt=0.0,
+        description="chi² gate (3 dof, default 99 %) of a relocalisation against the trajectory; larger = more priors pass",
+    )
+    map_resolution: float = Field(
+        0.05,
+        gt=0.0,
+        description="m; cell of the occupancy map registered on the plan; larger = faster, coarser",
+    )
     # registration triggers and acceptance
-    first_register_area_m2: float = Field(12.0, ge=0.0)
-    register_growth_frac: float = Field(0.2, ge=0.0)
-    register_retry_distance: float = Field(15.0, gt=0.0)  # m travelled: retry while none accepted
-    # ... times this factor after each retry on a map that has not grown by register_min_growth_m2
-    # since the attempt before (the robot re-traversing a mapped building whose plan does not
-    # fit: another building's plan was retried every 15 m to the end of the run), up to
-    # register_retry_max_distance; any growth starts again at register_retry_distance. 1 = off.
-    register_retry_backoff: float = Field(2.0, ge=1.0)
-    register_retry_max_distance: float = Field(60.0, gt=0.0)
-    # while none is accepted, a registration that matched but failed the checks is retried after
-    # this many metres (a fresh map before drift grows; 0 = off), up to register_recheck_max
-    # quick rechecks in a row (an attempt another trigger made starts a new run)
-    register_recheck_distance: float = Field(3.0, ge=0.0)
-    # (3: a house of tools/bench_backend.py regime C whose first two registrations were wrong got
-    # its right one at the third, 0.36 -> 0.05 m ATE, before the drift grew)
-    register_recheck_max: int = Field(3, ge=0)
-    # with a registration accepted, register again after this many metres without an attempt (at
-    # most register_refine_max times; 0 = off)
-    register_refine_distance: float = Field(20.0, ge=0.0)
-    register_refine_max: int = Field(3, ge=0)
-    # every other retry registers on the map of the keyframes of the last this many metres (the
-    # whole map may have drifted too far to match)
-    local_map_distance: float = Field(40.0, gt=0.0)
-    min_map_fit: float = Field(0.5, ge=0.0, le=1.0)  # occupied map cells near a plan wall
-    # keyframe scans (refine_scan_samples, each relocalised on its own) must fit a registration
-    # about to be accepted with this mean soft score (0 = off)
-    min_scan_fit: float = Field(0.85, ge=0.0, le=1.0)
-    # an ambiguous registration (before any is accepted): the placement that explains the keyframe
-    # scans better than the registration's runner-up placements by this margin (mean soft score)
-    # is taken; 0 = ambiguous registrations are rejected
-    disambiguate_margin: float = Field(0.05, ge=0.0)
-    max_walls_in_free_space: float = Field(0.1, ge=0.0, le=1.0)  # observed interior plan walls in free space
-    # The map is built at drifting estimates: "near a wall" means within map_fit_distance and "in
-    # free space" farther than free_space_margin from any occupied cell, both growing by
-    # check_growth_per_m per metre travelled since the last accepted prior (odometry drift not
-    # yet corrected) up to their maxima.
-    map_fit_distance: float = Field(0.1, gt=0.0)
-    map_fit_distance_max: float = Field(0.25, gt=0.0)
-    free_space_margin: float = Field(0.2, ge=0.0)
-    free_space_margin_max: float = Field(0.4, ge=0.0)
-    check_growth_per_m: float = Field(0.01, ge=0.0)
-    # the accepted registration is retracted when the grown map shows this share of its walls in
-    # free space (above the acceptance threshold: the map keeps drifting where priors are sparse)
-    retract_walls_in_free_space: float = Field(0.2, ge=0.0, le=1.0)
-    agree_tol: float = Field(0.3, gt=0.0)  # m, RMS displacement of plan corners between registrations
-    # with no registration accepted, after this many metres without a prior a registration needs
-    # a second one that agrees (within agree_tol) before it is accepted
-    confirm_after_m: float = Field(20.0, ge=0.0)
-    switch_margin: float = Field(0.05, ge=0.0)  # map-fit gain needed to replace a registration
-    # an agreeing registration (within agree_tol) that explains the grown map at least as well
-    # refines the accepted one for the relocalisations that follow (a first registration on a
-    # small map can be 0.2-0.3 m off: a regime-C house of tools/bench_backend.py 0.175 -> 0.025 m
-    # ATE; no house of regimes A / B / C worse by more than 0.01 m)
-    refine_on_agreement: bool = True
-    # "explains as well or better" on: "map" the occupied cells of the map (drawn at estimates the
-    # accepted plan's priors shaped, so biased towards it); "scans" up to refine_scan_samples
-    # keyframe scans spread over the run, each relocalised on its own on both plans (mean soft
-    # score)
-    refine_by: Literal["map", "scans"] = "scans"
-    refine_scan_samples: int = Field(24, ge=1)
-    # scan fits closer than this are a tie (the map decides)
-    refine_scan_margin: float = Field(0.005, ge=0.0)
-    # this many metres after a registration is accepted, its scale along the plan's two axes is
-    # fitted to keyframe scans (refine_scan_samples, their poses free); the result replaces it
-    # when it explains the scans better by scale_refine_margin (0 = off); the interval doubles
-    # after each fit that changes nothing. Prior sigma of the log scale factors, and the largest
-    # factor change accepted (fraction).
-    scale_refine_distance: float = Field(20.0, ge=0.0)
-    scale_refine_sigma: float = Field(0.05, gt=0.0)
-    scale_refine_max: float = Field(0.1, gt=0.0)
-    scale_refine_min: float = Field(0.002, ge=0.0)  # smaller factor changes are not tried
-    scale_refine_margin: float = Field(0.002, ge=0.0)  # scan-fit gain needed (mean soft score)
-    # with each scale refinement, move the plan rigidly so that the first keyframe's scan fits it
-    # at the anchor (the first pose), when it is off by at least these
-    # (regime C of tools/bench_backend.py, 20 houses, with the registration / scale refinements
-    # and refine_by="scans": mean ATE with the plan 0.023 -> 0.014 m, with 25 % wrong registrations
-    # 0.080 -> 0.046 m, within 10 % of the clean run 14 -> 16 houses; another building unchanged)
-    align_to_start: bool = True
-    align_min_xy: float = Field(0.02, ge=0.0)
-    align_min_theta_deg: float = Field(0.2, ge=0.0)
-    # ... and only when the first scan's soft fit at the anchor improves by this much
-    align_min_gain: float = Field(0.002, ge=0.0)
-    # a refined scale moving a prior's keyframe more than this (m) relocalises the keyframes
-    # with priors on the refined plan
-    scale_reanchor_xy: float = Field(0.05, ge=0.0)
-    # at the end of an offline run (FRSlam.finish), one more registration on the complete map and
-    # the scale refinement, so the final plan depends less on when the run's refinements happened
-    final_refine: bool = True
-    max_registrations: int = Field(40, ge=1)
+    first_register_area_m2: float = Field(
+        12.0,
+        ge=0.0,
+        description="m²; mapped area at the first registration attempt; larger = later but better-informed first attempt",
+    )
+    register_growth_frac: float = Field(
+        0.2,
+        ge=0.0,
+        description="fraction of the mapped area the map must also grow by before another registration; larger = fewer attempts",
+    )
+    register_retry_distance: float = Field(
+        15.0,
+        gt=0.0,
+        description="m travelled; retry the registration this often while none is accepted; larger = fewer retries",
+    )
+    register_retry_backoff: float = Field(
+        2.0,
+        ge=1.0,
+        description="factor on the retry distance after each retry on a map that has not grown by register_min_growth_m2 (any growth resets it); 1 = off",
+    )
+    register_retry_max_distance: float = Field(
+        60.0, gt=0.0, description="m; the backed-off retry distance grows up to this"
+    )
+    register_recheck_distance: float = Field(
+        3.0,
+        ge=0.0,
+        description="m; while none is accepted, a registration that matched but failed the checks is retried after this travel (a fresh map before drift grows); 0 = off",
+    )
+    register_recheck_max: int = Field(
+        3,
+        ge=0,
+        description="quick rechecks in a row at most (an attempt another trigger made starts a new run); larger = more attempts",
+    )
+    register_refine_distance: float = Field(
+        20.0,
+        ge=0.0,
+        description="m; with a registration accepted, register again after this travel without an attempt; 0 = off",
+    )
+    register_refine_max: int = Field(3, ge=0, description="such re-registrations at most; 0 = off")
+    local_map_distance: float = Field(
+        40.0,
+        gt=0.0,
+        description="m; every other retry registers on the map of the keyframes of the last this much travel (the whole map may have drifted too far)",
+    )
+    min_map_fit: float = Field(
+        0.5,
+        ge=0.0,
+        le=1.0,
+        description="share of occupied map cells near a plan wall needed to accept; larger = stricter acceptance",
+    )
+    min_scan_fit: float = Field(
+        0.85,
+        ge=0.0,
+        le=1.0,
+        description="mean soft score with which keyframe scans (refine_scan_samples, each relocalised) must fit a registration to accept it; 0 = off",
+    )
+    disambiguate_margin: float = Field(
+        0.05,
+        ge=0.0,
+        description="before any is accepted, an ambiguous registration's placement is taken if it explains the keyframe scans better than the runner-ups by this margin; 0 = rejected",
+    )
+    max_walls_in_free_space: float = Field(
+        0.1,
+        ge=0.0,
+        le=1.0,
+        description="share of observed interior plan walls in mapped free space accepted at most; larger = laxer",
+    )
+    # "near a wall" / "in free space" tolerances grow with the travel since the last accepted prior
+    map_fit_distance: float = Field(
+        0.1,
+        gt=0.0,
+        description="m; an occupied cell within this of a plan wall is 'near' it; grows by check_growth_per_m; larger = laxer fit",
+    )
+    map_fit_distance_max: float = Field(0.25, gt=0.0, description="m; map_fit_distance grows up to this")
+    free_space_margin: float = Field(
+        0.2,
+        ge=0.0,
+        description="m; 'in free space' means farther than this from any occupied cell; grows by check_growth_per_m; larger = laxer",
+    )
+    free_space_margin_max: float = Field(0.4, ge=0.0, description="m; free_space_margin grows up to this")
+    check_growth_per_m: float = Field(
+        0.01,
+        ge=0.0,
+        description="m per m travelled since the last accepted prior (uncorrected drift) added to both tolerances above",
+    )
+    retract_walls_in_free_space: float = Field(
+        0.2,
+        ge=0.0,
+        le=1.0,
+        description="the accepted registration is retracted when the grown map shows this share of its walls in free space; larger = retracted later",
+    )
+    agree_tol: float = Field(
+        0.3, gt=0.0, description="m; RMS displacement of plan corners within which two registrations agree"
+    )
+    confirm_after_m: float = Field(
+        20.0,
+        ge=0.0,
+        description="m; with none accepted, after this travel without a prior a registration needs a second, agreeing one before it is accepted",
+    )
+    switch_margin: float = Field(
+        0.05,
+        ge=0.0,
+        description="map-fit gain needed for a new registration to replace the accepted one; larger = switches less",
+    )
+    refine_on_agreement: bool = Field(
+        True,
+        description="an agreeing registration (within agree_tol) that explains the grown map at least as well refines the accepted one",
+    )
+    refine_by: Literal["map", "scans"] = Field(
+        "scans",
+        description="'explains at least as well' on: map (its occupied cells, biased towards the accepted plan) or scans (refine_scan_samples keyframe scans relocalised on both plans)",
+    )
+    refine_scan_samples: int = Field(
+        24,
+        ge=1,
+        description="keyframe scans spread over the run used by the scan-fit checks; larger = surer, slower",
+    )
+    refine_scan_margin: float = Field(
+        0.005, ge=0.0, description="scan fits closer than this (mean soft score) are a tie (the map decides)"
+    )
+    # scale refinement of the accepted plan
+    scale_refine_distance: float = Field(
+        20.0,
+        ge=0.0,
+        description="m after an acceptance; fit the plan's scale along its two axes to keyframe scans (interval doubles after a fit changing nothing); 0 = off",
+    )
+    scale_refine_sigma: float = Field(
+        0.05, gt=0.0, description="prior sigma of the log scale factors; larger = scale moves more freely"
+    )
+    scale_refine_max: float = Field(
+        0.1,
+        gt=0.0,
+        description="largest scale change accepted (fraction); larger = bigger rescalings allowed",
+    )
+    scale_refine_min: float = Field(
+        0.002, ge=0.0, description="smaller scale changes (fraction) are not tried"
+    )
+    scale_refine_margin: float = Field(
+        0.002,
+        ge=0.0,
+        description="scan-fit gain (mean soft score) a refined scale needs to replace the plan; larger = changes less",
+    )
+    align_to_start: bool = Field(
+        True,
+        description="with each scale refinement, move the plan rigidly so that the first keyframe's scan fits it at the anchor (the first pose)",
+    )
+    align_min_xy: float = Field(
+        0.02, ge=0.0, description="m; ... when it is off by at least this (or align_min_theta_deg)"
+    )
+    align_min_theta_deg: float = Field(0.2, ge=0.0, description="deg; ... or turned by at least this")
+    align_min_gain: float = Field(
+        0.002,
+        ge=0.0,
+        description="... and only when the first scan's soft fit at the anchor improves by this much",
+    )
+    scale_reanchor_xy: float = Field(
+        0.05,
+        ge=0.0,
+        description="m; a refined scale moving a prior's keyframe more than this relocalises the keyframes with priors on the new plan",
+    )
+    final_refine: bool = Field(
+        True,
+        description="at the end of an offline run, one more registration on the complete map and scale refinement (the final plan depends less on timing)",
+    )
+    max_registrations: int = Field(
+        40,
+        ge=1,
+        description="registration attempts per run at most; larger = more CPU on plans that do not fit",
+    )
     # relocalisation against the registered plan
-    reloc_window_xy: float = Field(0.75, gt=0.0)
-    reloc_window_theta_deg: float = Field(15.0, gt=0.0, le=180.0)
-    # the window grows with the drift since the last accepted prior, up to these
-    reloc_window_max_xy: float = Field(2.0, gt=0.0)
-    reloc_window_max_theta_deg: float = Field(30.0, gt=0.0, le=180.0)
-    reloc_min_score: float = Field(0.5, ge=0.0, le=1.0)
-    reloc_max_ambiguity: float = Field(0.8, ge=0.0, le=1.0)
-    reloc_resolution: float = Field(0.025, gt=0.0)
-    reloc_inlier_distance: float = Field(0.1, gt=0.0)
-    wall_half_thickness: float = Field(0.06, ge=0.0)
-    reloc_cov_inflation: float = Field(4.0, ge=1.0)
-    reloc_sigma_floor_xy: float = Field(0.02, gt=0.0)
-    reloc_sigma_floor_theta_deg: float = Field(0.3, gt=0.0)
-    # chi2 gate: the estimate's marginal covariance plus drift since the last accepted prior
-    gate_drift_frac: float = Field(0.05, ge=0.0)
-    gate_drift_deg_per_m: float = Field(1.0, ge=0.0)
-    gate_sigma_xy: float = Field(0.05, gt=0.0)
-    gate_sigma_theta_deg: float = Field(1.0, gt=0.0)
-    # a prior whose residual after optimisation exceeds this chi2 is removed as proven wrong
-    remove_chi2: float = Field(30.0, gt=0.0)
-    remove_min_xy: float = Field(0.15, ge=0.0)  # ... and is at least this far off (m)
-    remove_min_theta_deg: float = Field(3.0, ge=0.0)  # ... or turned (deg)
-    remove_max_share: float = Field(0.3, gt=0.0, le=1.0)  # more contradicted at once: keep all
-    prior_kind: Literal["full", "translation"] = "full"
-    # after a registration is accepted, the keyframes before it (one per relocation_distance_D,
-    # newest first) are relocalised on the plan too, this many per keyframe
-    backfill: bool = True
-    backfill_per_keyframe: int = Field(2, ge=1)
-    # relocalisation, prior and prior check (and each backfill) run as separate steps on the
-    # scans after the keyframe (FRSlam.defer): same decisions, no scan pays for all of them
-    spread_over_scans: bool = True
+    reloc_window_xy: float = Field(
+        0.75,
+        gt=0.0,
+        description="m; translation half-width of the relocalisation search; larger = slower, finds larger drift",
+    )
+    reloc_window_theta_deg: float = Field(
+        15.0, gt=0.0, le=180.0, description="deg; heading half-width of the relocalisation search"
+    )
+    reloc_window_max_xy: float = Field(
+        2.0, gt=0.0, description="m; the window grows with the drift since the last accepted prior up to this"
+    )
+    reloc_window_max_theta_deg: float = Field(
+        30.0, gt=0.0, le=180.0, description="deg; the heading window grows up to this"
+    )
+    reloc_min_score: float = Field(
+        0.5, ge=0.0, le=1.0, description="relocalisation score needed (0..1); larger = fewer, surer priors"
+    )
+    reloc_max_ambiguity: float = Field(
+        0.8,
+        ge=0.0,
+        le=1.0,
+        description="relocalisation ambiguity (runner-up / best) accepted at most; larger = more ambiguous priors",
+    )
+    reloc_resolution: float = Field(
+        0.025,
+        gt=0.0,
+        description="m; cell of the plan's distance field for relocalisation; larger = faster, coarser",
+    )
+    reloc_inlier_distance: float = Field(
+        0.1,
+        gt=0.0,
+        description="m; a scan point this close to a plan wall is an inlier; larger = laxer score",
+    )
+    wall_half_thickness: float = Field(
+        0.06, ge=0.0, description="m; half the plan's wall thickness (rooms are eroded by it)"
+    )
+    reloc_cov_inflation: float = Field(
+        4.0, ge=1.0, description="factor on the relocalisation covariance; larger = priors trusted less"
+    )
+    reloc_sigma_floor_xy: float = Field(
+        0.02, gt=0.0, description="m; smallest translation sigma of a relocalisation"
+    )
+    reloc_sigma_floor_theta_deg: float = Field(
+        0.3, gt=0.0, description="deg; smallest heading sigma of a relocalisation"
+    )
+    # chi² gate: the estimate's marginal covariance plus drift since the last accepted prior
+    gate_drift_frac: float = Field(
+        0.05,
+        ge=0.0,
+        description="m per m travelled since the last prior added to the gate's sigma (and window); larger = laxer gate",
+    )
+    gate_drift_deg_per_m: float = Field(
+        1.0, ge=0.0, description="deg per m travelled added to the gate's heading sigma; larger = laxer gate"
+    )
+    gate_sigma_xy: float = Field(
+        0.05, gt=0.0, description="m; base translation sigma of the gate; larger = laxer gate"
+    )
+    gate_sigma_theta_deg: float = Field(
+        1.0, gt=0.0, description="deg; base heading sigma of the gate; larger = laxer gate"
+    )
+    # removal of priors proven wrong
+    remove_chi2: float = Field(
+        30.0,
+        gt=0.0,
+        description="a prior whose residual chi² after optimisation exceeds this is removed as proven wrong; larger = kept more",
+    )
+    remove_min_xy: float = Field(0.15, ge=0.0, description="m; ... and is at least this far off")
+    remove_min_theta_deg: float = Field(3.0, ge=0.0, description="deg; ... or turned at least this much")
+    remove_max_share: float = Field(
+        0.3,
+        gt=0.0,
+        le=1.0,
+        description="share of priors contradicted at once above which all are kept (the graph, not the priors, is off)",
+    )
+    prior_kind: Literal["full", "translation"] = Field(
+        "full", description="what a floor-plan prior constrains: full pose or translation only"
+    )
+    backfill: bool = Field(
+        True,
+        description="after a registration is accepted, relocalise the keyframes before it on the plan too (one per relocation_distance_D, newest first)",
+    )
+    backfill_per_keyframe: int = Field(
+        2,
+        ge=1,
+        description="backfilled keyframes per new keyframe; larger = backfill done sooner, more CPU per keyframe",
+    )
+    spread_over_scans: bool = Field(
+        True,
+        description="relocalisation, prior and its check run as separate steps on the scans after the keyframe (same decisions, lower per-scan latency)",
+    )
 
 
 class LoopClosureConfig(_Section):
     """Loop closure (:mod:`frslam_graph.loop_closure`, its scan matcher
     :mod:`frslam_graph.submap_matching`): candidates, matching, acceptance."""
 
-    enabled: bool = True
-    # Candidates: earlier keyframes at least this far back (keyframes AND travel or turned angle).
-    min_keyframe_gap: int = Field(20, ge=1)
-    min_travel_gap: float = Field(5.0, ge=0.0)
-    min_rotation_gap_deg: float = Field(300.0, ge=0.0)
-    # Search radius around the current estimate and heading window grow with the motion since
-    # the last accepted closure (or since the candidate, whichever is shorter).
-    radius_base: float = Field(2.0, gt=0.0)
-    radius_per_m: float = Field(0.25, ge=0.0)
-    radius_max: float = Field(60.0, gt=0.0)
-    theta_window_base_deg: float = Field(10.0, gt=0.0, le=180.0)
-    theta_window_per_m_deg: float = Field(0.3, ge=0.0)
-    theta_window_per_turn: float = Field(0.05, ge=0.0)  # degrees of window per degree turned
-    # Translation half-width of the correlative search around the prediction (or the candidate).
-    search_window_xy: float = Field(2.0, gt=0.0)
-    candidate_spacing: float = Field(1.5, gt=0.0)  # one candidate per cell of this size
-    attempt_every: int = Field(2, ge=1)  # keyframes between attempts
-    max_candidates: int = Field(2, ge=1)  # candidates matched per attempt
-    # ... or this many when nothing is queued (the work keeps up with the budget): after a long
-    # excursion a region the drift put metres from the estimate is reached in time (ACES with
-    # convergence_criterion 2e-4: a 6 m loop was missed with 2, relation error 0.10 m). 3 at every
-    # attempt fell minutes behind on FR079 (queue lag median 11 -> 138 s) and cost +85 % CPU.
-    max_candidates_idle: int = Field(3, ge=1)
-    retry_keyframes: int = Field(30, ge=0)  # a region is not retried within this many keyframes
-    # No search while the keyframe is tied to a keyframe within its search radius by a short path
-    # of the graph (at most redundant_travel metres and redundant_turn_deg of turning; accepted
-    # closures count as zero length): a recent verified closure keeps their relative uncertainty
-    # small. Once the travel or turning since that closure grows past these, the search resumes.
-    # Off by default (0): with 6 m the synthetic room needs ~70 % less loop-closure CPU, but the
-    # fewer closures let aliased ones weigh more in repetitive houses (regime-A ATE without plan
-    # 0.155 -> 0.35, 0.546 -> 0.64 m) and the ACES relation error varies (0.046 .. 0.075 m).
-    redundant_travel: float = Field(0.0, ge=0.0)
-    # ... and this instead while floor-plan priors are in the graph: the priors hold the map to
-    # the plan, so an aliased closure cannot weigh much and each further closure adds little.
-    # Regime A, 8 simulated houses with the plan: loop-closure CPU -65 %, run CPU about -40 %,
-    # mean ATE +5 % (0.0142 -> 0.0149 m); 0 keeps searching at every attempt as without a plan.
-    redundant_travel_with_plan: float = Field(6.0, ge=0.0)
-    redundant_turn_deg: float = Field(90.0, ge=0.0)
-    # Submaps (points in the keyframe's frame).
-    submap_travel: float = Field(3.0, ge=0.0)  # reference: keyframes within ± this travel
-    query_travel: float = Field(2.0, ge=0.0)  # query: this much travel back from the keyframe
-    submap_keyframes: int = Field(30, ge=1)  # at most this many keyframes per side
-    max_point_range: float = Field(15.0, gt=0.0)
-    # Matcher.
-    resolution: float = Field(0.05, gt=0.0)
-    coarse_step_xy: float = Field(0.3, gt=0.0)
-    coarse_step_theta_deg: float = Field(1.5, gt=0.0)
-    likelihood_sigma: float = Field(0.1, gt=0.0)
-    max_query_points: int = Field(150, ge=20)
-    icp_iterations: int = Field(10, ge=1)
-    icp_max_distance: float = Field(0.5, gt=0.0)
-    inlier_distance: float = Field(0.1, gt=0.0)
-    min_coarse_score: float = Field(0.62, ge=0.0, le=1.0)  # below it: rejected without ICP
-    refine_ratio: float = Field(0.7, gt=0.0, le=1.0)  # other peaks refined above ratio × best
-    # Acceptance.
-    min_inlier_fraction: float = Field(0.6, ge=0.0, le=1.0)
-    max_ambiguity: float = Field(0.85, gt=0.0, le=1.0)  # second peak / best
-    # query points in space the reference saw free (farther than free_space_margin from its
-    # points) contradict the match: another place that looks alike
-    max_free_violation: float = Field(0.1, ge=0.0, le=1.0)
-    free_space_margin: float = Field(0.3, gt=0.0)
-    peak_separation_xy: float = Field(1.0, gt=0.0)
-    peak_separation_theta_deg: float = Field(10.0, gt=0.0)
-    # Large corrections need a second, consistent closure before entering the graph.
-    confirm_xy: float = Field(0.15, ge=0.0)
-    confirm_theta_deg: float = Field(1.5, ge=0.0)
-    consistency_xy: float = Field(0.3, gt=0.0)
-    consistency_theta_deg: float = Field(3.0, gt=0.0)
-    pending_keyframes: int = Field(30, ge=1)
-    # A match that agrees with a pending closure (the check above) confirms it with at least this
-    # inlier fraction (the other tests unchanged): two independent matches that agree are the
-    # evidence; alone such a match is rejected (low_inliers). = min_inlier_fraction: off.
-    confirm_min_inlier_fraction: float = Field(0.45, ge=0.0, le=1.0)
-    # When a large correction goes pending, the keyframe this far back (its own query submap, no
-    # shared points) is matched where the closure predicts it: a second, independent check while
-    # the robot may already be leaving the place. 0: off.
-    verify_back_travel: float = Field(2.0, ge=0.0)
-    # each attempt first checks where the latest pending closure predicts the robot to be
-    hypothesis_window_xy: float = Field(2.0, gt=0.0)  # as wide as a search: ambiguity still tested
-    hypothesis_window_theta_deg: float = Field(10.0, gt=0.0)
-    # Factor noise: point-to-line sigma, inflation, floors; robust kernel (whitened units).
-    icp_sigma: float = Field(0.05, gt=0.0)
-    covariance_inflation: float = Field(10.0, ge=1.0)
-    sigma_floor_xy: float = Field(0.02, gt=0.0)
-    sigma_floor_theta_deg: float = Field(0.5, gt=0.0)
-    kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = "cauchy"
-    kernel_param: float = Field(4.0, gt=0.0)
-    batch_on_correction: float = Field(1.0, ge=0.0)  # LM batch when a closure moves the graph more (m)
-    # After closures enter (and at the end), an accepted closure whose residual at the estimate
-    # exceeds prune_chi2 (squared Mahalanobis norm under its covariance) and prune_xy (m) or
-    # prune_theta_deg is removed, worst first, and the graph re-settled: the odometry and the other
-    # closures disagree with it (an aliased pair that slipped through). prune_chi2 0: off.
-    prune_chi2: float = Field(200.0, ge=0.0)
-    prune_xy: float = Field(0.3, ge=0.0)
-    prune_theta_deg: float = Field(3.0, ge=0.0)
-    # a confirmed pair (plain Gaussians) that this many older closures disagree with at once is
-    # removed before them: under its pull they show the large residuals, not the pair (regime A
-    # without plan, houses 0-2: ATE 0.0368 / 0.0276 / 0.0311 -> 0.0346 / 0.0251 / 0.0298 m,
-    # 74 / 144 / 177 -> 12 / 2 / 59 closures pruned). With 3, ACES lost a true 7 m correction
-    # that seven recent closures disagreed with (relation error 0.0474 -> 0.0485 m); 10 keeps it.
-    prune_pair_contradictions: int = Field(10, ge=1)
+    enabled: bool = Field(
+        True, description="search for loop closures (false = odometry and plan priors only; faster, drifts)"
+    )
+    # candidates: earlier keyframes at least this far back (keyframes AND travel or turned angle)
+    min_keyframe_gap: int = Field(
+        20,
+        ge=1,
+        description="candidates are at least this many keyframes back; larger = fewer, older candidates",
+    )
+    min_travel_gap: float = Field(
+        5.0,
+        ge=0.0,
+        description="m; ... and at least this much travel back (or min_rotation_gap_deg of turning)",
+    )
+    min_rotation_gap_deg: float = Field(
+        300.0, ge=0.0, description="deg; ... or at least this much turning back"
+    )
+    # search radius and heading window grow with the motion since the last accepted closure
+    radius_base: float = Field(
+        2.0,
+        gt=0.0,
+        description="m; candidate search radius around the estimate right after a closure; larger = more candidates",
+    )
+    radius_per_m: float = Field(
+        0.25,
+        ge=0.0,
+        description="m of radius per m travelled since the last closure (or the candidate); larger = wider search",
+    )
+    radius_max: float = Field(60.0, gt=0.0, description="m; the radius grows up to this")
+    theta_window_base_deg: float = Field(
+        10.0, gt=0.0, le=180.0, description="deg; heading half-window of the search right after a closure"
+    )
+    theta_window_per_m_deg: float = Field(
+        0.3, ge=0.0, description="deg of heading window per m travelled; larger = wider search"
+    )
+    theta_window_per_turn: float = Field(
+        0.05, ge=0.0, description="deg of heading window per deg turned; larger = wider search"
+    )
+    search_window_xy: float = Field(
+        2.0,
+        gt=0.0,
+        description="m; translation half-width of the correlative search around the prediction (or the candidate); larger = slower, finds larger drift",
+    )
+    candidate_spacing: float = Field(
+        1.5, gt=0.0, description="m; one candidate per cell of this size; larger = fewer candidates"
+    )
+    attempt_every: int = Field(
+        2, ge=1, description="keyframes between attempts; larger = less CPU, closures found later"
+    )
+    max_candidates: int = Field(
+        2, ge=1, description="candidates matched per attempt; larger = more CPU, more closures"
+    )
+    max_candidates_idle: int = Field(
+        3, ge=1, description="... or this many when nothing is queued (the work keeps up with the budget)"
+    )
+    retry_keyframes: int = Field(
+        30, ge=0, description="a region is not retried within this many keyframes; larger = fewer retries"
+    )
+    redundant_travel: float = Field(
+        0.0,
+        ge=0.0,
+        description="m; no search while a keyframe in the search radius is tied to this one by a graph path of at most this travel (closures count zero); 0 = off",
+    )
+    redundant_travel_with_plan: float = Field(
+        6.0,
+        ge=0.0,
+        description="m; redundant_travel while floor-plan priors are in the graph (they hold the map); 0 = always search",
+    )
+    redundant_turn_deg: float = Field(
+        90.0, ge=0.0, description="deg; ... and at most this much turning on that path"
+    )
+    # submaps (points in the keyframe's frame)
+    submap_travel: float = Field(
+        3.0, ge=0.0, description="m; reference submap: keyframes within ± this travel of the candidate"
+    )
+    query_travel: float = Field(
+        2.0, ge=0.0, description="m; query submap: this much travel back from the keyframe"
+    )
+    submap_keyframes: int = Field(30, ge=1, description="keyframes per side of a submap at most")
+    max_point_range: float = Field(
+        15.0, gt=0.0, description="m; scan points farther from their keyframe are left out of submaps"
+    )
+    # matcher
+    resolution: float = Field(
+        0.05, gt=0.0, description="m; cell of the submap likelihood field; larger = faster, coarser"
+    )
+    coarse_step_xy: float = Field(
+        0.3,
+        gt=0.0,
+        description="m; translation step of the coarse correlative search; larger = faster, may miss peaks",
+    )
+    coarse_step_theta_deg: float = Field(1.5, gt=0.0, description="deg; heading step of the coarse search")
+    likelihood_sigma: float = Field(
+        0.1,
+        gt=0.0,
+        description="m; width of the likelihood field around submap points; larger = smoother, less exact",
+    )
+    max_query_points: int = Field(
+        150, ge=20, description="query points sampled for the coarse search; larger = slower, surer"
+    )
+    icp_iterations: int = Field(10, ge=1, description="ICP refinement iterations per peak")
+    icp_max_distance: float = Field(0.5, gt=0.0, description="m; ICP correspondence distance at most")
+    inlier_distance: float = Field(
+        0.1, gt=0.0, description="m; a query point this close to the reference is an inlier"
+    )
+    min_coarse_score: float = Field(
+        0.62,
+        ge=0.0,
+        le=1.0,
+        description="below this coarse score: rejected without ICP; larger = fewer refinements",
+    )
+    refine_ratio: float = Field(
+        0.7,
+        gt=0.0,
+        le=1.0,
+        description="other coarse peaks above this times the best are refined too (ambiguity)",
+    )
+    # acceptance
+    min_inlier_fraction: float = Field(
+        0.6, ge=0.0, le=1.0, description="inlier fraction needed; larger = fewer, surer closures"
+    )
+    max_ambiguity: float = Field(
+        0.85,
+        gt=0.0,
+        le=1.0,
+        description="second peak / best accepted at most; larger = more aliased closures accepted",
+    )
+    max_free_violation: float = Field(
+        0.1,
+        ge=0.0,
+        le=1.0,
+        description="share of query points in space the reference saw free (another place that looks alike) accepted at most; larger = laxer",
+    )
+    free_space_margin: float = Field(
+        0.3, gt=0.0, description="m; 'seen free' means farther than this from the reference's points"
+    )
+    peak_separation_xy: float = Field(
+        1.0, gt=0.0, description="m; peaks closer than this (and in heading) are one peak"
+    )
+    peak_separation_theta_deg: float = Field(10.0, gt=0.0, description="deg; heading part of peak separation")
+    # large corrections need a second, consistent closure before entering the graph
+    confirm_xy: float = Field(
+        0.15,
+        ge=0.0,
+        description="m; corrections larger than this (or confirm_theta_deg) wait for a confirming closure",
+    )
+    confirm_theta_deg: float = Field(1.5, ge=0.0, description="deg; heading part of that test")
+    consistency_xy: float = Field(
+        0.3, gt=0.0, description="m; two closures agree within this (plus 2 % of the odometry between them)"
+    )
+    consistency_theta_deg: float = Field(3.0, gt=0.0, description="deg; heading part of the agreement")
+    pending_keyframes: int = Field(
+        30, ge=1, description="a pending closure waits this many keyframes for confirmation"
+    )
+    confirm_min_inlier_fraction: float = Field(
+        0.45,
+        ge=0.0,
+        le=1.0,
+        description="inlier fraction with which a match agreeing with a pending closure confirms it (alone it is rejected); = min_inlier_fraction: off",
+    )
+    verify_back_travel: float = Field(
+        2.0,
+        ge=0.0,
+        description="m; when a large correction goes pending, the keyframe this far back is matched where it predicts (an independent check); 0 = off",
+    )
+    hypothesis_window_xy: float = Field(
+        2.0,
+        gt=0.0,
+        description="m; each attempt first checks where the latest pending closure predicts the robot, in this half-window",
+    )
+    hypothesis_window_theta_deg: float = Field(
+        10.0, gt=0.0, description="deg; heading half-window of that check"
+    )
+    # factor noise: point-to-line sigma, inflation, floors; robust kernel (whitened units)
+    icp_sigma: float = Field(
+        0.05,
+        gt=0.0,
+        description="m; point-to-line sigma of the closure covariance; larger = closures trusted less",
+    )
+    covariance_inflation: float = Field(
+        10.0, ge=1.0, description="factor on the closure covariance; larger = closures trusted less"
+    )
+    sigma_floor_xy: float = Field(0.02, gt=0.0, description="m; smallest translation sigma of a closure")
+    sigma_floor_theta_deg: float = Field(0.5, gt=0.0, description="deg; smallest heading sigma of a closure")
+    kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = Field(
+        "cauchy",
+        description="robust kernel of closure factors (a confirmed pair may enter as plain Gaussians; none = Gaussian)",
+    )
+    kernel_param: float = Field(
+        4.0, gt=0.0, description="sigmas (whitened); kernel width; larger = outlying closures pull harder"
+    )
+    batch_on_correction: float = Field(
+        1.0,
+        ge=0.0,
+        description="m; an LM batch runs when a closure moves the graph more than this; larger = fewer batches",
+    )
+    prune_chi2: float = Field(
+        200.0,
+        ge=0.0,
+        description="an accepted closure whose residual chi² exceeds this (and prune_xy / prune_theta_deg) is removed, worst first; 0 = off",
+    )
+    prune_xy: float = Field(0.3, ge=0.0, description="m; ... and whose residual is at least this")
+    prune_theta_deg: float = Field(3.0, ge=0.0, description="deg; ... or at least this turn")
+    prune_pair_contradictions: int = Field(
+        10,
+        ge=1,
+        description="a confirmed pair that this many older closures disagree with at once is removed before them; larger = pairs kept more",
+    )
     final_alignment_rounds: int = Field(
         2,
         ge=0,
@@ -407,29 +849,46 @@ class LoopClosureConfig(_Section):
     # comes from the sizes involved (look-ups, grid cells, points, keyframes), not from a clock,
     # so results do not depend on the machine's speed. A step estimated above the budget runs
     # alone. FRSlam.finish() runs what is left.
-    budget_ms: float = Field(8.0, gt=0.0)
-    # on keyframe scans (their odometry-graph update and update strategy run there too)
-    keyframe_budget_ms: float = Field(4.0, gt=0.0)
-    max_lookups_per_step: int = Field(300_000, ge=10_000)
-    # at most this many relinearising iSAM2 iterations (each a step) after a small closure; the
-    # factor's own iSAM2 update already takes one Gauss-Newton step from a nearby estimate, and
-    # the keyframe updates relinearise (relinearize_skip). 1 -> 0: regime A without plan, 8
-    # houses, same ATE (mean 0.0247 -> 0.0246 m), run CPU about -20 %; with the plan mean
-    # 0.0149 -> 0.0150 m; ACES 0.0474 -> 0.0470 m
-    settle_small: int = Field(0, ge=0)
-    # Optional wall-clock cap per add_scan (ms): after the first step, another starts only while
-    # less than this was spent. None: the cost model alone (deterministic). With a cap, how the
-    # work is spread (hence which closures are found when) depends on the machine's load.
-    wall_budget_ms: float | None = Field(None, gt=0.0)
+    budget_ms: float = Field(
+        8.0,
+        gt=0.0,
+        description="ms (estimated cost, not clock) of loop-closure work per scan; larger = closures sooner, higher latency",
+    )
+    keyframe_budget_ms: float = Field(
+        4.0,
+        gt=0.0,
+        description="ms; the budget on keyframe scans (their graph update and plan updates run there too)",
+    )
+    max_lookups_per_step: int = Field(
+        300_000,
+        ge=10_000,
+        description="likelihood-field look-ups per correlative-search step at most; larger = fewer, longer steps",
+    )
+    settle_small: int = Field(
+        0,
+        ge=0,
+        description="relinearising iSAM2 iterations (each a step) after a small closure at most; larger = more CPU",
+    )
+    wall_budget_ms: float | None = Field(
+        None,
+        gt=0.0,
+        description="ms; optional wall-clock cap per add_scan (then results depend on the machine's load); null = the cost model alone (deterministic)",
+    )
+
+
+def _first_line(section: type[BaseModel]) -> str:
+    """The first sentence of a section's docstring (its description in the dump)."""
+    text = " ".join((section.__doc__ or "").split("\n\n")[0].split()).rstrip(".")
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text)  # :mod:`name` -> name
 
 
 class FRSlamConfig(_Section):
     """Whole-backend configuration; see the section classes for fields and units."""
 
-    odometry: OdometryConfig = OdometryConfig()
-    graph: GraphConfig = GraphConfig()
-    updates: UpdatesConfig = UpdatesConfig()
-    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    odometry: OdometryConfig = Field(OdometryConfig(), description=_first_line(OdometryConfig))
+    graph: GraphConfig = Field(GraphConfig(), description=_first_line(GraphConfig))
+    updates: UpdatesConfig = Field(UpdatesConfig(), description=_first_line(UpdatesConfig))
+    loop_closure: LoopClosureConfig = Field(LoopClosureConfig(), description=_first_line(LoopClosureConfig))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None, source: str | Path | None = None) -> FRSlamConfig:
@@ -473,14 +932,69 @@ class FRSlamConfig(_Section):
 
             path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
 
+    def to_yaml(self, keys: Collection[str] | None = None) -> str:
+        """YAML of this config, sections nested, each field's description as a ``#`` comment above
+        it; ``keys`` (dotted, e.g. ``BASIC_KEYS``) limits it to those fields (default: every field).
+        :meth:`load` reads it back to this config (the fields left out at their defaults)."""
+        data = self.model_dump()
+        scope = "every key" if keys is None else "the common keys; frslam config dump --all lists every key"
+        lines = [
+            "# frslam configuration (FRSlamConfig), " + scope,
+            "# units: m, s, degrees where the key ends in _deg; use with: frslam run --config FILE",
+        ]
+        for section, field in type(self).model_fields.items():
+            fields = field.annotation.model_fields
+            names = [n for n in fields if keys is None or f"{section}.{n}" in keys]
+            if names:
+                lines += ["", *_comment(field.description, ""), f"{section}:"]
+            for name in names:
+                lines += [
+                    *_comment(fields[name].description, "  "),
+                    f"  {name}: {_yaml_scalar(data[section][name])}",
+                ]
+        return "\n".join(lines) + "\n"
+
     def with_updates(self, **sections: dict[str, Any]) -> FRSlamConfig:
         """A copy with some fields changed, e.g. ``cfg.with_updates(odometry={"voxel_size": 0.2})``."""
         data = self.model_dump()
         for name, values in sections.items():
             if name not in data:
-                raise ConfigError(f"unknown section (expected one of {sorted(data)})", where=name)
+                raise ConfigError(unknown_key_message([name]), where=name)
             data[name].update(values)
         return type(self).from_dict(data)
+
+
+#: the fields a user commonly changes (``frslam config dump`` without ``--all``): the sensor's
+#: range, map and keyframe density, wheel-only odometry, whether and when the floor plan is used,
+#: loop closure on / off, its per-scan budget and the final alignment, the plan priors' kernel
+BASIC_KEYS: tuple[str, ...] = (
+    "odometry.max_range",
+    "odometry.min_range",
+    "odometry.voxel_size",
+    "odometry.keyframe_distance",
+    "odometry.keyframe_angle_deg",
+    "odometry.scan_matching",
+    "graph.prior_kernel",
+    "updates.enabled",
+    "updates.first_register_area_m2",
+    "updates.register_min_growth_m2",
+    "updates.relocation_distance_D",
+    "loop_closure.enabled",
+    "loop_closure.budget_ms",
+    "loop_closure.final_alignment_rounds",
+)
+
+
+def _comment(text: str | None, indent: str) -> list[str]:
+    """``text`` as YAML comment lines at ``indent``, wrapped at 100 characters."""
+    return [f"{indent}# {line}" for line in textwrap.wrap(text or "", 98 - len(indent))]
+
+
+def _yaml_scalar(value: Any) -> str:
+    """One value in YAML's own spelling (PyYAML reads ``1e-06`` as a string, ``1.0e-06`` as a float)."""
+    import yaml
+
+    return yaml.safe_dump(value, default_flow_style=True).removesuffix("...\n").strip()
 
 
 _SECTION_NAMES = {
@@ -501,7 +1015,9 @@ def _config_error(exc: ValidationError, source: str | Path | None, prefix: str |
         loc.insert(0, prefix)
     where = ".".join(loc) or None
     msg = err.get("msg", "invalid value")
-    if err.get("type") == "value_error":
+    if err.get("type") == "extra_forbidden" and loc:
+        msg = unknown_key_message(loc)
+    elif err.get("type") == "value_error":
         msg = msg.removeprefix("Value error, ")
     elif "input" in err and err.get("type") != "missing":
         msg = f"{msg} (got {err['input']!r})"
@@ -509,3 +1025,38 @@ def _config_error(exc: ValidationError, source: str | Path | None, prefix: str |
     if more:
         msg += f"; and {more} more error(s)"
     return ConfigError(msg, source=source, where=where)
+
+
+_LIST_HINT = "frslam config dump --all lists every key"
+
+
+def unknown_key_message(loc: list[str]) -> str:
+    """What to say about the unknown key ``loc`` (``["section"]`` or ``["section", "key"]``):
+    the closest valid keys of its section (or, with none there, of the other sections)."""
+    *parents, key = loc
+    model: type[BaseModel] = FRSlamConfig
+    for name in parents:
+        inner = model.model_fields.get(name)
+        if (
+            inner is None
+            or not isinstance(inner.annotation, type)
+            or not issubclass(inner.annotation, BaseModel)
+        ):
+            return f"unknown key ({_LIST_HINT})"
+        model = inner.annotation
+    what = "section" if model is FRSlamConfig else "key"
+    prefix = "".join(f"{name}." for name in parents)
+    close = [prefix + k for k in difflib.get_close_matches(key, list(model.model_fields), n=3)]
+    if not close and parents:  # a key of another section?
+        elsewhere = {
+            f"{section}.{name}": name
+            for section, field in FRSlamConfig.model_fields.items()
+            for name in field.annotation.model_fields
+        }
+        hits = set(difflib.get_close_matches(key, set(elsewhere.values()), n=3))
+        close = sorted(k for k, name in elsewhere.items() if name in hits)
+    if close:
+        return f"unknown {what}; did you mean {' or '.join(close)}? ({_LIST_HINT})"
+    if what == "section":
+        return f"unknown section (expected one of {', '.join(FRSlamConfig.model_fields)})"
+    return f"unknown key ({_LIST_HINT})"

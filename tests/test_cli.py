@@ -9,7 +9,7 @@ import pytest
 from frslam_graph.cli import main
 from frslam_graph.resources import bundled
 
-COMMANDS = ["demo", "run", "compare", "register", "simulate", "plan", "map", "inspect", "navigate"]
+COMMANDS = ["demo", "run", "compare", "register", "simulate", "plan", "map", "inspect", "navigate", "config"]
 
 
 def test_every_command_is_registered(capsys):

@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "simulate",
     "register",
     "navigate",
+    "config",
 )
 
 for _name in COMMAND_MODULES:

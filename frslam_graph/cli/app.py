@@ -19,8 +19,12 @@ app = typer.Typer(
 )
 plan_app = typer.Typer(help="Floor plans: show, convert.", no_args_is_help=True)
 map_app = typer.Typer(help="Occupancy maps (ROS map_server YAML + image): show.", no_args_is_help=True)
+config_app = typer.Typer(
+    help="Configuration: dump the defaults with their descriptions.", no_args_is_help=True
+)
 app.add_typer(plan_app, name="plan")
 app.add_typer(map_app, name="map")
+app.add_typer(config_app, name="config")
 
 console = Console()
 err_console = Console(stderr=True)
