@@ -832,8 +832,8 @@ class LoopClosureConfig(_Section):
         ge=0,
         description="rounds of dense scan-to-submap constraints between passes when a run finishes "
         "(frslam_graph.final_alignment): each matches every keyframe against the keyframes of other "
-        "passes near it and re-optimises; 0 = off (finish() only runs the LM batch, faster); off "
-        "with loop closure",
+        "passes near it and re-optimises; 0 = off (finish() only runs the LM batch, faster); also "
+        "off when loop closure is off",
     )
     final_alignment_radius: float = Field(
         2.0,
