@@ -38,6 +38,7 @@ MIN_PASS_TRAVEL = 10.0  # m of travel between two keyframes of different passes,
 #                         the passes matched to one keyframe
 MIN_OVERLAP_DEG = 120.0  # fields of view must overlap by this much (sets the heading window)
 RESOLUTION = 0.05  # m, submap voxel and grid
+ICP_ITERATIONS = 10  # from a converged estimate (half at ICP_MAX_DISTANCE, half at half of it)
 ICP_MAX_DISTANCE = 0.3  # m, association distance of the first ICP iterations (then half)
 ICP_KERNEL = 0.05  # m, Cauchy scale of the point-to-line residual
 ICP_SIGMA = 0.05  # m, residual sigma that scales the ICP covariance
@@ -154,7 +155,7 @@ def align_pairs(
         if len(query) < 30:
             continue
         start = between(poses[c], poses[k])
-        res = icp_point_to_line(ref, query, start, 15, ICP_MAX_DISTANCE, ICP_KERNEL, ICP_SIGMA)
+        res = icp_point_to_line(ref, query, start, ICP_ITERATIONS, ICP_MAX_DISTANCE, ICP_KERNEL, ICP_SIGMA)
         if res is None:
             continue
         x, cov = res
