@@ -75,6 +75,13 @@ class OdometryConfig(_Section):
         ge=0.0,
         description="m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt",
     )
+    local_map_scans: int = Field(
+        20,
+        ge=0,
+        description="recent scans in the local map that refines each KISS-ICP result by point-to-line "
+        "ICP (walls as lines, not KISS-ICP's sparse voxel points); larger = a longer memory, slower "
+        "rebuilds; 0 = KISS-ICP alone",
+    )
     max_points_per_voxel: int = Field(
         5,
         ge=1,

@@ -6,7 +6,9 @@ continuous: it never jumps. Input points are planar, in ``base_link`` (the calle
 laser's mounting offset).
 
 Per scan: the wheel increment u_t (or a constant-velocity guess) seeds KISS-ICP through
-``last_delta``; the ICP pose relative to the last keyframe is fused with u_t in
+``last_delta``; KISS-ICP's pose is refined by point-to-line ICP on a local map of the last
+``local_map_scans`` scans (walls as lines, :meth:`ScanOdometry._refine`); the ICP pose relative
+to the last keyframe is fused with u_t in
 :class:`~frslam_graph.motion_model.MotionEKF`. The ICP covariance comes from the point-to-line
 Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by a residual sigma;
 when the normals span only one direction (a featureless corridor) the scan is *degenerate*: the
@@ -47,6 +49,7 @@ from frslam_graph.motion_model import (
     wheel_increment,
     wheel_noise,
 )
+from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line, transform_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -227,6 +230,12 @@ class ScanOdometry:
         self._kf_stamp = float("-inf")
         self._kf_pose = np.zeros(3)  # keyframe pose in odom (fused chain)
         self._kf_icp = np.zeros(3)  # keyframe pose in KISS-ICP's frame
+        # local map of the point-to-line refinement: recent committed scans (pose in KISS-ICP's
+        # frame, base_link points), rebuilt every _LOCAL_MAP_REBUILD commits
+        self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(cfg.local_map_scans, 1))
+        self._local_ref: ReferenceSubmap | None = None
+        self._since_rebuild = 0
+        self._aligned_points = np.zeros((0, 2))
 
     # ------------------------------------------------------------------ public
     @property
@@ -408,6 +417,9 @@ class ScanOdometry:
             self.stats.fallbacks += 1
         else:
             self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
+            if self.config.local_map_scans:
+                near = pts[np.einsum("ij,ij->i", pts, pts) <= _LOCAL_MAP_RANGE**2]
+                self._recent.append((from_matrix(self._icp.last_pose), near))
         self._kf_icp = from_matrix(self._icp.last_pose)
         self._kf_index = 0
         self._kf_stamp = stamp
@@ -523,7 +535,39 @@ class ScanOdometry:
                     icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
                 )
                 best = int(scores[1] > scores[0] + 0.05)
-        return best, poses[best], guesses[best], frame_ds
+        pts = scan.points
+        self._aligned_points = pts[np.einsum("ij,ij->i", pts, pts) <= _LOCAL_MAP_RANGE**2]
+        pose = poses[best]
+        if self._local_ref is not None and not scan.icp_covariance[1]:  # not along a corridor
+            pose = self._refine(self._aligned_points, pose)
+        return best, pose, guesses[best], frame_ds
+
+    def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """KISS-ICP's pose (4×4, its frame) refined by point-to-line ICP on the recent scans.
+
+        KISS-ICP matches points to the sparse points of its voxel map, so a scan can slide a few
+        centimetres along a wall (ACES / FR079 relations under 2 s: 0.041 / 0.040 m, 0.54 / 1.16
+        deg; with the refinement 0.038 / 0.026 m, 0.36 / 0.42 deg). A refinement that moves the
+        pose by more than a few centimetres or a degree is not trusted: KISS-ICP's pose stays.
+        """
+        res = icp_point_to_line(
+            self._local_ref, points, from_matrix(pose), _REFINE_ITERATIONS, _REFINE_MAX_DISTANCE, 0.05, 0.05
+        )
+        if res is None or not np.all(np.isfinite(res[0])) or not np.all(np.isfinite(res[1])):
+            return pose
+        start = from_matrix(pose)
+        d = between(start, res[0])
+        if np.hypot(d[0], d[1]) > _REFINE_MAX_STEP or abs(d[2]) > _REFINE_MAX_TURN:
+            return pose
+        # fused with KISS-ICP's pose as a prior: where the lines leave a direction unobserved
+        # (along a corridor) the refinement must not slide, KISS-ICP's pose (seeded by the
+        # wheels) stays; elsewhere the refinement's information dominates
+        try:
+            info = np.linalg.inv(res[1])
+            d = np.linalg.solve(info + _REFINE_PRIOR_INFO, info @ d)
+        except np.linalg.LinAlgError:
+            return pose
+        return to_matrix4(compose(start, d))
 
     def _commit(self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray) -> None:
         """The rest of ``register_frame``: threshold model, local map, delta and pose."""
@@ -532,6 +576,14 @@ class ScanOdometry:
         icp.local_map.update(frame_ds, new_pose)
         icp.last_delta = np.linalg.inv(icp.last_pose) @ new_pose
         icp.last_pose = new_pose
+        n = self.config.local_map_scans
+        if n:
+            self._recent.append((from_matrix(new_pose), self._aligned_points))
+            self._since_rebuild += 1
+            if self._since_rebuild >= _LOCAL_MAP_REBUILD and len(self._recent) >= min(n, 3):
+                pts = np.concatenate([transform_points(p, q) for p, q in self._recent])
+                self._local_ref = ReferenceSubmap(pts, _LOCAL_MAP_RESOLUTION, 0.1, _REFINE_MAX_DISTANCE)
+                self._since_rebuild = 0
 
     def _resync_icp(self, u: np.ndarray) -> None:
         self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
@@ -632,6 +684,15 @@ def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.nd
 _PERIOD_SPAN = 10  # scans per span of the nominal period's estimate (ScanOdometry._clock)
 _PERIOD_WINDOW = 60  # recent stamps it looks at
 _FIRST_SPEED_STEP = 0.1  # s: least step of the speed test before the period is known (5-40 Hz lasers)
+# point-to-line refinement of KISS-ICP (ScanOdometry._refine)
+_LOCAL_MAP_REBUILD = 3  # commits between rebuilds of its local map
+_LOCAL_MAP_RANGE = 15.0  # m; farther points stay out of it and of the refinement (grid size)
+_LOCAL_MAP_RESOLUTION = 0.05  # m
+_REFINE_ITERATIONS = 6
+_REFINE_MAX_DISTANCE = 0.3  # m, association distance (the second half of the iterations: half)
+_REFINE_MAX_STEP = 0.3  # m (the association distance), a larger move from KISS-ICP's pose is not trusted
+_REFINE_MAX_TURN = np.deg2rad(5.0)
+_REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
 
 
