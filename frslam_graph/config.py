@@ -76,11 +76,11 @@ class OdometryConfig(_Section):
         description="m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt",
     )
     local_map_scans: int = Field(
-        20,
+        0,
         ge=0,
-        description="recent scans in the local map that refines each KISS-ICP result by point-to-line "
-        "ICP (walls as lines, not KISS-ICP's sparse voxel points); larger = a longer memory, slower "
-        "rebuilds; 0 = KISS-ICP alone",
+        description="recent scans in a local map that refines each KISS-ICP result by point-to-line "
+        "ICP (walls as lines, not KISS-ICP's sparse voxel points); larger = a longer memory, slower; "
+        "20 sharpens the odometry on most logs (tools/README.md); 0 = KISS-ICP alone",
     )
     max_points_per_voxel: int = Field(
         5,

@@ -685,7 +685,7 @@ _PERIOD_SPAN = 10  # scans per span of the nominal period's estimate (ScanOdomet
 _PERIOD_WINDOW = 60  # recent stamps it looks at
 _FIRST_SPEED_STEP = 0.1  # s: least step of the speed test before the period is known (5-40 Hz lasers)
 # point-to-line refinement of KISS-ICP (ScanOdometry._refine)
-_LOCAL_MAP_REBUILD = 3  # commits between rebuilds of its local map
+_LOCAL_MAP_REBUILD = 1  # commits between rebuilds of its local map (3 let ACES's heading drift more)
 _LOCAL_MAP_RANGE = 15.0  # m; farther points stay out of it and of the refinement (grid size)
 _LOCAL_MAP_RESOLUTION = 0.05  # m
 _REFINE_ITERATIONS = 6
