@@ -567,7 +567,15 @@ class ScanOdometry:
             d = np.linalg.solve(info + _REFINE_PRIOR_INFO, info @ d)
         except np.linalg.LinAlgError:
             return pose
-        return to_matrix4(compose(start, d))
+        refined = compose(start, d)
+        # a refinement that fits fewer points to the map than KISS-ICP's pose converged wrongly
+        # (seen while rotating in place at 10-20 deg per scan: a few degrees off)
+        ref = self._local_ref
+        if ref.inlier_fraction(points, refined, _REFINE_INLIER) < ref.inlier_fraction(
+            points, start, _REFINE_INLIER
+        ):
+            return pose
+        return to_matrix4(refined)
 
     def _commit(self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray) -> None:
         """The rest of ``register_frame``: threshold model, local map, delta and pose."""
@@ -692,6 +700,7 @@ _REFINE_ITERATIONS = 6
 _REFINE_MAX_DISTANCE = 0.3  # m, association distance (the second half of the iterations: half)
 _REFINE_MAX_STEP = 0.3  # m (the association distance), a larger move from KISS-ICP's pose is not trusted
 _REFINE_MAX_TURN = np.deg2rad(5.0)
+_REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
 
