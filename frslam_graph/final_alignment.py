@@ -44,6 +44,7 @@ ICP_KERNEL = 0.05  # m, Cauchy scale of the point-to-line residual
 ICP_SIGMA = 0.05  # m, residual sigma that scales the ICP covariance
 INLIER_DISTANCE = 0.1  # m
 MIN_INLIER_FRACTION = 0.7
+MIN_START_OVERLAP = 0.5  # share of query points within 2 inlier distances before ICP, else skipped
 MAX_CORRECTION_XY = 0.3  # m: a larger move from the converged estimate is not this method's job
 MAX_CORRECTION_THETA = np.deg2rad(5.0)
 COVARIANCE_FLOOR = np.diag([0.01**2, 0.01**2, np.deg2rad(0.2) ** 2])
@@ -155,6 +156,8 @@ def align_pairs(
         if len(query) < 30:
             continue
         start = between(poses[c], poses[k])
+        if ref.inlier_fraction(query, start, 2.0 * INLIER_DISTANCE) < MIN_START_OVERLAP:
+            continue  # the two barely overlap at the converged estimate: not worth an ICP
         res = icp_point_to_line(ref, query, start, ICP_ITERATIONS, ICP_MAX_DISTANCE, ICP_KERNEL, ICP_SIGMA)
         if res is None:
             continue
