@@ -218,3 +218,12 @@ def test_cli_config_with_inf_exits_2_in_one_line(small_log, tmp_path: Path, caps
         assert "bad.yaml" in err and "odometry.max_range" in err and "finite" in err, err
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_version(capsys):
+    from importlib.metadata import version
+
+    from frslam_graph.cli import main
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"frslam {version('frslam')}"
