@@ -23,9 +23,10 @@ from frslam_graph.errors import ConfigError
 
 
 class _Section(BaseModel):
-    """A config section: unknown keys are errors; errors become ConfigError naming the field."""
+    """A config section: unknown keys and non-finite numbers (inf, nan) are errors; errors become
+    ConfigError naming the field."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     def __init__(self, **data: Any) -> None:
         try:

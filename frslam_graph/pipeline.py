@@ -17,11 +17,27 @@ Seams for the floor-plan update strategy (paper Alg. 3):
   offline loop.
 
 The decision log (``slam.log``) is a list of :class:`DecisionEvent`; nothing is printed.
+
+Contract of the streaming API:
+
+- Arguments are checked (:mod:`frslam_graph.stream_input`): a wrong type, shape or a non-finite
+  stamp, angle or sensor offset raises :class:`~frslam_graph.errors.RecordingError` whose
+  ``where`` names the argument; nothing is recorded then. ``floor_plan`` may be a path: it is
+  loaded with ``FloorPlan.load``.
+- One thread at a time. ``FRSlam`` is not thread-safe and does not serialise callers: the scan
+  order is the trajectory's order, so two producers interleaving scans would be a wrong answer
+  even behind a lock. A mutating call (``add_scan``, ``add_points``, ``add``, ``process``,
+  ``finish``, the floor-plan seam's calls, ...) made while another thread is inside one raises
+  :class:`~frslam_graph.errors.FrslamError` at once instead of blocking (a non-blocking,
+  re-entrant lock: hooks call back on the same thread freely). Read-only queries (``pose``,
+  ``trajectory``, ...) are not guarded: call them from the feeding thread too.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -32,8 +48,9 @@ from typing import Any, Literal, Protocol, get_args
 import gtsam
 import numpy as np
 
+from frslam_graph import stream_input
 from frslam_graph.config import FRSlamConfig
-from frslam_graph.errors import ConfigError, RecordingError
+from frslam_graph.errors import ConfigError, FrslamError, RecordingError
 from frslam_graph.graph import PoseGraph, PriorHandle
 from frslam_graph.motion_model import compose, compose_many, inverse
 from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
@@ -167,8 +184,34 @@ class _Keyframe:
     sensor_origin: np.ndarray  # (2,) in base_link
 
 
+def _one_thread(method: Callable[..., Any]) -> Callable[..., Any]:
+    """Refuse a call while another thread is inside a guarded method of the same FRSlam (see the
+    module docstring); the same thread may re-enter (hooks)."""
+    name = method.__name__
+
+    @functools.wraps(method)
+    def guarded(self: FRSlam, *args: Any, **kwargs: Any) -> Any:
+        if not self._lock.acquire(blocking=False):
+            raise FrslamError(
+                f"FRSlam is not thread-safe: {name} called from two threads at once (another "
+                f"thread is in {self._lock_holder or 'it'}); feed and query one FRSlam from one thread"
+            )
+        outer = self._lock_holder is None
+        if outer:
+            self._lock_holder = name
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            if outer:
+                self._lock_holder = None
+            self._lock.release()
+
+    return guarded
+
+
 class FRSlam:
-    """Streaming 2D SLAM backend with floor-plan priors (see module docstring)."""
+    """Streaming 2D SLAM backend with floor-plan priors (see module docstring): single-threaded,
+    arguments checked."""
 
     def __init__(
         self,
@@ -176,8 +219,11 @@ class FRSlam:
         floor_plan: Any = None,
         update_strategy: UpdateStrategy | Callable[[FRSlam, KeyframeInfo], None] | None = None,
     ):
+        """``floor_plan``: a FloorPlan, or a path loaded with ``FloorPlan.load``, or None."""
+        self._lock = threading.RLock()  # see _one_thread
+        self._lock_holder: str | None = None
         self.config = _as_config(config)
-        self.floor_plan = floor_plan
+        self.floor_plan = floor_plan = stream_input.floor_plan(floor_plan)
         if update_strategy is None and floor_plan is not None:
             # the paper's Alg. 3: register the plan as the map grows, relocalise, add robust priors
             from frslam_graph.update_strategy import FloorPlanUpdater
@@ -205,6 +251,7 @@ class FRSlam:
         self.loop_closer: LoopCloser | None = LoopCloser(lc) if lc.enabled else None
 
     # ----------------------------------------------------------------- input
+    @_one_thread
     def add_scan(
         self,
         stamp: float,
@@ -218,29 +265,31 @@ class FRSlam:
         """Add a laser scan (sensor frame, sensor_msgs/LaserScan layout); return base_link in map.
 
         ``ranges`` (N,): nan / inf / <= 0 / >= range_max are no returns. ``odom``: wheel pose
-        (x, y, theta) in the wheel-odometry frame at ``stamp``, or None.
+        (x, y, theta) in the wheel-odometry frame at ``stamp``, or None (a nan in it: no wheel
+        reading). ``range_max``: None = ``odometry.max_range``; inf = no limit. A bad argument
+        raises RecordingError naming it (module docstring).
         """
-        r = np.asarray(ranges, dtype=np.float64)
-        if r.ndim != 1:
-            raise RecordingError(f"ranges must be a 1-D array, got shape {r.shape}", where="ranges")
-        if not (np.isfinite(angle_min) and np.isfinite(angle_increment) and angle_increment != 0.0):
-            raise RecordingError(
-                f"angle_min / angle_increment must be finite and the increment non-zero, got "
-                f"{angle_min!r}, {angle_increment!r}",
-                where="angle_increment",
-            )
-        cos_a, sin_a = self._angles(float(angle_min), float(angle_increment), len(r))
-        rmax = self.config.odometry.max_range if range_max is None else float(range_max)
+        stamp = stream_input.finite_number(stamp, "stamp")
+        r = stream_input.ranges(ranges)
+        amin = stream_input.finite_number(angle_min, "angle_min")
+        inc = stream_input.finite_number(angle_increment, "angle_increment")
+        if inc == 0.0:
+            raise RecordingError("angle_increment must be non-zero", where="angle_increment")
+        rmax = stream_input.range_max(range_max, self.config.odometry.max_range)
+        odom = stream_input.odom(odom)
+        cos_a, sin_a = self._angles(amin, inc, len(r))
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(r) & (r > 0.0) & (r < rmax)
         rv = r[ok]
         pts = np.column_stack((rv * cos_a[ok], rv * sin_a[ok]))
         return self.add_points(stamp, pts, odom, sensor_offset)
 
+    @_one_thread
     def add(self, scan: Any) -> tuple[float, float, float]:
         """Add a :class:`frslam_graph.datasets.Scan`."""
         return self.add_points(scan.stamp, scan.points, scan.odom, scan.sensor_offset)
 
+    @_one_thread
     def add_points(
         self,
         stamp: float,
@@ -250,8 +299,9 @@ class FRSlam:
     ) -> tuple[float, float, float]:
         """Add planar end points (M, 2) in the sensor frame; return base_link in map."""
         self._check_own_odometry()
+        stamp = stream_input.finite_number(stamp, "stamp")
         pts, off = _body_points(points, sensor_offset)
-        self._record(self.odometry.process(stamp, pts, odom), pts, off)
+        self._record(self.odometry.process(stamp, pts, stream_input.odom(odom)), pts, off)
         return self.pose()
 
     # ------------------------------------------------------------ internals
@@ -263,6 +313,7 @@ class FRSlam:
                 where="parallel",
             )
 
+    @_one_thread
     def defer(self, steps: Iterator[Any]) -> None:
         """Run a hook's work as ``steps`` (a generator: the work between two yields is one step)
         on the following scans instead of this one.
@@ -294,6 +345,7 @@ class FRSlam:
         """Number of deferred jobs not finished yet (see :meth:`defer`)."""
         return len(self._deferred)
 
+    @_one_thread
     def run_deferred(self) -> None:
         """Run every pending deferred step now."""
         while self._deferred:
@@ -469,6 +521,7 @@ class FRSlam:
         """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""
         return list(self._kf_points), list(self._kf_origins)
 
+    @_one_thread
     def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates.
 
@@ -519,6 +572,7 @@ class FRSlam:
             raise RecordingError(f"no scan at stamp {stamp} (nearest {st[j]})", where="stamp")
         return int(self._scans.keyframe[j]), self._scans.relative[j].copy()
 
+    @_one_thread
     def add_floorplan_prior(
         self,
         stamp_or_keyframe: int | float,
@@ -568,10 +622,12 @@ class FRSlam:
         )
         return handle
 
+    @_one_thread
     def remove_prior(self, handle: PriorHandle, reason: str = "", cause: PriorRemoval = "wrong") -> None:
         """Remove a prior (logged with the reason); see :meth:`remove_priors`."""
         self.remove_priors([handle], reason, cause)
 
+    @_one_thread
     def remove_priors(
         self, handles: list[PriorHandle], reason: str = "", cause: PriorRemoval = "wrong"
     ) -> None:
@@ -592,6 +648,7 @@ class FRSlam:
                 cause=cause,
             )
 
+    @_one_thread
     def transform_map(self, transform: np.ndarray, reason: str = "") -> None:
         """Re-express everything in a new map frame (pose p -> transform ⊕ p); map->odom changes."""
         self.graph.transform_map(transform)
@@ -602,6 +659,7 @@ class FRSlam:
         )
 
     # ---------------------------------------------------------------- offline
+    @_one_thread
     def finish(self) -> np.ndarray:
         """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`.
 
@@ -656,6 +714,7 @@ class FRSlam:
                 seconds=time.perf_counter() - t0,
             )
 
+    @_one_thread
     def process(
         self, recording: Iterable[Any], batch: bool = True, parallel: bool | None = None
     ) -> SlamResult:
@@ -722,8 +781,9 @@ class FRSlam:
         for scan in recording:
             self._check_own_odometry()
             t0 = time.perf_counter()
+            stamp = stream_input.finite_number(scan.stamp, "stamp")
             pts, off = _body_points(scan.points, scan.sensor_offset)
-            res = self.odometry.process(scan.stamp, pts, scan.odom)
+            res = self.odometry.process(stamp, pts, scan.odom)
             yield scan.stamp, res, pts, off, time.perf_counter() - t0
 
     def _odometry_in_worker(self, recording: Iterable[Any], worker) -> Iterator[tuple]:
@@ -731,7 +791,7 @@ class FRSlam:
         part of the odometry (prepare) runs in whichever stage is the lighter one."""
 
         def inputs():
-            for scan in recording:
+            for scan in recording:  # the stamp is checked in the worker (raised in order)
                 pts, off = _body_points(scan.points, scan.sensor_offset)
                 yield scan.stamp, pts, scan.odom, off
 
@@ -740,9 +800,10 @@ class FRSlam:
 
 
 def _body_points(points: np.ndarray, sensor_offset: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Planar end points (M, 2) in the sensor frame -> base_link, and the offset (x, y, theta)."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    off = np.asarray(sensor_offset, dtype=np.float64)
+    """Planar end points (M, 2) in the sensor frame -> base_link, and the offset (x, y, theta);
+    both checked (RecordingError naming ``points`` / ``sensor_offset``)."""
+    pts = stream_input.points(points)
+    off = stream_input.pose(sensor_offset, "sensor_offset")
     if np.any(off != 0.0):
         pts = compose_many(off, np.column_stack((pts, np.zeros(len(pts)))))[:, :2]
     return pts, off

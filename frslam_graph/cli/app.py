@@ -28,3 +28,28 @@ app.add_typer(config_app, name="config")
 
 console = Console()
 err_console = Console(stderr=True)
+
+
+def _version() -> str:
+    """The installed package's version (its metadata), or "unknown" when run from a bare tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("frslam")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        console.print(f"frslam {_version()}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    show_version: bool = typer.Option(
+        False, "--version", help="Print the version and exit.", callback=_print_version, is_eager=True
+    ),
+) -> None:
+    """FR-SLAM: floor-plan registration + factor-graph 2D SLAM."""
