@@ -27,8 +27,9 @@ from pydantic import (
     model_validator,
 )
 
+from frslam_graph import limits
 from frslam_graph.errors import ConfigError
-from frslam_graph.limits import MAX_PLAN_BYTES, check_file_size, short_repr
+from frslam_graph.limits import check_file_size, short_repr
 from frslam_graph.textfile import load_yaml, yaml_problem
 
 
@@ -934,7 +935,7 @@ class FRSlamConfig(_Section):
     def load(cls, path: str | Path) -> FRSlamConfig:
         """Read a YAML (.yaml/.yml) or JSON (.json) config file."""
         path = Path(path)
-        check_file_size(path, MAX_PLAN_BYTES, ConfigError, "config file")
+        check_file_size(path, limits.MAX_PLAN_BYTES, ConfigError, "config file")
         try:
             text = path.read_text(encoding="utf-8")
         except OSError as exc:

@@ -13,8 +13,9 @@ from typing import Any
 
 import yaml
 
+from frslam_graph import limits
 from frslam_graph.errors import FrslamError
-from frslam_graph.limits import MAX_PLAN_BYTES, check_file_size, short_repr
+from frslam_graph.limits import check_file_size, short_repr
 
 
 class StrictYamlLoader(yaml.SafeLoader):
@@ -56,7 +57,7 @@ def read_text(path: str | Path, error: type[FrslamError], expected: str) -> str:
         raise error(f"file not found (expected {expected})", source=path)
     if path.is_dir():
         raise error(f"expected {expected}, got a directory", source=path)
-    check_file_size(path, MAX_PLAN_BYTES, error, "file")
+    check_file_size(path, limits.MAX_PLAN_BYTES, error, "file")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:

@@ -159,8 +159,18 @@ def _fail(msg: str, source: str | None, where: str | None = None) -> FloorPlanEr
     return FloorPlanError(msg, source=source, where=where)
 
 
+def _is_number(value: Any) -> bool:
+    """A JSON number: int or float, not bool (``true`` is not 1), not a string."""
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+
+
 def _as_points(value: Any, source: str | None, where: str, min_points: int) -> np.ndarray:
-    """Validate a list of [x, y] pairs: numeric, finite, not absurd."""
+    """Validate a list of [x, y] pairs: numeric (JSON numbers: not ``true``, not ``"1.5"``),
+    finite, not absurd."""
+    if isinstance(value, list | tuple):
+        for i, pair in enumerate(value):
+            if not (isinstance(pair, list | tuple) and len(pair) == 2 and all(map(_is_number, pair))):
+                raise _fail(f"expected [x, y] numbers, got {short_repr(pair)}", source, f"{where}[{i}]")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):

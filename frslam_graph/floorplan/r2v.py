@@ -43,10 +43,11 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from frslam_graph import limits
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import geodesic_split, labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
-from frslam_graph.limits import short_repr
+from frslam_graph.limits import check_file_size, short_repr
 
 ICON_CATEGORIES = frozenset(
     {"washing_basin", "cooking_counter", "bathtub", "toilet", "entrance", "special", "stairs", "PS", "point"}
@@ -139,6 +140,7 @@ def parse_r2v(path: str | Path) -> R2VData:
     """Read and validate the rows of an R2V file (FloorPlanError naming the file and line)."""
     path = Path(path)
     src = str(path)
+    check_file_size(path, limits.MAX_PLAN_BYTES, FloorPlanError, "R2V file")
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -200,6 +202,12 @@ def parse_r2v(path: str | Path) -> R2VData:
                 )
         if category == "wall":
             walls.append(coords)
+            if len(walls) > limits.MAX_PLAN_WALLS:
+                raise FloorPlanError(
+                    f"more than {limits.MAX_PLAN_WALLS:,} walls (limit MAX_PLAN_WALLS, frslam_graph.limits)",
+                    source=src,
+                    where=where,
+                )
         elif category == "door":
             doors.append(coords)
         elif category in ROOM_CATEGORIES or (
