@@ -15,7 +15,7 @@ Limits (all far above the largest real input seen: the Intel / FR079 / ACES CARM
 - ``MAX_CLOUD_POINTS`` (20 million): points of one ``.pcd`` / ``.ply`` cloud.
 - ``MAX_PLAN_BYTES`` (50 MB): a JSON / YAML floor plan, map YAML or config file.
 - ``MAX_PLAN_WALLS`` (200,000): walls (R2V lines) of one floor plan.
-- ``MAX_GRID_CELLS`` (400 million, 400 MB at one byte a cell): an occupancy grid.
+- ``MAX_GRID_CELLS`` (100 million, 0.8 GB of hit / miss counts): an occupancy grid.
 - ``MAX_REPR_CHARS`` (80): a value quoted in an error message.
 """
 
@@ -36,7 +36,7 @@ EXPANSION_ALLOWANCE = 1 << 20
 MAX_CLOUD_POINTS = 20_000_000
 MAX_PLAN_BYTES = 50_000_000
 MAX_PLAN_WALLS = 200_000
-MAX_GRID_CELLS = 400_000_000
+MAX_GRID_CELLS = 100_000_000
 MAX_REPR_CHARS = 80
 
 
