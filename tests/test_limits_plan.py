@@ -35,7 +35,7 @@ def write(tmp_path, data, name="plan.json"):
 def test_a_vertex_must_hold_json_numbers(tmp_path, vertex, shown):
     path = write(tmp_path, plan([vertex, [4, 0], [4, 3], [0, 3]]))
     with pytest.raises(
-        FloorPlanError, match=r"plan\.json: rooms\[0\]\.polygon\[0\]: expected \[x, y\] numbers"
+        FloorPlanError, match=r"plan\.json: rooms\[0\]\.polygon\[0\]: expected \[x, y\] number pairs"
     ) as err:
         FloorPlan.load(path)
     assert shown in str(err.value)
@@ -75,4 +75,4 @@ def test_plan_cli_with_a_boolean_vertex_exits_2_with_one_line(tmp_path, capsys):
     path = write(tmp_path, plan([[True, False], [4, 0], [4, 3], [0, 3]]))
     assert main(["plan", "show", str(path), "--out", str(tmp_path / "p.png")]) == 2
     err = capsys.readouterr().err.strip()
-    assert "plan.json" in err and "expected [x, y] numbers" in err and len(err.splitlines()) == 1
+    assert "plan.json" in err and "expected [x, y] number pairs" in err and len(err.splitlines()) == 1

@@ -170,7 +170,7 @@ def _as_points(value: Any, source: str | None, where: str, min_points: int) -> n
     if isinstance(value, list | tuple):
         for i, pair in enumerate(value):
             if not (isinstance(pair, list | tuple) and len(pair) == 2 and all(map(_is_number, pair))):
-                raise _fail(f"expected [x, y] numbers, got {short_repr(pair)}", source, f"{where}[{i}]")
+                raise _fail(f"expected [x, y] number pairs, got {short_repr(pair)}", source, f"{where}[{i}]")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
