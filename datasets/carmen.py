@@ -25,19 +25,18 @@ each laser line), iteration a second, parsing one line at a time.
 
 from __future__ import annotations
 
-import bz2
-import gzip
 import math
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Literal, NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
 from frslam_graph.datasets.scan import Scan
 
 from frslam_graph.errors import RecordingError
+from frslam_graph.limits import bounded_lines, open_binary
 
 FRONT = ("FLASER", "ROBOTLASER1")
 REAR = ("RLASER", "ROBOTLASER2")
@@ -69,22 +68,26 @@ def carmen_angle_increment(n: int) -> float:
     return math.pi / max(n - 1, 1)
 
 
-def _open_text(path: Path) -> IO[str]:
-    name = path.name.lower()
-    if name.endswith(".gz"):
-        return gzip.open(path, "rt", encoding="latin-1")
-    if name.endswith(".bz2"):
-        return bz2.open(path, "rt", encoding="latin-1")
-    return open(path, encoding="latin-1")  # noqa: SIM115
-
-
 def _lines(path: Path, stats: RecordingStats) -> Iterator[tuple[int, str]]:
-    """Numbered lines (1-based); a damaged compressed stream ends the file, noted in ``stats``."""
+    """Numbered lines (1-based); a damaged compressed stream ends the file, noted in ``stats``.
+
+    Read in bounded pieces (``frslam_graph.limits``): a line over ``MAX_LINE_BYTES``, more than
+    ``MAX_LINES`` lines or a ``.gz`` / ``.bz2`` stream expanding over ``MAX_EXPANSION`` times its
+    size raises RecordingError naming the file and line.
+    """
+    compressed = path.name.lower().endswith((".gz", ".bz2"))
+    size = path.stat().st_size if compressed else None
     lineno = 0
     try:
-        with _open_text(path) as f:
-            for lineno, line in enumerate(f, 1):  # noqa: B007
+        with open_binary(path) as f:
+            for raw in bounded_lines(f, path, RecordingError, compressed_size=size):
+                lineno += 1
+                line = raw.decode("latin-1")
+                if line.endswith("\r\n"):
+                    line = line[:-2] + "\n"
                 yield lineno, line
+    except RecordingError:
+        raise
     except (EOFError, OSError, ValueError) as exc:  # truncated .gz/.bz2, corrupt stream
         stats.skip(f"rest of file unreadable ({exc})", f"{path.name}:{lineno + 1}")
 

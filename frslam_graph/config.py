@@ -15,11 +15,22 @@ import re
 import textwrap
 from collections.abc import Collection
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
+from frslam_graph import limits
 from frslam_graph.errors import ConfigError
+from frslam_graph.limits import check_file_size, short_repr
+from frslam_graph.textfile import load_yaml, yaml_problem
 
 
 class _Section(BaseModel):
@@ -39,6 +50,17 @@ class _Section(BaseModel):
             super().__setattr__(name, value)
         except ValidationError as exc:
             raise _config_error(exc, None, prefix=_SECTION_NAMES.get(type(self).__name__)) from None
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_as_number(cls, value: Any, info: ValidationInfo) -> Any:
+        """``true`` / ``false`` for a number field is an error (pydantic would read 1 / 0)."""
+        field = cls.model_fields.get(info.field_name or "")
+        if isinstance(value, bool) and field is not None:
+            kinds = get_args(field.annotation) or (field.annotation,)
+            if bool not in kinds and (int in kinds or float in kinds):
+                raise ValueError(f"expected a number, got {value}")
+        return value
 
 
 class OdometryConfig(_Section):
@@ -914,6 +936,7 @@ class FRSlamConfig(_Section):
     def load(cls, path: str | Path) -> FRSlamConfig:
         """Read a YAML (.yaml/.yml) or JSON (.json) config file."""
         path = Path(path)
+        check_file_size(path, limits.MAX_PLAN_BYTES, ConfigError, "config file")
         try:
             text = path.read_text(encoding="utf-8")
         except OSError as exc:
@@ -922,11 +945,14 @@ class FRSlamConfig(_Section):
             if path.suffix.lower() == ".json":
                 data = json.loads(text)
             else:
-                import yaml
-
-                data = yaml.safe_load(text)
+                data = load_yaml(text)  # no aliases (alias bombs), no duplicate keys
         except (json.JSONDecodeError, Exception) as exc:  # yaml.YAMLError has no common import here
-            raise ConfigError(f"not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}", source=path) from None
+            mark = getattr(exc, "problem_mark", None)
+            where = f"line {mark.line + 1}" if mark is not None else None
+            what = yaml_problem(exc) if mark is not None else exc
+            raise ConfigError(
+                f"not valid {path.suffix.lstrip('.') or 'YAML'}: {what}", source=path, where=where
+            ) from None
         return cls.from_dict(data, source=path)
 
     def save(self, path: str | Path) -> None:
@@ -1028,7 +1054,7 @@ def _config_error(exc: ValidationError, source: str | Path | None, prefix: str |
     elif err.get("type") == "value_error":
         msg = msg.removeprefix("Value error, ")
     elif "input" in err and err.get("type") != "missing":
-        msg = f"{msg} (got {err['input']!r})"
+        msg = f"{msg} (got {short_repr(err['input'])})"
     more = len(exc.errors()) - 1
     if more:
         msg += f"; and {more} more error(s)"

@@ -37,6 +37,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from frslam_graph import limits
+from frslam_graph.errors import ConfigError
 from frslam_graph.motion_model import wrap
 
 L_HIT = 0.85
@@ -289,6 +291,12 @@ class OccupancyMapper:
             new0 = np.minimum(self._c0, lo - _GROW)
             new1 = np.maximum(c1, hi + _GROW)
         nw, nh = (new1 - new0).tolist()
+        if nw * nh > limits.MAX_GRID_CELLS:
+            raise ConfigError(
+                f"an occupancy grid of {nw:,} x {nh:,} cells at {self.resolution:g} m is over the limit of "
+                f"{limits.MAX_GRID_CELLS:,} cells (MAX_GRID_CELLS, frslam_graph.limits); use a coarser resolution",
+                where="resolution",
+            )
         hits = np.zeros((nh, nw), np.int32)
         misses = np.zeros((nh, nw), np.int32)
         if h and w:

@@ -26,6 +26,7 @@ import yaml
 from frslam_graph.atomic import write_bytes, write_text
 from frslam_graph.errors import FrslamError, MapError
 from frslam_graph.image_files import grey_levels, read_image
+from frslam_graph.limits import short_repr
 from frslam_graph.raster import RasterFrame
 from frslam_graph.textfile import read_yaml
 
@@ -54,14 +55,18 @@ class OccupancyGrid:
         res = self.resolution
         if isinstance(res, bool) or not isinstance(res, int | float) or not math.isfinite(res) or res <= 0:
             raise MapError(
-                f"must be a positive number of metres per cell, got {res!r}", self.source, "resolution"
+                f"must be a positive number of metres per cell, got {short_repr(res)}",
+                self.source,
+                "resolution",
             )
         object.__setattr__(self, "resolution", float(res))
         origin = tuple(float(v) for v in self.origin)
         if len(origin) == 2:
             origin = (*origin, 0.0)
         if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
-            raise MapError(f"must be [x, y, yaw] finite numbers, got {self.origin!r}", self.source, "origin")
+            raise MapError(
+                f"must be [x, y, yaw] finite numbers, got {short_repr(self.origin)}", self.source, "origin"
+            )
         object.__setattr__(self, "origin", origin)
 
     # ------------------------------------------------------------------ shape & masks
@@ -183,7 +188,7 @@ class OccupancyGrid:
         resolution = _number(meta["resolution"], src, "resolution", positive=True)
         origin = meta["origin"]
         if not isinstance(origin, list | tuple) or len(origin) not in (2, 3):
-            raise MapError(f"expected [x, y, yaw], got {origin!r}", src, "origin")
+            raise MapError(f"expected [x, y, yaw], got {short_repr(origin)}", src, "origin")
         origin = tuple(_number(v, src, f"origin[{i}]") for i, v in enumerate(origin))
         negate = int(_number(meta.get("negate", 0), src, "negate"))
         occ_t = _number(meta.get("occupied_thresh", 0.65), src, "occupied_thresh")
@@ -253,9 +258,9 @@ class OccupancyGrid:
 
 def _number(value: Any, src: str, field: str, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise MapError(f"expected a finite number, got {value!r}", src, field)
+        raise MapError(f"expected a finite number, got {short_repr(value)}", src, field)
     if positive and value <= 0:
-        raise MapError(f"expected a positive number, got {value!r}", src, field)
+        raise MapError(f"expected a positive number, got {short_repr(value)}", src, field)
     return float(value)
 
 
@@ -266,11 +271,11 @@ def check_reading(
     map_server mode (trinary, scale, raw)."""
     for field, value in (("occupied_thresh", occ_t), ("free_thresh", free_t)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise error(f"expected a finite number, got {value!r}", src, field)
+            raise error(f"expected a finite number, got {short_repr(value)}", src, field)
     if not (0.0 <= free_t <= occ_t <= 1.0):
         raise error(f"need 0 <= free_thresh ({free_t}) <= occupied_thresh ({occ_t}) <= 1", src, "free_thresh")
     if mode not in ("trinary", "scale", "raw"):
-        raise error(f"unknown mode {mode!r} (expected trinary, scale or raw)", src, "mode")
+        raise error(f"unknown mode {short_repr(mode)} (expected trinary, scale or raw)", src, "mode")
 
 
 def _read_image(path: Path, src: str) -> np.ndarray:

@@ -13,7 +13,41 @@ from typing import Any
 
 import yaml
 
+from frslam_graph import limits
 from frslam_graph.errors import FrslamError
+from frslam_graph.limits import check_file_size, short_repr
+
+
+class StrictYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses aliases (``*name``: a few lines of them expand to
+    gigabytes, the "billion laughs") and a key given twice in one mapping."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, "aliases (*name) are not accepted; write the value out", event.start_mark
+            )
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            seen: set[Any] = set()
+            for key_node, _ in node.value:
+                if isinstance(key_node, yaml.ScalarNode):
+                    key = self.construct_object(key_node)
+                    if key in seen:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"duplicate key {short_repr(key)}", key_node.start_mark
+                        )
+                    seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` without aliases or duplicate keys (:class:`StrictYamlLoader`);
+    raises ``yaml.YAMLError``."""
+    return yaml.load(text, Loader=StrictYamlLoader)  # noqa: S506 - a SafeLoader subclass
 
 
 def read_text(path: str | Path, error: type[FrslamError], expected: str) -> str:
@@ -23,6 +57,7 @@ def read_text(path: str | Path, error: type[FrslamError], expected: str) -> str:
         raise error(f"file not found (expected {expected})", source=path)
     if path.is_dir():
         raise error(f"expected {expected}, got a directory", source=path)
+    check_file_size(path, limits.MAX_PLAN_BYTES, error, "file")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -44,13 +79,18 @@ def read_json(path: str | Path, error: type[FrslamError], expected: str) -> Any:
 
 
 def read_yaml(path: str | Path, error: type[FrslamError], expected: str) -> Any:
-    """Parsed YAML of the file (safe loader); malformed YAML names the line."""
+    """Parsed YAML of the file (safe loader, no aliases, no duplicate keys); malformed YAML names
+    the line."""
     text = read_text(path, error, expected)
     try:
-        return yaml.safe_load(text)
+        return load_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else None
-        raise error(
-            f"malformed YAML ({getattr(exc, 'problem', None) or exc})", source=path, where=where
-        ) from None
+        raise error(f"malformed YAML ({yaml_problem(exc)})", source=path, where=where) from None
+
+
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """What PyYAML found wrong, on one line, without the quoted context (cut to 200 characters)."""
+    problem = " ".join((getattr(exc, "problem", None) or str(exc)).split())
+    return problem if len(problem) <= 200 else problem[:197] + "..."

@@ -37,6 +37,9 @@ _HOUSEEXPO_TYPES = {
 
 
 def _numbers(value: Any, n: int | None, src: str | None, where: str) -> np.ndarray:
+    flat = value if isinstance(value, list | tuple) else []
+    if any(isinstance(v, bool | str) for v in flat):
+        raise FloorPlanError("expected numbers (not true / false, not strings)", source=src, where=where)
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):

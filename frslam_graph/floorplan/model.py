@@ -30,6 +30,7 @@ from shapely.geometry import LineString, Polygon
 from shapely.validation import explain_validity
 
 from frslam_graph.errors import FloorPlanError
+from frslam_graph.limits import short_repr
 from frslam_graph.textfile import read_json
 
 FORMAT_NAME = "frslam-floorplan"
@@ -158,8 +159,18 @@ def _fail(msg: str, source: str | None, where: str | None = None) -> FloorPlanEr
     return FloorPlanError(msg, source=source, where=where)
 
 
+def _is_number(value: Any) -> bool:
+    """A JSON number: int or float, not bool (``true`` is not 1), not a string."""
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+
+
 def _as_points(value: Any, source: str | None, where: str, min_points: int) -> np.ndarray:
-    """Validate a list of [x, y] pairs: numeric, finite, not absurd."""
+    """Validate a list of [x, y] pairs: numeric (JSON numbers: not ``true``, not ``"1.5"``),
+    finite, not absurd."""
+    if isinstance(value, list | tuple):
+        for i, pair in enumerate(value):
+            if not (isinstance(pair, list | tuple) and len(pair) == 2 and all(map(_is_number, pair))):
+                raise _fail(f"expected [x, y] number pairs, got {short_repr(pair)}", source, f"{where}[{i}]")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -222,7 +233,7 @@ class FloorPlan:
             if not room.id:
                 raise _fail("room id must be a non-empty string", src, f"{where}.id")
             if room.id in seen:
-                raise _fail(f"duplicate room id {room.id!r}", src, f"{where}.id")
+                raise _fail(f"duplicate room id {short_repr(room.id)}", src, f"{where}.id")
             seen.add(room.id)
             poly = room.polygon
             if not isinstance(poly, Polygon) or poly.is_empty:
@@ -234,7 +245,7 @@ class FloorPlan:
             _as_points([door.a, door.b], src, f"doors[{i}].segment", 2)
             for rid in door.rooms:
                 if rid not in seen:
-                    raise _fail(f"door refers to unknown room {rid!r}", src, f"doors[{i}].rooms")
+                    raise _fail(f"door refers to unknown room {short_repr(rid)}", src, f"doors[{i}].rooms")
         if self.walls is not None:
             walls = np.asarray(self.walls, dtype=np.float64)
             if walls.ndim != 2 or walls.shape[1] != 4:
@@ -371,11 +382,13 @@ class FloorPlan:
             raise _fail(f"expected a JSON object at the top level, got {type(data).__name__}", src)
         fmt = data.get("format", FORMAT_NAME)
         if fmt != FORMAT_NAME:
-            raise _fail(f"unknown format {fmt!r} (expected {FORMAT_NAME!r})", src, "format")
+            raise _fail(f"unknown format {short_repr(fmt)} (expected {FORMAT_NAME!r})", src, "format")
         version = data.get("version", FORMAT_VERSION)
         if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
             raise _fail(
-                f"unsupported version {version!r} (this library reads 1..{FORMAT_VERSION})", src, "version"
+                f"unsupported version {short_repr(version)} (this library reads 1..{FORMAT_VERSION})",
+                src,
+                "version",
             )
         if "rooms" not in data:
             raise _fail("missing required field", src, "rooms")
@@ -392,10 +405,10 @@ class FloorPlan:
                     raise _fail("missing required field", src, f"{where}.{key}")
             rid = rr["id"]
             if not isinstance(rid, str | int) or isinstance(rid, bool):
-                raise _fail(f"expected a string id, got {rid!r}", src, f"{where}.id")
+                raise _fail(f"expected a string id, got {short_repr(rid)}", src, f"{where}.id")
             rtype = rr.get("type", "unknown")
             if not isinstance(rtype, str):
-                raise _fail(f"expected a string room type, got {rtype!r}", src, f"{where}.type")
+                raise _fail(f"expected a string room type, got {short_repr(rtype)}", src, f"{where}.type")
             holes = rr.get("holes", [])
             if not isinstance(holes, list):
                 raise _fail("expected a list of polygons", src, f"{where}.holes")
@@ -432,10 +445,10 @@ class FloorPlan:
             walls = _as_points(pairs, src, "walls", 0).reshape(-1, 4)
         units = data.get("units", "unit")
         if not isinstance(units, str) or not units:
-            raise _fail(f"expected a unit name such as 'px' or 'm', got {units!r}", src, "units")
+            raise _fail(f"expected a unit name such as 'px' or 'm', got {short_repr(units)}", src, "units")
         mpu = data.get("metres_per_unit")
         if mpu is not None and (isinstance(mpu, bool) or not isinstance(mpu, int | float)):
-            raise _fail(f"expected a positive number or null, got {mpu!r}", src, "metres_per_unit")
+            raise _fail(f"expected a positive number or null, got {short_repr(mpu)}", src, "metres_per_unit")
         name = data.get("name", "")
         return cls(
             rooms=rooms,

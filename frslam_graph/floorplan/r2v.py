@@ -43,9 +43,11 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from frslam_graph import limits
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import geodesic_split, labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
+from frslam_graph.limits import check_file_size, short_repr
 
 ICON_CATEGORIES = frozenset(
     {"washing_basin", "cooking_counter", "bathtub", "toilet", "entrance", "special", "stairs", "PS", "point"}
@@ -138,6 +140,7 @@ def parse_r2v(path: str | Path) -> R2VData:
     """Read and validate the rows of an R2V file (FloorPlanError naming the file and line)."""
     path = Path(path)
     src = str(path)
+    check_file_size(path, limits.MAX_PLAN_BYTES, FloorPlanError, "R2V file")
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -171,10 +174,14 @@ def parse_r2v(path: str | Path) -> R2VData:
             coords = tuple(float(v) for v in fields[:4])
         except ValueError:
             raise FloorPlanError(
-                f"columns 1-4 must be numbers x1 y1 x2 y2, got {fields[:4]!r}", source=src, where=where
+                f"columns 1-4 must be numbers x1 y1 x2 y2, got {short_repr(fields[:4])}",
+                source=src,
+                where=where,
             ) from None
         if not all(math.isfinite(v) for v in coords):
-            raise FloorPlanError(f"coordinates must be finite, got {coords!r}", source=src, where=where)
+            raise FloorPlanError(
+                f"coordinates must be finite, got {short_repr(coords)}", source=src, where=where
+            )
         if max(abs(v) for v in coords) > MAX_ABS_COORD:
             raise FloorPlanError(
                 f"absurd coordinate {max(abs(v) for v in coords):.3g} (|value| must be <= {MAX_ABS_COORD:.0e})",
@@ -184,15 +191,23 @@ def parse_r2v(path: str | Path) -> R2VData:
         category = fields[4].strip()
         if not category or _is_number(category):
             raise FloorPlanError(
-                f"column 5 must be a category name (wall, door, bedroom, ...), got {category!r}",
+                f"column 5 must be a category name (wall, door, bedroom, ...), got {short_repr(category)}",
                 source=src,
                 where=where,
             )
         for k, extra in enumerate(fields[5:], start=6):
             if extra.strip() and not _is_number(extra.strip()):
-                raise FloorPlanError(f"column {k} must be a number, got {extra!r}", source=src, where=where)
+                raise FloorPlanError(
+                    f"column {k} must be a number, got {short_repr(extra)}", source=src, where=where
+                )
         if category == "wall":
             walls.append(coords)
+            if len(walls) > limits.MAX_PLAN_WALLS:
+                raise FloorPlanError(
+                    f"more than {limits.MAX_PLAN_WALLS:,} walls (limit MAX_PLAN_WALLS, frslam_graph.limits)",
+                    source=src,
+                    where=where,
+                )
         elif category == "door":
             doors.append(coords)
         elif category in ROOM_CATEGORIES or (

@@ -24,6 +24,7 @@ from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import labels_to_polygons, largest_polygon
 from frslam_graph.floorplan.model import Door, FloorPlan, Room, normalise_room_type
 from frslam_graph.image_files import image_size, read_image
+from frslam_graph.limits import short_repr
 from frslam_graph.textfile import read_yaml
 
 
@@ -60,7 +61,9 @@ def read_map_yaml(yaml_path: str | Path) -> tuple[float, tuple[float, float, flo
     res = meta["resolution"]
     if isinstance(res, bool) or not isinstance(res, int | float) or not math.isfinite(res) or res <= 0:
         raise FloorPlanError(
-            f"expected a positive number (metres per pixel), got {res!r}", source=src, where="resolution"
+            f"expected a positive number (metres per pixel), got {short_repr(res)}",
+            source=src,
+            where="resolution",
         )
     if "origin" not in meta:
         raise FloorPlanError("missing required field", source=src, where="origin")
@@ -72,13 +75,17 @@ def read_map_yaml(yaml_path: str | Path) -> tuple[float, tuple[float, float, flo
             isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in origin
         )
     ):
-        raise FloorPlanError(f"expected [x, y, yaw] numbers, got {origin!r}", source=src, where="origin")
+        raise FloorPlanError(
+            f"expected [x, y, yaw] numbers, got {short_repr(origin)}", source=src, where="origin"
+        )
     yaw = float(origin[2]) if len(origin) == 3 else 0.0
     image = meta.get("image")
     img_path = None
     if image is not None:
         if not isinstance(image, str) or not image:
-            raise FloorPlanError(f"expected an image file name, got {image!r}", source=src, where="image")
+            raise FloorPlanError(
+                f"expected an image file name, got {short_repr(image)}", source=src, where="image"
+            )
         img_path = Path(image) if Path(image).is_absolute() else path.parent / image
     return float(res), (float(origin[0]), float(origin[1]), yaw), img_path
 
