@@ -29,8 +29,13 @@ from scipy.spatial import cKDTree
 
 from frslam_graph.factors.between import pose2
 from frslam_graph.graph import key
-from frslam_graph.motion_model import between, compose_many, wrap
-from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line, voxel_downsample
+from frslam_graph.motion_model import between, wrap
+from frslam_graph.submap_matching import (
+    ReferenceSubmap,
+    icp_point_to_line,
+    transform_points,
+    voxel_downsample,
+)
 
 QUERY_SPAN = 1  # keyframes each side of the query keyframe in its submap
 REFERENCE_SPAN = 4  # ... and of the reference keyframe in its submap
@@ -80,7 +85,7 @@ def field_of_view(points: list[np.ndarray]) -> float:
 def candidate_pairs(
     poses: np.ndarray, travel: np.ndarray, radius: float, heading_window: float, per_keyframe: int
 ) -> np.ndarray:
-    """(P, 2) pairs (reference c, query k), c < k or c > k, of keyframes of different passes.
+    """(P, 2) pairs (reference c, query k), c < k, of keyframes of different passes.
 
     ``poses`` (K, 3) in map, ``travel`` (K,) cumulative distance along the trajectory (m). For
     each k: keyframes within ``radius`` whose heading differs by at most ``heading_window``, at
@@ -126,8 +131,7 @@ def _submap(poses: np.ndarray, points: list[np.ndarray], i: int, span: int, max_
     for j in range(lo, hi + 1):
         p = np.asarray(points[j], dtype=np.float64)
         p = p[np.hypot(p[:, 0], p[:, 1]) <= max_range]
-        rel = between(poses[i], poses[j])
-        parts.append(compose_many(rel, np.column_stack((p, np.zeros(len(p)))))[:, :2])
+        parts.append(transform_points(between(poses[i], poses[j]), p))
     pts = np.concatenate(parts) if parts else np.zeros((0, 2))
     return voxel_downsample(pts, RESOLUTION)
 

@@ -418,8 +418,7 @@ class ScanOdometry:
         else:
             self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
             if self.config.local_map_scans:
-                near = pts[np.einsum("ij,ij->i", pts, pts) <= _LOCAL_MAP_RANGE**2]
-                self._recent.append((from_matrix(self._icp.last_pose), near))
+                self._recent.append((from_matrix(self._icp.last_pose), _local_points(pts)))
         self._kf_icp = from_matrix(self._icp.last_pose)
         self._kf_index = 0
         self._kf_stamp = stamp
@@ -535,11 +534,11 @@ class ScanOdometry:
                     icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
                 )
                 best = int(scores[1] > scores[0] + 0.05)
-        pts = scan.points
-        self._aligned_points = pts[np.einsum("ij,ij->i", pts, pts) <= _LOCAL_MAP_RANGE**2]
         pose = poses[best]
-        if self._local_ref is not None and not scan.icp_covariance[1]:  # not along a corridor
-            pose = self._refine(self._aligned_points, pose)
+        if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
+            self._aligned_points = _local_points(scan.points)
+            if self._local_ref is not None and not scan.icp_covariance[1]:  # not along a corridor
+                pose = self._refine(self._aligned_points, pose)
         return best, pose, guesses[best], frame_ds
 
     def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -548,14 +547,15 @@ class ScanOdometry:
         KISS-ICP matches points to the sparse points of its voxel map, so a scan can slide a few
         centimetres along a wall (ACES / FR079 relations under 2 s: 0.041 / 0.040 m, 0.54 / 1.16
         deg; with the refinement 0.038 / 0.026 m, 0.36 / 0.42 deg). A refinement that moves the
-        pose by more than a few centimetres or a degree is not trusted: KISS-ICP's pose stays.
+        pose by more than _REFINE_MAX_STEP / _REFINE_MAX_TURN, or that fits fewer points, is not
+        trusted: KISS-ICP's pose stays.
         """
+        start = from_matrix(pose)
         res = icp_point_to_line(
-            self._local_ref, points, from_matrix(pose), _REFINE_ITERATIONS, _REFINE_MAX_DISTANCE, 0.05, 0.05
+            self._local_ref, points, start, _REFINE_ITERATIONS, _REFINE_MAX_DISTANCE, 0.05, 0.05
         )
         if res is None or not np.all(np.isfinite(res[0])) or not np.all(np.isfinite(res[1])):
             return pose
-        start = from_matrix(pose)
         d = between(start, res[0])
         if np.hypot(d[0], d[1]) > _REFINE_MAX_STEP or abs(d[2]) > _REFINE_MAX_TURN:
             return pose
@@ -703,6 +703,11 @@ _REFINE_MAX_TURN = np.deg2rad(5.0)
 _REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
+
+
+def _local_points(points: np.ndarray) -> np.ndarray:
+    """Points (M, 2) within _LOCAL_MAP_RANGE of base_link: those the refinement's local map keeps."""
+    return points[np.einsum("ij,ij->i", points, points) <= _LOCAL_MAP_RANGE**2]
 
 
 def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
