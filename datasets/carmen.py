@@ -35,12 +35,13 @@ import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
 from frslam_graph.datasets.scan import Scan
 
-from frslam_graph.errors import RecordingError
-from frslam_graph.limits import bounded_lines, open_binary
+from frslam_graph.errors import OptionError, RecordingError
+from frslam_graph.limits import bounded_lines, open_binary, short_repr
 
 FRONT = ("FLASER", "ROBOTLASER1")
 REAR = ("RLASER", "ROBOTLASER2")
 LASERS = {"front": FRONT, "rear": REAR, "all": FRONT + REAR}
+ODOM_MODES = ("laser", "odom", "none")
 # Record types CARMEN logs contain that carry no scan: counted, not warned about.
 OTHER_TYPES = frozenset(
     "PARAM SYNC ODOM TRUEPOS NMEAGGA NMEARMC NMEA-GGA NMEA-RMC GPSNMEA RAWLASER1 RAWLASER2 RAWLASER3"
@@ -173,9 +174,23 @@ class CarmenLog(Recording):
     ):
         super().__init__(path)
         if laser not in LASERS:
-            raise RecordingError(f"laser must be one of {sorted(LASERS)}, got {laser!r}", source=path)
-        if odom not in ("laser", "odom", "none"):
-            raise RecordingError(f"odom must be 'laser', 'odom' or 'none', got {odom!r}", source=path)
+            raise OptionError(
+                f"laser must be one of {sorted(LASERS)}, got {short_repr(laser)}",
+                path,
+                option="laser",
+                value=laser,
+                choices=list(LASERS),
+                problem="no such laser",
+            )
+        if odom not in ODOM_MODES:
+            raise OptionError(
+                f"odom must be 'laser', 'odom' or 'none', got {short_repr(odom)}",
+                path,
+                option="odom",
+                value=odom,
+                choices=ODOM_MODES,
+                problem="no such odometry source",
+            )
         if backwards not in ("keep", "skip", "error"):
             raise RecordingError(
                 f"backwards must be 'keep', 'skip' or 'error', got {backwards!r}", source=path
@@ -195,7 +210,27 @@ class CarmenLog(Recording):
             found = ", ".join(f"{k} {v}" for k, v in self.counts.most_common()) or "no records"
             if self._first_pass.skipped:
                 found += "; " + self._first_pass.summary()
-            raise RecordingError(f"no {'/'.join(self.laser_types)} laser records ({found})", source=self.path)
+            present = [name for name, kinds in LASERS.items() if any(self.counts[k] for k in kinds)]
+            message = f"no {'/'.join(self.laser_types)} laser records ({found})"
+            if not present:
+                raise RecordingError(message, source=self.path)
+            raise OptionError(
+                message,
+                self.path,
+                option="laser",
+                value=laser,
+                choices=present,
+                problem=f"no {'/'.join(self.laser_types)} records in the log",
+            )
+        if odom == "odom" and not len(self._odom):
+            raise OptionError(
+                "odom='odom' but the log has no usable ODOM records",
+                self.path,
+                option="odom",
+                value=odom,
+                choices=[m for m in ODOM_MODES if m != "odom"],
+                problem="no usable ODOM records in the log",
+            )
         if max_range is not None:
             self.max_range, self.max_range_source = float(max_range), "given"
         else:

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.recording_options import (
+    Laser,
+    Odom,
+    OdomTopic,
+    PlaneTol,
+    ScanTopic,
+    open_recording_with,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -56,16 +64,22 @@ def _run_one(rec, plan, config, label: str, progress: Progress, sequential: bool
     return run
 
 
-def _inputs(recording: Path, config: Path | None, ground_truth: Path | None, relations: Path | None):
-    """Open and check every input before the run (which may take long): the recording, the
-    configuration, the ground truth (``--ground-truth`` or the recording's own) and the relations.
-    A bad one is reported now, not after the run with its outputs lost. Returns (recording,
-    config, ground truth, relations, sources: how to name the ground truth / relations)."""
+def _inputs(
+    recording: Path,
+    config: Path | None,
+    ground_truth: Path | None,
+    relations: Path | None,
+    reader_options: dict[str, Any],
+):
+    """Open and check every input before the run (which may take long): the recording (with the
+    reader options given: topics, laser, odometry), the configuration, the ground truth
+    (``--ground-truth`` or the recording's own) and the relations. A bad one is reported now, not
+    after the run with its outputs lost. Returns (recording, config, ground truth, relations,
+    sources: how to name the ground truth / relations)."""
     from frslam_graph.config import FRSlamConfig
-    from frslam_graph.datasets import open_recording
     from frslam_graph.metrics import load_relations, load_tum
 
-    rec = open_recording(recording)
+    rec = open_recording_with(recording, **reader_options)
     cfg = FRSlamConfig.load(config) if config is not None else None
     sources = {"relations": f"--relations {relations}"}
     if ground_truth is not None:
@@ -129,6 +143,11 @@ def run(
         help="Run the scan odometry in this process (default: in a second process where possible; "
         "same results, about 1.5x as fast on two cores).",
     ),
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    laser: Laser = None,
+    odom: Odom = None,
+    plane_tol: PlaneTol = None,
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
     from frslam_graph.atomic import Outputs
@@ -137,7 +156,10 @@ def run(
     with Outputs() as outputs:
         folder = outputs.folder(out, "metrics.json", RUN_OUTPUTS)
         plan = None if no_priors else _load_plan(floor_plan)
-        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
+        reader_options = dict(
+            scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
+        )
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
         with _progress() as progress:
             label = "with priors" if plan is not None else "no priors"
             result = _run_one(rec, plan, cfg, label, progress, sequential)
@@ -162,6 +184,11 @@ def compare(
         help="Run the scan odometry in this process (default: in a second process where possible; "
         "same results, about 1.5x as fast on two cores).",
     ),
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    laser: Laser = None,
+    odom: Odom = None,
+    plane_tol: PlaneTol = None,
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
     from frslam_graph.atomic import Outputs
@@ -171,7 +198,10 @@ def compare(
         top = outputs.folder(out, "compare.json", ("compare.png",))
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in RUN_FOLDERS}
         plan = _load_plan(floor_plan)
-        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
+        reader_options = dict(
+            scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
+        )
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
         with _progress() as progress:
             without = _run_one(rec, None, cfg, "without priors", progress, sequential)
             write_outputs(without, runs["without_priors"], gt, rel)  # kept whatever the second run does
