@@ -13,12 +13,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.summary import plan_status, print_written
 from frslam_graph.resources import bundled
 
 if TYPE_CHECKING:
@@ -42,12 +43,15 @@ def demo(
     check_folder(out)
     with Outputs() as outputs:
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}
-        _plans_demo(outputs, out, seed, length, runs)
-    console.print(f"[bold green]demo outputs in {out}[/]")
+        with_priors = _plans_demo(outputs, out, seed, length, runs)
+    print_written(outputs.files(), out, plan_status(with_priors, "with priors") if with_priors else None)
 
 
-def _plans_demo(outputs: Outputs, out: Path, seed: int, length: float, runs: dict[str, OutputFolder]) -> None:
-    """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders)."""
+def _plans_demo(
+    outputs: Outputs, out: Path, seed: int, length: float, runs: dict[str, OutputFolder]
+) -> dict[str, Any]:
+    """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders);
+    the metrics of the SLAM run with priors."""
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.render import render_plan
     from frslam_graph.occupancy import OccupancyGrid
@@ -68,7 +72,7 @@ def _plans_demo(outputs: Outputs, out: Path, seed: int, length: float, runs: dic
     _registration_demo(outputs, office, gmap, out, seed)
 
     console.rule("[bold]3. SLAM with and without floor-plan priors (simulated run in the apartment)")
-    _slam_demo(outputs, apartment, out, seed, length, runs)
+    return _slam_demo(outputs, apartment, out, seed, length, runs)
 
 
 def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> None:
@@ -106,7 +110,7 @@ def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> 
 
 def _slam_demo(
     outputs: Outputs, apartment, out: Path, seed: int, length: float, folders: dict[str, OutputFolder]
-) -> None:
+) -> dict[str, Any]:
     from frslam_graph.cli.run import _print_metrics
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs
@@ -141,6 +145,7 @@ def _slam_demo(
         ),
     )
     _print_metrics({name: r.metrics for name, r in runs.items()})
+    return with_.metrics
 
 
 def _ground_truth_in_map(run, sim) -> np.ndarray:

@@ -17,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import typer
+from rich.markup import escape
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.summary import print_written
 
 #: what register writes (a previous registration's files of these names are replaced)
 OUTPUTS = ("registered_plan.json", "overlay.png", "report.json")
@@ -130,8 +132,8 @@ def register_cmd(
             highlight=False,
             soft_wrap=True,
         )
-        console.print(f"wrote {out / 'registered_plan.json'}, {out / 'overlay.png'}, {out / 'report.json'}")
+        print_written(outputs.files(), out, "floor plan: [bold green]registered[/] to the map")
     else:
-        console.print(f"[bold red]no registration:[/] {reg.reason}", highlight=False, soft_wrap=True)
-        console.print(f"wrote {out / 'overlay.png'}, {out / 'report.json'}")
+        print_written(outputs.files(), out)
+        console.print(f"[bold red]no registration:[/] {escape(reg.reason)}", highlight=False, soft_wrap=True)
         raise typer.Exit(1)

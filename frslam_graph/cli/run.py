@@ -25,6 +25,7 @@ from frslam_graph.cli.recording_options import (
     ScanTopic,
     open_recording_with,
 )
+from frslam_graph.cli.summary import plan_status, print_written
 
 if TYPE_CHECKING:
     import numpy as np
@@ -166,7 +167,7 @@ def run(
         figure = _trajectory_figure({"estimate": result.result.trajectory}, gt, result)
         write_outputs(result, folder, gt, rel, figures={"trajectory.png": figure})
     _print_metrics({"run": result.metrics})
-    console.print(f"outputs in {out}: " + ", ".join(sorted(p.name for p in result.files.values())))
+    print_written(outputs.files(), out, plan_status(result.metrics))
     _check_evaluation(result.metrics, sources, out)
 
 
@@ -213,7 +214,7 @@ def compare(
             top.write("compare.png", _trajectory_figure(trajectories, gt, with_))
             top.commit({k: _summary(v) for k, v in summary.items()})
     _print_metrics(summary)
-    console.print(f"outputs in {out}")
+    print_written(outputs.files(), out, plan_status(with_.metrics, "with priors"))
     _check_evaluation(with_.metrics, sources, out)
 
 
@@ -231,6 +232,7 @@ def _summary(m: dict) -> dict:
         "latency_ms",
         "decisions",
         "priors",
+        "plan_accepted",
         "ate",
         "ate_unaligned",
         "rpe_1m",

@@ -14,6 +14,7 @@ from typing import Any
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.summary import print_written
 
 
 def _load_plan(path: Path):
@@ -139,6 +140,4 @@ def simulate_cmd(
         highlight=False,
         soft_wrap=True,
     )
-    console.print(
-        f"wrote {res.out_dir}/ (bag/, ground_truth.tum, house.json, map.yaml, meta.json)", highlight=False
-    )
+    print_written(outputs.files(), out)
