@@ -48,6 +48,7 @@ OTHER_TYPES = frozenset(
     " RAWLASER4 LASER1 LASER2 LASER3 LASER4 ROBOTLASER0 SONAR BUMPER VELOCITY VECTORMOVE FOLLOWTRAJECTORY"
     " IMU ARMSTATE BASEVELOCITY SCANMARK POSITIONLASER ODOM_ACK FLASER_ACK".split()
 )
+KNOWN_TYPES = OTHER_TYPES | set(FRONT + REAR)
 CARMEN_MAX_RANGE = 80.0  # carmen_string_to_robot_laser_message_orig's maximum_range
 SATURATION_SAMPLE = 300  # laser lines inspected for a saturation value
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
@@ -56,6 +57,17 @@ SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 def is_carmen(path: Path) -> bool:
     """True when the file name has a CARMEN suffix (.clf / .log, optionally .gz / .bz2)."""
     return path.name.lower().endswith(SUFFIXES)
+
+
+def _found(counts: Counter) -> str:
+    """The record types of a log without the laser wanted, for its error: the known types with
+    their counts, the others (e.g. a binary file's "lines") only counted, never quoted."""
+    known = [(k, n) for k, n in counts.most_common() if k in KNOWN_TYPES]
+    other = sum(n for k, n in counts.items() if k not in KNOWN_TYPES)
+    parts = [f"{k} {n}" for k, n in known]
+    if other:
+        parts.append(f"{other} line{'s' * (other != 1)} of no known CARMEN record type")
+    return ", ".join(parts) or "no records"
 
 
 def carmen_angle_increment(n: int) -> float:
@@ -207,7 +219,7 @@ class CarmenLog(Recording):
         self._first_stamp = self._last_stamp = float("nan")
         sample_max, sample_hits, sample_beams, param_max = self._index()
         if self._len == 0:
-            found = ", ".join(f"{k} {v}" for k, v in self.counts.most_common()) or "no records"
+            found = _found(self.counts)
             if self._first_pass.skipped:
                 found += "; " + self._first_pass.summary()
             present = [name for name, kinds in LASERS.items() if any(self.counts[k] for k in kinds)]

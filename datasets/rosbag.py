@@ -51,7 +51,7 @@ from typing import Any, Literal
 
 import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
-from frslam_graph.datasets.ros1_raw import Ros1RawBag
+from frslam_graph.datasets.ros1_raw import CUT, Ros1RawBag
 from frslam_graph.datasets.scan import Scan
 
 from frslam_graph.errors import OptionError, RecordingError
@@ -323,6 +323,14 @@ class RosBag(Recording):
                 cands = named
             if cands:
                 return cands[0], msgtype
+        cut = getattr(self.source, "first_problem", {}).get(CUT)
+        if cut is not None:
+            size = self.bag.stat().st_size
+            raise RecordingError(
+                f"truncated: the file ({size:,} bytes) ends in the middle of the record at {cut}, before "
+                f"any complete LaserScan or PointCloud2 message (topics read: {listing})",
+                source=self.bag,
+            )
         raise RecordingError(f"no LaserScan or PointCloud2 messages (topics: {listing})", source=self.bag)
 
     def _pick_odom_topic(self, wanted: str | None) -> str | None:

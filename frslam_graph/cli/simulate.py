@@ -102,7 +102,7 @@ def simulate_cmd(
         caster=caster,
     )
     options = SimulationOptions(**values)
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, "--overwrite")
     stages = ("house", "route", "lidar", "map", "bag")
     with (
         Progress(
