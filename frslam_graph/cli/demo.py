@@ -19,6 +19,7 @@ import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.progress import ScanProgress
 from frslam_graph.cli.summary import plan_status, print_written
 from frslam_graph.resources import bundled
 
@@ -124,10 +125,12 @@ def _slam_demo(
         f"simulated {len(sim)} scans over {route_len:.0f} m ({sim.stamps[-1] - sim.stamps[0]:.0f} s)"
     )
     runs = {}
-    for name, plan in (("without priors", None), ("with priors", apartment)):
-        with console.status(f"SLAM {name}"):
-            runs[name] = run_recording(sim.scans, floor_plan=plan)
-        write_outputs(runs[name], folders[name.replace(" ", "_")], sim.ground_truth)
+    with ScanProgress() as progress:
+        for name, plan in (("without priors", None), ("with priors", apartment)):
+            runs[name] = run_recording(
+                sim.scans, floor_plan=plan, progress=progress.task(f"SLAM {name}", len(sim))
+            )
+            write_outputs(runs[name], folders[name.replace(" ", "_")], sim.ground_truth)
     with_ = runs["with priors"]
     plan_in_map = with_.slam.registered_plan()
     trajectories = {name: r.result.trajectory for name, r in runs.items()}

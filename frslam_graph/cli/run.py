@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.progress import ScanProgress
 from frslam_graph.cli.recording_options import (
     Laser,
     Odom,
@@ -33,36 +33,13 @@ if TYPE_CHECKING:
     from frslam_graph.offline import RunOutput
 
 
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]}"),
-        TimeRemainingColumn(),
-        console=console,
-        transient=False,
-    )
-
-
-def _run_one(rec, plan, config, label: str, progress: Progress, sequential: bool = False):
+def _run_one(rec, plan, config, label: str, progress: ScanProgress, sequential: bool = False):
     from frslam_graph.offline import run_recording
 
-    task = progress.add_task(label, total=len(rec), rate="")
-    import time
-
-    t0 = time.perf_counter()
-
-    def tick(i: int) -> None:
-        if i % 25 == 0 or i == len(rec):
-            dt = time.perf_counter() - t0
-            progress.update(task, completed=i, rate=f"{i / dt:.0f} scans/s" if dt > 0 else "")
-
-    run = run_recording(
+    tick = progress.task(label, len(rec))
+    return run_recording(
         rec, floor_plan=plan, config=config, progress=tick, parallel=False if sequential else None
     )
-    progress.update(task, completed=len(rec))
-    return run
 
 
 def _inputs(
@@ -161,7 +138,7 @@ def run(
             scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
         )
         rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
-        with _progress() as progress:
+        with ScanProgress() as progress:
             label = "with priors" if plan is not None else "no priors"
             result = _run_one(rec, plan, cfg, label, progress, sequential)
         figure = _trajectory_figure({"estimate": result.result.trajectory}, gt, result)
@@ -203,7 +180,7 @@ def compare(
             scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
         )
         rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
-        with _progress() as progress:
+        with ScanProgress() as progress:
             without = _run_one(rec, None, cfg, "without priors", progress, sequential)
             write_outputs(without, runs["without_priors"], gt, rel)  # kept whatever the second run does
             with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
