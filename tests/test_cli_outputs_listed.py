@@ -19,27 +19,10 @@ from tests.test_registration import EXPLORED, ring_map, synthetic_plan, truth_ma
 
 
 @pytest.fixture(scope="module")
-def accepted_run(five_room_sim):
-    """A run of the five-room simulation with its plan (the plan is accepted within seconds)."""
-    from frslam_graph.offline import run_recording
-
-    plan, sim, _ = five_room_sim
-    return run_recording(sim.scans, floor_plan=plan, parallel=False)
-
-
-@pytest.fixture(scope="module")
 def plan_json(tmp_path_factory) -> Path:
     from frslam_graph.datasets.simulator import five_room_plan
 
     return five_room_plan().save(tmp_path_factory.mktemp("plan") / "five.json")
-
-
-@pytest.fixture
-def replayed(accepted_run, monkeypatch):
-    """``run`` / ``compare`` return the finished run instead of processing the recording again."""
-    import frslam_graph.offline as offline
-
-    monkeypatch.setattr(offline, "run_recording", lambda recording, floor_plan=None, **kw: accepted_run)
 
 
 def listed(out: Path, manifest: str) -> list[str]:

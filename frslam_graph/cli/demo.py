@@ -115,7 +115,7 @@ def _slam_demo(
     from frslam_graph.cli.run import _print_metrics
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs
-    from frslam_graph.viz import save_trajectory_png
+    from frslam_graph.viz import save_compare_png
 
     options = SimulationOptions(length=length, beams=720, fov_deg=270.0, max_range=30.0, rotation="any")
     with console.status("simulating the run"):
@@ -134,31 +134,17 @@ def _slam_demo(
     with_ = runs["with priors"]
     plan_in_map = with_.slam.registered_plan()
     trajectories = {name: r.result.trajectory for name, r in runs.items()}
-    gt_in_map = _ground_truth_in_map(with_, sim) if plan_in_map is not None else None
     grid = with_.slam.occupancy_grid(0.05)
     outputs.write(
         out / "slam_compare.png",
-        lambda p: save_trajectory_png(
+        lambda p: save_compare_png(
             p,
             trajectories,
-            gt_in_map,
+            sim.ground_truth,
             grid=grid,
             plan=plan_in_map,
-            title="apartment: trajectories in the map frame",
+            title="apartment: with and without floor-plan priors",
         ),
     )
     _print_metrics({name: r.metrics for name, r in runs.items()})
     return with_.metrics
-
-
-def _ground_truth_in_map(run, sim) -> np.ndarray:
-    """Ground truth aligned into the SLAM map frame (for the plot only)."""
-    from frslam_graph.metrics import align_2d, associate
-
-    est, ref = associate(run.result.trajectory, sim.ground_truth, 0.02)
-    _, al = align_2d(ref, est)
-    gt = sim.ground_truth.copy()
-    c, s = np.cos(al.yaw), np.sin(al.yaw)
-    xy = gt[:, 1:3] @ np.array([[c, s], [-s, c]]) + (al.tx, al.ty)
-    gt[:, 1:3] = xy
-    return gt

@@ -26,7 +26,7 @@ def _eta(seconds: float) -> str:
     if seconds < 1:
         return "under 1 s"
     seconds = round(seconds)
-    return f"{seconds // 60}:{seconds % 60:02d}" if seconds >= 60 else f"{seconds} s"
+    return f"about {seconds // 60}:{seconds % 60:02d}" if seconds >= 60 else f"about {seconds} s"
 
 
 class ScanProgress:
@@ -89,7 +89,7 @@ class ScanProgress:
             while next_share[0] <= share + 1e-9:
                 next_share[0] += PLAIN_STEP
             r = rate(i)
-            left = f", about {_eta((total - i) / r)} left" if r > 0 and i < total else ""
+            left = f", {_eta((total - i) / r)} left" if r > 0 and i < total else ""
             self.console.print(
                 f"{label}: {100 * share:.0f} % ({i:,}/{total:,} scans, {r:.0f} scans/s{left})",
                 highlight=False,

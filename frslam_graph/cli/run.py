@@ -94,6 +94,18 @@ def _trajectory_figure(
     return lambda path: save_trajectory_png(path, trajectories, gt, grid=grid, plan=plan, title=title)
 
 
+def _compare_figure(
+    trajectories: dict[str, np.ndarray], gt: np.ndarray | None, result: RunOutput
+) -> Callable[[Path], object]:
+    """A writer of compare.png: the overview over ``result``'s map and plan, and with a ground
+    truth each run coloured by its error and the errors over the distance travelled."""
+    from frslam_graph.viz import save_compare_png
+
+    grid = result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None
+    plan = result.slam.registered_plan()
+    return lambda path: save_compare_png(path, trajectories, gt, grid=grid, plan=plan)
+
+
 def _load_plan(path: Path | None):
     if path is None:
         return None
@@ -188,7 +200,7 @@ def compare(
         trajectories = {"without priors": without.result.trajectory, "with priors": with_.result.trajectory}
         summary = {"without priors": without.metrics, "with priors": with_.metrics}
         with top:
-            top.write("compare.png", _trajectory_figure(trajectories, gt, with_))
+            top.write("compare.png", _compare_figure(trajectories, gt, with_))
             top.commit({k: _summary(v) for k, v in summary.items()})
     _print_metrics(summary)
     print_written(outputs.files(), out, plan_status(with_.metrics, "with priors"))
