@@ -36,20 +36,33 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Folder for the demo's outputs."),
     seed: int = typer.Option(3, help="Seed of the simulated house and run."),
     length: float = typer.Option(200.0, help="Minimum length of the simulated route, metres."),
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording of the SLAM runs (FILE.rrd; view it with 'rerun FILE.rrd'). "
+        "Needs rerun-sdk: pip install 'frslam[viz]'.",
+    ),
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
     from frslam_graph.atomic import Outputs, check_folder
+    from frslam_graph.cli.run import _check_viz
     from frslam_graph.offline import RUN_OUTPUTS
 
     check_folder(out)
     with Outputs() as outputs:
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}
-        with_priors = _plans_demo(outputs, out, seed, length, runs)
+        _check_viz(outputs, viz)
+        with_priors = _plans_demo(outputs, out, seed, length, runs, viz)
     print_written(outputs.files(), out, plan_status(with_priors, "with priors") if with_priors else None)
 
 
 def _plans_demo(
-    outputs: Outputs, out: Path, seed: int, length: float, runs: dict[str, OutputFolder]
+    outputs: Outputs,
+    out: Path,
+    seed: int,
+    length: float,
+    runs: dict[str, OutputFolder],
+    viz: Path | None = None,
 ) -> dict[str, Any]:
     """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders);
     the metrics of the SLAM run with priors."""
@@ -73,7 +86,7 @@ def _plans_demo(
     _registration_demo(outputs, office, gmap, out, seed)
 
     console.rule("[bold]3. SLAM with and without floor-plan priors (simulated run in the apartment)")
-    return _slam_demo(outputs, apartment, out, seed, length, runs)
+    return _slam_demo(outputs, apartment, out, seed, length, runs, viz)
 
 
 def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> None:
@@ -110,9 +123,15 @@ def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> 
 
 
 def _slam_demo(
-    outputs: Outputs, apartment, out: Path, seed: int, length: float, folders: dict[str, OutputFolder]
+    outputs: Outputs,
+    apartment,
+    out: Path,
+    seed: int,
+    length: float,
+    folders: dict[str, OutputFolder],
+    viz: Path | None = None,
 ) -> dict[str, Any]:
-    from frslam_graph.cli.run import _print_metrics
+    from frslam_graph.cli.run import _print_metrics, _write_viz
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs
     from frslam_graph.viz import save_compare_png
@@ -146,5 +165,6 @@ def _slam_demo(
             title="apartment: with and without floor-plan priors",
         ),
     )
+    _write_viz(outputs, viz, runs)
     _print_metrics({name: r.metrics for name, r in runs.items()})
     return with_.metrics

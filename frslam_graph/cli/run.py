@@ -30,6 +30,7 @@ from frslam_graph.cli.summary import plan_status, print_written
 if TYPE_CHECKING:
     import numpy as np
 
+    from frslam_graph.atomic import Outputs
     from frslam_graph.offline import RunOutput
 
 
@@ -106,6 +107,22 @@ def _compare_figure(
     return lambda path: save_compare_png(path, trajectories, gt, grid=grid, plan=plan)
 
 
+def _check_viz(outputs: Outputs, viz: Path | None) -> None:
+    """Before the run: rerun-sdk is installed and ``--viz`` can be written (a ``.rrd``)."""
+    if viz is not None:
+        from frslam_graph.rerun_viz import require_rerun
+
+        require_rerun("--viz")
+        outputs.file(viz, (".rrd",), option="--viz")
+
+
+def _write_viz(outputs: Outputs, viz: Path | None, runs: dict[str, RunOutput]) -> None:
+    if viz is not None:
+        from frslam_graph.rerun_viz import write_rerun
+
+        outputs.write(viz, lambda path: write_rerun(path, runs))
+
+
 def _load_plan(path: Path | None):
     if path is None:
         return None
@@ -138,6 +155,12 @@ def run(
     laser: Laser = None,
     odom: Odom = None,
     plane_tol: PlaneTol = None,
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam[viz]'.",
+    ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
     from frslam_graph.atomic import Outputs
@@ -145,6 +168,7 @@ def run(
 
     with Outputs() as outputs:
         folder = outputs.folder(out, "metrics.json", RUN_OUTPUTS)
+        _check_viz(outputs, viz)
         plan = None if no_priors else _load_plan(floor_plan)
         reader_options = dict(
             scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
@@ -155,6 +179,7 @@ def run(
             result = _run_one(rec, plan, cfg, label, progress, sequential)
         figure = _trajectory_figure({"estimate": result.result.trajectory}, gt, result)
         write_outputs(result, folder, gt, rel, figures={"trajectory.png": figure})
+        _write_viz(outputs, viz, {"run": result})
     _print_metrics({"run": result.metrics})
     print_written(outputs.files(), out, plan_status(result.metrics))
     _check_evaluation(result.metrics, sources, out)
@@ -179,6 +204,12 @@ def compare(
     laser: Laser = None,
     odom: Odom = None,
     plane_tol: PlaneTol = None,
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam[viz]'.",
+    ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
     from frslam_graph.atomic import Outputs
@@ -187,6 +218,7 @@ def compare(
     with Outputs() as outputs:
         top = outputs.folder(out, "compare.json", ("compare.png",))
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in RUN_FOLDERS}
+        _check_viz(outputs, viz)
         plan = _load_plan(floor_plan)
         reader_options = dict(
             scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
@@ -202,6 +234,7 @@ def compare(
         with top:
             top.write("compare.png", _compare_figure(trajectories, gt, with_))
             top.commit({k: _summary(v) for k, v in summary.items()})
+        _write_viz(outputs, viz, {"without priors": without, "with priors": with_})
     _print_metrics(summary)
     print_written(outputs.files(), out, plan_status(with_.metrics, "with priors"))
     _check_evaluation(with_.metrics, sources, out)

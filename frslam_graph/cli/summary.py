@@ -27,23 +27,22 @@ def _size(path: Path) -> str:
     return ""
 
 
-def _relative(path: Path, base: Path) -> str:
-    try:
-        name = str(path.relative_to(base))
-    except ValueError:
-        name = str(path)
-    return name + ("/" if path.is_dir() else "")
-
-
 def print_written(paths: Iterable[Path], base: Path, plan: str | None = None) -> None:
-    """A table of the files written (paths relative to ``base``, the command's ``--out``) with
-    their sizes, then ``plan`` (the floor plan's fate: :func:`plan_status`) if given."""
+    """A table of the files written in ``base`` (the command's ``--out``; paths relative to it)
+    with their sizes, a line for each written elsewhere (``--viz FILE``), then ``plan`` (the
+    floor plan's fate: :func:`plan_status`) if given."""
     table = Table(title=escape(f"written to {base}"), title_justify="left")
     table.add_column("file", overflow="fold")
     table.add_column("size", justify="right", no_wrap=True)
+    elsewhere = []
     for path in paths:
-        table.add_row(escape(_relative(path, base)), _size(path))
+        if not path.is_relative_to(base):
+            elsewhere.append(path)
+            continue
+        table.add_row(escape(str(path.relative_to(base)) + ("/" if path.is_dir() else "")), _size(path))
     console.print(table)
+    for path in elsewhere:
+        console.print(f"also written: {escape(str(path))} ({_size(path)})", highlight=False, soft_wrap=True)
     if plan:
         console.print(plan, highlight=False, soft_wrap=True)
 
