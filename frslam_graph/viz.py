@@ -89,7 +89,7 @@ def compare_figure(
             except TrajectoryError:  # another recording's ground truth: the run reports it
                 pass
     n = len(errors)
-    fig = Figure(figsize=(6 * (1 + n), 11 if n else 8))
+    fig = Figure(figsize=(6 * (1 + n), 9 if n else 7), layout="constrained")
     grid_spec = fig.add_gridspec(2 if n else 1, 1 + n, height_ratios=[3, 1.4] if n else [1])
     ax = fig.add_subplot(grid_spec[0, 0])
     if grid is not None:
