@@ -40,6 +40,25 @@ def test_navigate_names_from_when_the_start_is_the_bad_option(flat_json, tmp_pat
     assert "--to garage: unknown room 'garage'" in err and "goal:" not in err
 
 
+def test_navigate_names_resolution_and_clearance_with_their_values(flat_json, tmp_path, capsys):
+    argv = [
+        "navigate",
+        str(flat_json),
+        "--from",
+        "2",
+        "2",
+        "--to",
+        "bathroom",
+        "--out",
+        str(tmp_path / "p.png"),
+    ]
+    assert main([*argv, "--resolution", "0.00001"]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert "--resolution 1e-05: plan too large to rasterise" in err and "bounds" not in err
+    assert main([*argv, "--clearance", "-1"]) == 2
+    assert "--clearance -1: clearance must be >= 0" in one_line(capsys.readouterr().err)
+
+
 def test_navigate_on_an_unregistered_plan_names_the_command_not_a_python_call(tmp_path, capsys):
     assert main(["navigate", R2V, "--from", "0", "0", "--to", "r1", "--out", str(tmp_path / "p.png")]) == 2
     err = one_line(capsys.readouterr().err)

@@ -56,12 +56,13 @@ def navigate(
     try:
         path = plan_route(plan, start, goal, grid_resolution=resolution, clearance=clearance)
     except FrslamError as exc:  # the library names its arguments: say the options instead
-        option = {"start": f"--from {start[0]:g} {start[1]:g}", "goal": f"--to {to[:80]}"}.get(
-            exc.where or ""
-        )
-        option = option or {"clearance": "--clearance", "grid_resolution": "--resolution"}.get(
-            exc.where or ""
-        )
+        option = {
+            "start": f"--from {start[0]:g} {start[1]:g}",
+            "goal": f"--to {to[:80]}",
+            "clearance": f"--clearance {clearance:g}",
+            "grid_resolution": f"--resolution {resolution:g}",
+            "bounds": f"--resolution {resolution:g}",  # the plan's raster at that resolution is too large
+        }.get(exc.where or "")
         if option is None:
             raise
         raise type(exc)(exc.message, source=exc.source, where=option) from None
