@@ -117,3 +117,12 @@ def test_error_lines_lose_control_characters_and_are_capped():
     assert _one_line("a\nb\x1b[31mc\x00") == "a b [31mc "
     long = _one_line("x" * 50_000)
     assert len(long) == MAX_MESSAGE_CHARS and long.endswith("...")
+
+
+def test_a_map_image_without_a_yaml_names_resolution_and_map_show_takes_it(tmp_path, capsys):
+    image = tmp_path / "gm.png"
+    image.write_bytes(bundled("prbonn/GMap.png").read_bytes())
+    assert main(["map", "show", str(image), "--out", str(tmp_path / "m.png")]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert "give it with --resolution" in err and "OccupancyGrid" not in err
+    assert main(["map", "show", str(image), "--resolution", "0.05", "--out", str(tmp_path / "m.png")]) == 0
