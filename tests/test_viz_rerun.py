@@ -3,6 +3,7 @@ loads; without rerun-sdk one line naming --viz and the install command."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -85,3 +86,21 @@ def test_viz_needs_an_rrd_file(small_log, tmp_path, capsys):
     )
     err = capsys.readouterr().err
     assert "--viz" in err and "unsupported extension '.txt' (expected .rrd)" in err
+
+
+def test_demo_lists_its_files_and_writes_the_viz_recording(replayed, tmp_path, capsys):
+    """The demo's SLAM runs replayed (``replayed``): its plans, registration, file table and
+    --viz recording are the real ones."""
+    from frslam_graph.cli.demo import SLAM_RUNS
+
+    out, rrd = tmp_path / "demo", tmp_path / "demo.rrd"
+    assert main(["demo", "--out", str(out), "--length", "1", "--viz", str(rrd)]) == 0
+    text = capsys.readouterr().out
+    for sub in SLAM_RUNS:
+        for name in json.loads((out / sub / "metrics.json").read_text())["outputs"]:
+            assert f"│ {sub}/{name} " in text, name
+    for name in ("apartment_plan.png", "office_plan.png", "office_registered.png", "slam_compare.png"):
+        assert f"│ {name} " in text, name
+    assert "floor plan (with priors): accepted at scan" in text
+    assert f"also written: {rrd}" in text.replace("\n", "")
+    assert {"/world/with_priors/plan/rooms", "/world/without_priors/scan"} <= entities(rrd, tmp_path)
