@@ -40,7 +40,7 @@ def demo(
         None,
         "--viz",
         help="Also write a rerun recording of the SLAM runs (FILE.rrd; view it with 'rerun FILE.rrd'). "
-        "Needs rerun-sdk: pip install 'frslam[viz]'.",
+        "Needs rerun-sdk: pip install 'frslam\\[viz]'.",
     ),
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""

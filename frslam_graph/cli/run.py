@@ -159,7 +159,7 @@ def run(
         None,
         "--viz",
         help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
-        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam[viz]'.",
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
     ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
@@ -208,7 +208,7 @@ def compare(
         None,
         "--viz",
         help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
-        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam[viz]'.",
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
     ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
