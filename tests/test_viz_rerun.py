@@ -104,3 +104,9 @@ def test_demo_lists_its_files_and_writes_the_viz_recording(replayed, tmp_path, c
     assert "floor plan (with priors): accepted at scan" in text
     assert f"also written: {rrd}" in text.replace("\n", "")
     assert {"/world/with_priors/plan/rooms", "/world/without_priors/scan"} <= entities(rrd, tmp_path)
+
+
+@pytest.mark.parametrize("command", ["run", "compare", "demo"])
+def test_viz_help_names_the_extra(command, capsys):
+    assert main([command, "--help"]) == 0
+    assert "'frslam[viz]'" in capsys.readouterr().out
