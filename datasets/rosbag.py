@@ -288,7 +288,9 @@ class RosBag(Recording):
         except Exception as exc:  # rosbags raises AssertionError, ReaderError, ... on odd bags
             reason = f"{type(exc).__name__}: {exc}".strip(": ")
             if reader == "rosbags" or not is_ros1:
-                raise RecordingError(f"rosbags cannot read it ({reason})", source=self.bag) from None
+                raise RecordingError(
+                    f"rosbags cannot read it, the bag may be damaged or cut short ({reason})", source=self.bag
+                ) from None
         self.source = _RawSource(self.bag)
         return "sequential", reason
 

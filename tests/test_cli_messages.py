@@ -113,6 +113,21 @@ def test_a_bag_cut_in_half_is_reported_as_truncated(tmp_path, capsys):
     assert "no LaserScan" not in err
 
 
+@pytest.mark.parametrize("storage", ["SQLITE3", "MCAP"])
+def test_a_ros2_bag_cut_in_half_may_be_damaged_or_cut_short(storage, tmp_path, capsys):
+    from rosbags.rosbag2 import StoragePlugin
+
+    bag = write_bag(
+        tmp_path / "b", standard_messages(ros1=False, n=50), ros1=False, storage=StoragePlugin[storage]
+    )
+    data_file = next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+    data_file.write_bytes(data_file.read_bytes()[: data_file.stat().st_size // 2])
+    assert main(["inspect", str(bag)]) == 2
+    assert "rosbags cannot read it, the bag may be damaged or cut short (" in one_line(
+        capsys.readouterr().err
+    )
+
+
 def test_error_lines_lose_control_characters_and_are_capped():
     assert _one_line("a\nb\x1b[31mc\x00") == "a b [31mc "
     long = _one_line("x" * 50_000)
