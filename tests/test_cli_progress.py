@@ -7,7 +7,7 @@ import io
 from rich.console import Console
 
 from frslam_graph.cli import main
-from frslam_graph.cli.progress import ScanProgress
+from frslam_graph.cli.progress import ScanProgress, status
 
 
 def test_plain_progress_is_a_line_at_every_tenth():
@@ -53,3 +53,10 @@ def test_run_piped_prints_plain_progress_lines(test_data, tmp_path, capsys):
     out = capsys.readouterr().out
     lines = [x for x in out.splitlines() if x.startswith("no priors: ")]
     assert len(lines) == 10 and lines[-1].startswith("no priors: 100 % (64/64 scans")
+
+
+def test_a_step_without_a_count_is_one_line_when_not_a_terminal():
+    out = io.StringIO()
+    with status("simulating the run", Console(file=out, force_terminal=False)):
+        pass
+    assert out.getvalue() == "simulating the run ...\n"

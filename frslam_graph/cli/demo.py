@@ -19,7 +19,7 @@ import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
-from frslam_graph.cli.progress import ScanProgress
+from frslam_graph.cli.progress import ScanProgress, status
 from frslam_graph.cli.summary import plan_status, print_written
 from frslam_graph.resources import bundled
 
@@ -137,7 +137,7 @@ def _slam_demo(
     from frslam_graph.viz import save_compare_png
 
     options = SimulationOptions(length=length, beams=720, fov_deg=270.0, max_range=30.0, rotation="any")
-    with console.status("simulating the run"):
+    with status("simulating the run"):
         sim = simulate_run(apartment, seed=seed, options=options)
     route_len = float(np.sum(np.hypot(*np.diff(sim.true_poses[:, :2], axis=0).T)))
     console.print(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -97,3 +98,12 @@ class ScanProgress:
             )
 
         return tick_plain
+
+
+def status(text: str, console: Console | None = None) -> AbstractContextManager:
+    """A step without a count: a spinner with ``text`` on a terminal, one line ``text ...`` when not."""
+    console = console or default_console
+    if console.is_terminal:
+        return console.status(text)
+    console.print(f"{text} ...", highlight=False, soft_wrap=True)
+    return nullcontext()
