@@ -109,7 +109,7 @@ def write_rerun(path: str | Path, runs: dict[str, RunOutput], application: str =
     rr = require_rerun()
     path = Path(path)
     tmp = path.parent / f"{TEMP_PREFIX}{secrets.token_hex(4)}-{path.name}"
-    rec = rr.RecordingStream(application, send_properties=False)
+    rec = rr.RecordingStream(application)
     try:
         rec.save(tmp)
         for name, run in runs.items():
