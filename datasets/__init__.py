@@ -27,7 +27,24 @@ __all__ = [
     "RosBag",
     "Scan",
     "open_recording",
+    "reader_for",
 ]
+
+
+def reader_for(path: str | Path) -> type[Recording] | None:
+    """The reader class ``open_recording`` uses for ``path`` (None: no reader knows it)."""
+    from frslam_graph.datasets.carmen import CarmenLog, is_carmen
+    from frslam_graph.datasets.pointcloud_folder import PointCloudFolder, cloud_files
+    from frslam_graph.datasets.rosbag import RosBag, bag_path
+
+    p = Path(path)
+    if p.is_file() and is_carmen(p):
+        return CarmenLog
+    if bag_path(p) is not None:
+        return RosBag
+    if p.is_dir() and cloud_files(p):
+        return PointCloudFolder
+    return None
 
 
 def open_recording(path: str | Path, **opts: Any) -> Recording:
@@ -35,20 +52,10 @@ def open_recording(path: str | Path, **opts: Any) -> Recording:
 
     Raises :class:`~frslam_graph.errors.RecordingError` for a missing path or an unknown kind.
     """
-    from frslam_graph.datasets.carmen import CarmenLog, is_carmen
-    from frslam_graph.datasets.pointcloud_folder import PointCloudFolder, cloud_files
-    from frslam_graph.datasets.rosbag import RosBag, bag_path
-
     p = Path(path)
     if not p.exists():
         raise RecordingError("no such file or folder", source=p)
-    reader: type[Recording] | None = None
-    if p.is_file() and is_carmen(p):
-        reader = CarmenLog
-    elif bag_path(p) is not None:
-        reader = RosBag
-    elif p.is_dir() and cloud_files(p):
-        reader = PointCloudFolder
+    reader = reader_for(p)
     if reader is not None:
         accepted = inspect.signature(reader.__init__).parameters
         unknown = sorted(k for k in opts if k not in accepted or k in ("self", "path"))

@@ -35,18 +35,20 @@ import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
 from frslam_graph.datasets.scan import Scan
 
-from frslam_graph.errors import RecordingError
-from frslam_graph.limits import bounded_lines, open_binary
+from frslam_graph.errors import OptionError, RecordingError
+from frslam_graph.limits import bounded_lines, open_binary, short_repr
 
 FRONT = ("FLASER", "ROBOTLASER1")
 REAR = ("RLASER", "ROBOTLASER2")
 LASERS = {"front": FRONT, "rear": REAR, "all": FRONT + REAR}
+ODOM_MODES = ("laser", "odom", "none")
 # Record types CARMEN logs contain that carry no scan: counted, not warned about.
 OTHER_TYPES = frozenset(
     "PARAM SYNC ODOM TRUEPOS NMEAGGA NMEARMC NMEA-GGA NMEA-RMC GPSNMEA RAWLASER1 RAWLASER2 RAWLASER3"
     " RAWLASER4 LASER1 LASER2 LASER3 LASER4 ROBOTLASER0 SONAR BUMPER VELOCITY VECTORMOVE FOLLOWTRAJECTORY"
     " IMU ARMSTATE BASEVELOCITY SCANMARK POSITIONLASER ODOM_ACK FLASER_ACK".split()
 )
+KNOWN_TYPES = OTHER_TYPES | set(FRONT + REAR)
 CARMEN_MAX_RANGE = 80.0  # carmen_string_to_robot_laser_message_orig's maximum_range
 SATURATION_SAMPLE = 300  # laser lines inspected for a saturation value
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
@@ -55,6 +57,17 @@ SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 def is_carmen(path: Path) -> bool:
     """True when the file name has a CARMEN suffix (.clf / .log, optionally .gz / .bz2)."""
     return path.name.lower().endswith(SUFFIXES)
+
+
+def _found(counts: Counter) -> str:
+    """The record types of a log without the laser wanted, for its error: the known types with
+    their counts, the others (e.g. a binary file's "lines") only counted, never quoted."""
+    known = [(k, n) for k, n in counts.most_common() if k in KNOWN_TYPES]
+    other = sum(n for k, n in counts.items() if k not in KNOWN_TYPES)
+    parts = [f"{k} {n}" for k, n in known]
+    if other:
+        parts.append(f"{other} line{'s' * (other != 1)} of no known CARMEN record type")
+    return ", ".join(parts) or "no records"
 
 
 def carmen_angle_increment(n: int) -> float:
@@ -173,9 +186,23 @@ class CarmenLog(Recording):
     ):
         super().__init__(path)
         if laser not in LASERS:
-            raise RecordingError(f"laser must be one of {sorted(LASERS)}, got {laser!r}", source=path)
-        if odom not in ("laser", "odom", "none"):
-            raise RecordingError(f"odom must be 'laser', 'odom' or 'none', got {odom!r}", source=path)
+            raise OptionError(
+                f"laser must be one of {sorted(LASERS)}, got {short_repr(laser)}",
+                path,
+                option="laser",
+                value=laser,
+                choices=list(LASERS),
+                problem="no such laser",
+            )
+        if odom not in ODOM_MODES:
+            raise OptionError(
+                f"odom must be 'laser', 'odom' or 'none', got {short_repr(odom)}",
+                path,
+                option="odom",
+                value=odom,
+                choices=ODOM_MODES,
+                problem="no such odometry source",
+            )
         if backwards not in ("keep", "skip", "error"):
             raise RecordingError(
                 f"backwards must be 'keep', 'skip' or 'error', got {backwards!r}", source=path
@@ -192,10 +219,30 @@ class CarmenLog(Recording):
         self._first_stamp = self._last_stamp = float("nan")
         sample_max, sample_hits, sample_beams, param_max = self._index()
         if self._len == 0:
-            found = ", ".join(f"{k} {v}" for k, v in self.counts.most_common()) or "no records"
+            found = _found(self.counts)
             if self._first_pass.skipped:
                 found += "; " + self._first_pass.summary()
-            raise RecordingError(f"no {'/'.join(self.laser_types)} laser records ({found})", source=self.path)
+            present = [name for name, kinds in LASERS.items() if any(self.counts[k] for k in kinds)]
+            message = f"no {'/'.join(self.laser_types)} laser records ({found})"
+            if not present:
+                raise RecordingError(message, source=self.path)
+            raise OptionError(
+                message,
+                self.path,
+                option="laser",
+                value=laser,
+                choices=present,
+                problem=f"no {'/'.join(self.laser_types)} records in the log",
+            )
+        if odom == "odom" and not len(self._odom):
+            raise OptionError(
+                "odom='odom' but the log has no usable ODOM records",
+                self.path,
+                option="odom",
+                value=odom,
+                choices=[m for m in ODOM_MODES if m != "odom"],
+                problem="no usable ODOM records in the log",
+            )
         if max_range is not None:
             self.max_range, self.max_range_source = float(max_range), "given"
         else:

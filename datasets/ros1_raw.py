@@ -66,6 +66,10 @@ def _time_ns(value: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
+#: the problem recorded when the file ends inside a record (a bag cut short)
+CUT = "bag cut in the middle of a record (rest ignored)"
+
+
 class Ros1RawBag:
     """Sequential access to a ROS 1 bag without its index.
 
@@ -157,7 +161,7 @@ class Ros1RawBag:
                 try:
                     rec = self._read_record(f, offset)
                 except EOFError as exc:
-                    self._problem("bag cut in the middle of a record (rest ignored)", str(exc))
+                    self._problem(CUT, str(exc))
                     return
                 if rec is None:
                     return
@@ -169,7 +173,7 @@ class Ros1RawBag:
                         self._problem("index records with a wrong data length (repaired)", f"byte {offset}")
                     dlen = real
                 if data_at + dlen > size:
-                    self._problem("bag cut in the middle of a record (rest ignored)", f"byte {offset}")
+                    self._problem(CUT, f"byte {offset}")
                     return
                 if op == OP_CHUNK:
                     data = f.read(dlen)

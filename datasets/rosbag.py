@@ -51,10 +51,11 @@ from typing import Any, Literal
 
 import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
-from frslam_graph.datasets.ros1_raw import Ros1RawBag
+from frslam_graph.datasets.ros1_raw import CUT, Ros1RawBag
 from frslam_graph.datasets.scan import Scan
 
-from frslam_graph.errors import RecordingError
+from frslam_graph.errors import OptionError, RecordingError
+from frslam_graph.limits import short_repr
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -287,19 +288,29 @@ class RosBag(Recording):
         except Exception as exc:  # rosbags raises AssertionError, ReaderError, ... on odd bags
             reason = f"{type(exc).__name__}: {exc}".strip(": ")
             if reader == "rosbags" or not is_ros1:
-                raise RecordingError(f"rosbags cannot read it ({reason})", source=self.bag) from None
+                raise RecordingError(
+                    f"rosbags cannot read it, the bag may be damaged or cut short ({reason})", source=self.bag
+                ) from None
         self.source = _RawSource(self.bag)
         return "sequential", reason
 
     def _pick_scan_topic(self, wanted: str | None) -> tuple[str, str]:
         listing = ", ".join(f"{t} [{m}]" for t, (m, _n) in sorted(self.topics.items())) or "none"
+        choices = sorted(t for t, (m, _n) in self.topics.items() if m in (LASER_SCAN, POINT_CLOUD2))
+
+        def bad(message: str, problem: str) -> OptionError:
+            return OptionError(
+                message, self.bag, option="scan_topic", value=wanted, choices=choices, problem=problem
+            )
+
         if wanted is not None:
             if wanted not in self.topics:
-                raise RecordingError(f"no topic {wanted!r} (topics: {listing})", source=self.bag)
+                raise bad(f"no topic {short_repr(wanted)} (topics: {listing})", "no such topic")
             msgtype = self.topics[wanted][0]
             if msgtype not in (LASER_SCAN, POINT_CLOUD2):
-                raise RecordingError(
-                    f"topic {wanted} has type {msgtype}; expected LaserScan or PointCloud2", source=self.bag
+                raise bad(
+                    f"topic {wanted} has type {msgtype}; expected LaserScan or PointCloud2",
+                    f"has type {msgtype}, not LaserScan or PointCloud2",
                 )
             return wanted, msgtype
         for msgtype in (LASER_SCAN, POINT_CLOUD2):
@@ -307,33 +318,49 @@ class RosBag(Recording):
             if len(cands) > 1:
                 named = [t for t in cands if t.rstrip("/").rsplit("/", 1)[-1] in ("scan", "points")]
                 if len(named) != 1:
-                    raise RecordingError(
+                    raise bad(
                         f"several {msgtype} topics ({', '.join(sorted(cands))}): choose one with scan_topic=",
-                        source=self.bag,
+                        f"several {msgtype} topics: choose one",
                     )
                 cands = named
             if cands:
                 return cands[0], msgtype
+        cut = getattr(self.source, "first_problem", {}).get(CUT)
+        if cut is not None:
+            size = self.bag.stat().st_size
+            raise RecordingError(
+                f"truncated: the file ({size:,} bytes) ends in the middle of the record at {cut}, before "
+                f"any complete LaserScan or PointCloud2 message (topics read: {listing})",
+                source=self.bag,
+            )
         raise RecordingError(f"no LaserScan or PointCloud2 messages (topics: {listing})", source=self.bag)
 
     def _pick_odom_topic(self, wanted: str | None) -> str | None:
         if wanted == "":
             return None
+        choices = [*sorted(t for t, (m, _n) in self.topics.items() if m == ODOMETRY), "'' (none)"]
+
+        def bad(message: str, problem: str) -> OptionError:
+            return OptionError(
+                message, self.bag, option="odom_topic", value=wanted, choices=choices, problem=problem
+            )
+
         if wanted is not None:
             if wanted not in self.topics:
-                raise RecordingError(f"no topic {wanted!r}", source=self.bag)
+                raise bad(f"no topic {short_repr(wanted)}", "no such topic")
             if self.topics[wanted][0] != ODOMETRY:
-                raise RecordingError(
-                    f"topic {wanted} has type {self.topics[wanted][0]}; expected {ODOMETRY}", source=self.bag
+                raise bad(
+                    f"topic {wanted} has type {self.topics[wanted][0]}; expected {ODOMETRY}",
+                    f"has type {self.topics[wanted][0]}, not {ODOMETRY}",
                 )
             return wanted
         cands = [t for t, (m, _n) in self.topics.items() if m == ODOMETRY]
         if len(cands) > 1:
             cands = [t for t in cands if "odom" in t.lower() and "truth" not in t.lower()]
             if len(cands) != 1:
-                raise RecordingError(
+                raise bad(
                     "several Odometry topics and none clearly wheel odometry: choose one with odom_topic=",
-                    source=self.bag,
+                    "several Odometry topics and none clearly wheel odometry: choose one",
                 )
         return cands[0] if cands else None
 

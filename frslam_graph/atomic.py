@@ -136,6 +136,8 @@ class OutputFolder:
         self.manifest = manifest
         self.known = {*known, manifest}
         self.committed = False
+        #: the outputs in place after the commit, the manifest last
+        self.outputs: list[Path] = []
         self._on_commit = on_commit
         self._stage: Path | None = None
 
@@ -198,9 +200,10 @@ class OutputFolder:
             except OSError as exc:
                 raise _error(exc, self.folder) from None
             self.committed = True
+            self.outputs = [self.folder / n for n in content["outputs"]]
             if self._on_commit is not None:
                 self._on_commit(self.folder)
-        return [self.folder / n for n in content["outputs"]]
+        return list(self.outputs)
 
 
 def check_folder(path: str | Path, option: str = "--out", where: str | None = None) -> None:
@@ -246,6 +249,7 @@ class Outputs:
 
     def __init__(self) -> None:
         self.done: list[Path] = []
+        self._folders: dict[Path, OutputFolder] = {}
 
     def __enter__(self) -> Outputs:
         return self
@@ -259,7 +263,18 @@ class Outputs:
     ) -> OutputFolder:
         """An output folder (checked now) whose outputs replace the previous ones on commit."""
         check_folder(path, option)
-        return OutputFolder(path, manifest, known, on_commit=self.done.append)
+        folder = OutputFolder(path, manifest, known, on_commit=self.done.append)
+        self._folders[folder.folder] = folder
+        return folder
+
+    def files(self) -> list[Path]:
+        """Every file (or folder, e.g. a bag) written so far, in the order written: an output
+        folder's outputs as its manifest lists them."""
+        out: list[Path] = []
+        for path in self.done:
+            folder = self._folders.get(path)
+            out.extend(folder.outputs if folder is not None and folder.committed else [path])
+        return out
 
     def file(self, path: str | Path, suffixes: Iterable[str], option: str = "--out") -> Path:
         """An output file (checked now: extension, not a folder, folder writable)."""

@@ -7,6 +7,7 @@ the input without reading a traceback from inside numpy, OpenCV or GTSAM. All de
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 
@@ -38,6 +39,36 @@ class MapError(FrslamError, ValueError):
 
 class RecordingError(FrslamError, ValueError):
     """A recording (CARMEN log, ROS bag, point-cloud folder, simulator output) is unreadable."""
+
+
+class OptionError(RecordingError):
+    """A reader option does not fit the recording (a topic it lacks, a laser it has no records
+    of), or one it needs was not given (several scan topics).
+
+    ``option`` names the reader's argument (``scan_topic``), ``value`` what was given (None: not
+    given), ``choices`` the values this file offers and ``problem`` what is wrong without the
+    option's name, so the CLI can say it with its own option (``--scan-topic``).
+    """
+
+    def __init__(
+        self,
+        message: str,
+        source: str | Path | None = None,
+        *,
+        option: str,
+        value: str | None = None,
+        choices: tuple[str, ...] | list[str] = (),
+        problem: str | None = None,
+    ):
+        super().__init__(message, source)
+        self.option = option
+        self.value = value
+        self.choices = tuple(choices)
+        self.problem = problem or message
+
+    def __reduce__(self):
+        fields = dict(option=self.option, value=self.value, choices=self.choices, problem=self.problem)
+        return (partial(type(self), **fields), (self.message, self.source))
 
 
 class ConfigError(FrslamError, ValueError):

@@ -363,6 +363,21 @@ def ate(
     return _stats(ape.error), alignment
 
 
+def translation_errors(
+    traj_est: np.ndarray, traj_ref: np.ndarray, *, align: bool = True, max_dt: float = 0.02
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pose translation error (m) of the estimate against the reference, the quantity
+    :func:`ate` summarises, with where it occurs: (distance travelled along the reference up to
+    each pose (K,), error (K,), the estimate's associated poses (K, 4) SE(2)-aligned when
+    ``align``, the reference's (K, 4))."""
+    est, ref = associate(traj_est, traj_ref, max_dt)
+    if align:
+        est, _ = align_2d(est, ref)
+    error = np.hypot(est[:, 1] - ref[:, 1], est[:, 2] - ref[:, 2])
+    distance = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, 1:3], axis=0).T))])
+    return distance, error, est, ref
+
+
 def rpe(
     traj_est: np.ndarray,
     traj_ref: np.ndarray,

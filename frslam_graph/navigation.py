@@ -118,12 +118,13 @@ def plan_path(
     passable = nav.clearance_map >= max(clearance, 0.5 * nav.frame.resolution)
     h, w = passable.shape
 
-    def fail(reason: str) -> Path:
-        return Path(np.zeros((0, 2)), float("inf"), (), False, reason)
+    def fail(reason: str, culprit: str = "goal") -> Path:
+        """No path; ``info["culprit"]``: the input at fault ("start" or "goal")."""
+        return Path(np.zeros((0, 2)), float("inf"), (), False, reason, info={"culprit": culprit})
 
     s = _snap(nav, passable, start, 2 * clearance + nav.frame.resolution)
     if s is None:
-        return fail(f"start {_fmt(start)} is not in the plan's free space (clearance {clearance} m)")
+        return fail(f"start {_fmt(start)} is not in the plan's free space (clearance {clearance} m)", "start")
     if isinstance(goal, str):
         if goal not in nav.room_ids:
             raise FloorPlanError(

@@ -168,8 +168,8 @@ class OccupancyGrid:
         if yaml_path.suffix.lower() in IMAGE_SUFFIXES:
             if resolution is None:
                 raise MapError(
-                    "an image map without a YAML needs its resolution in metres per pixel "
-                    "(OccupancyGrid.from_image(path, resolution); frslam: --resolution)",
+                    "an image map without a map_server YAML needs its resolution in metres per pixel: "
+                    "give it with --resolution",
                     src,
                 )
             return cls.from_image(yaml_path, resolution, **image_options)

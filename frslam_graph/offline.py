@@ -209,6 +209,8 @@ def _run_metrics(
             "re_anchored": removed["re-anchored"],
         },
         "floor_plan": run.slam.floor_plan is not None,
+        # when the floor plan was first accepted (None: never, or no plan)
+        "plan_accepted": plan_acceptance(res),
     }
     if map_metrics:
         metrics["map"] = map_metrics
@@ -230,6 +232,30 @@ def _run_metrics(
     if errors:
         metrics["evaluation_errors"] = errors
     return metrics
+
+
+def plan_acceptance(result: SlamResult) -> dict[str, Any] | None:
+    """When the floor plan was first accepted, from the decision log: the first accepted
+    registration's scan index (into the trajectory), stamp, seconds since the first scan and
+    keyframe, and how many registrations had been tried by then; None when none was accepted."""
+    tried = 0
+    for ev in result.log:
+        if ev.kind != "register":
+            continue
+        tried += 1
+        if not ev.data.get("accepted"):
+            continue
+        stamps = result.trajectory[:, 0]
+        exact = np.flatnonzero(stamps == ev.stamp)
+        scan = int(exact[0]) if exact.size else int(np.argmin(np.abs(stamps - ev.stamp)))
+        return {
+            "scan": scan,
+            "stamp": ev.stamp,
+            "time_s": ev.stamp - float(stamps[0]),
+            "keyframe": ev.keyframe,
+            "registrations_tried": tried,
+        }
+    return None
 
 
 def _map_metrics(slam: FRSlam, grid) -> dict[str, Any]:

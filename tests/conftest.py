@@ -62,6 +62,24 @@ def five_room_sim():
     return plan, run, true_matrix
 
 
+@pytest.fixture(scope="session")
+def accepted_run(five_room_sim):
+    """A run of the five-room simulation with its plan (the plan is accepted within seconds)."""
+    from frslam_graph.offline import run_recording
+
+    plan, sim, _ = five_room_sim
+    return run_recording(sim.scans, floor_plan=plan, parallel=False)
+
+
+@pytest.fixture
+def replayed(accepted_run, monkeypatch):
+    """``run`` / ``compare`` return ``accepted_run`` instead of processing the recording given."""
+    import frslam_graph.offline as offline
+
+    monkeypatch.setattr(offline, "run_recording", lambda recording, floor_plan=None, **kw: accepted_run)
+    return accepted_run
+
+
 def _write_carmen(path: Path, truth, odom, ranges) -> None:
     """A CARMEN log of FLASER lines (180 beams of the 360 given, odometry = the pose fields)."""
     import numpy as np

@@ -401,15 +401,19 @@ def write_tum(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Path:
     return path
 
 
-def check_output_dir(out: Path, overwrite: bool) -> list[str]:
+def check_output_dir(out: Path, overwrite: bool, overwrite_option: str = "overwrite=True") -> list[str]:
     """The simulator files already in ``out`` (to be replaced); ConfigError when ``out`` is a file,
-    or holds a previous simulation and ``overwrite`` is false."""
+    or holds a previous simulation and ``overwrite`` is false (naming ``overwrite_option``, how the
+    caller's user asks to replace it: the CLI's ``--overwrite``)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError("output path exists and is not a folder", source=out)
     present = [name for name in OUTPUT_FILES if (out / name).exists()]
     if present and not overwrite:
-        raise ConfigError(f"output folder already holds {present}; use overwrite", source=out)
+        raise ConfigError(
+            f"output folder already holds a simulation ({', '.join(present)}); to replace it: {overwrite_option}",
+            source=out,
+        )
     return present
 
 

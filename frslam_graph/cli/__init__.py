@@ -79,6 +79,26 @@ def _signals_interrupt() -> Iterator[None]:
             signal.signal(s, h)
 
 
+#: an error line is cut to this many characters (a value quoted from a binary file, say)
+MAX_MESSAGE_CHARS = 1000
+
+
+def _one_line(text: str) -> str:
+    """``text`` on one line: control characters (newlines, escapes of a binary file) shown as
+    spaces, cut to :data:`MAX_MESSAGE_CHARS`."""
+    text = "".join(" " if (ord(c) < 32 or 127 <= ord(c) < 160) else c for c in text)
+    return text if len(text) <= MAX_MESSAGE_CHARS else text[: MAX_MESSAGE_CHARS - 3] + "..."
+
+
+def _quiet_opencv() -> None:
+    """OpenCV prints its own ``[ WARN:0@...]`` / ``[ERROR:0@...]`` lines on stderr (a damaged PNG)
+    before the CLI's one line that names the file: only the CLI's stays."""
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line.
 
@@ -88,12 +108,15 @@ def main(argv: list[str] | None = None) -> int:
     naming the outputs complete by then (unfinished ones are not left behind) and exit code 130 /
     143; any other exception is a bug and keeps its traceback.
     """
+    _quiet_opencv()
     try:
         with warnings.catch_warnings(), _signals_interrupt():
             warnings.showwarning = _show_warning
             app(args=argv, standalone_mode=True)
     except FrslamError as exc:
-        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        err_console.print(
+            f"[bold red]error:[/] {escape(_one_line(str(exc)))}", highlight=False, soft_wrap=True
+        )
         return 2
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name

@@ -13,12 +13,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.progress import ScanProgress, status
+from frslam_graph.cli.summary import plan_status, print_written
 from frslam_graph.resources import bundled
 
 if TYPE_CHECKING:
@@ -34,20 +36,36 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Folder for the demo's outputs."),
     seed: int = typer.Option(3, help="Seed of the simulated house and run."),
     length: float = typer.Option(200.0, help="Minimum length of the simulated route, metres."),
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording of the SLAM runs (FILE.rrd; view it with 'rerun FILE.rrd'). "
+        "Needs rerun-sdk: pip install 'frslam\\[viz]'.",
+    ),
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
     from frslam_graph.atomic import Outputs, check_folder
+    from frslam_graph.cli.run import _check_viz
     from frslam_graph.offline import RUN_OUTPUTS
 
     check_folder(out)
     with Outputs() as outputs:
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}
-        _plans_demo(outputs, out, seed, length, runs)
-    console.print(f"[bold green]demo outputs in {out}[/]")
+        _check_viz(outputs, viz)
+        with_priors = _plans_demo(outputs, out, seed, length, runs, viz)
+    print_written(outputs.files(), out, plan_status(with_priors, "with priors") if with_priors else None)
 
 
-def _plans_demo(outputs: Outputs, out: Path, seed: int, length: float, runs: dict[str, OutputFolder]) -> None:
-    """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders)."""
+def _plans_demo(
+    outputs: Outputs,
+    out: Path,
+    seed: int,
+    length: float,
+    runs: dict[str, OutputFolder],
+    viz: Path | None = None,
+) -> dict[str, Any]:
+    """The demo's three parts, writing through ``outputs`` (``runs``: the SLAM runs' folders);
+    the metrics of the SLAM run with priors."""
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.render import render_plan
     from frslam_graph.occupancy import OccupancyGrid
@@ -68,7 +86,7 @@ def _plans_demo(outputs: Outputs, out: Path, seed: int, length: float, runs: dic
     _registration_demo(outputs, office, gmap, out, seed)
 
     console.rule("[bold]3. SLAM with and without floor-plan priors (simulated run in the apartment)")
-    _slam_demo(outputs, apartment, out, seed, length, runs)
+    return _slam_demo(outputs, apartment, out, seed, length, runs, viz)
 
 
 def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> None:
@@ -105,52 +123,48 @@ def _registration_demo(outputs: Outputs, office, gmap, out: Path, seed: int) -> 
 
 
 def _slam_demo(
-    outputs: Outputs, apartment, out: Path, seed: int, length: float, folders: dict[str, OutputFolder]
-) -> None:
-    from frslam_graph.cli.run import _print_metrics
+    outputs: Outputs,
+    apartment,
+    out: Path,
+    seed: int,
+    length: float,
+    folders: dict[str, OutputFolder],
+    viz: Path | None = None,
+) -> dict[str, Any]:
+    from frslam_graph.cli.run import _print_metrics, _write_viz
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
     from frslam_graph.offline import run_recording, write_outputs
-    from frslam_graph.viz import save_trajectory_png
+    from frslam_graph.viz import save_compare_png
 
     options = SimulationOptions(length=length, beams=720, fov_deg=270.0, max_range=30.0, rotation="any")
-    with console.status("simulating the run"):
+    with status("simulating the run"):
         sim = simulate_run(apartment, seed=seed, options=options)
     route_len = float(np.sum(np.hypot(*np.diff(sim.true_poses[:, :2], axis=0).T)))
     console.print(
         f"simulated {len(sim)} scans over {route_len:.0f} m ({sim.stamps[-1] - sim.stamps[0]:.0f} s)"
     )
     runs = {}
-    for name, plan in (("without priors", None), ("with priors", apartment)):
-        with console.status(f"SLAM {name}"):
-            runs[name] = run_recording(sim.scans, floor_plan=plan)
-        write_outputs(runs[name], folders[name.replace(" ", "_")], sim.ground_truth)
+    with ScanProgress() as progress:
+        for name, plan in (("without priors", None), ("with priors", apartment)):
+            runs[name] = run_recording(
+                sim.scans, floor_plan=plan, progress=progress.task(f"SLAM {name}", len(sim))
+            )
+            write_outputs(runs[name], folders[name.replace(" ", "_")], sim.ground_truth)
     with_ = runs["with priors"]
     plan_in_map = with_.slam.registered_plan()
     trajectories = {name: r.result.trajectory for name, r in runs.items()}
-    gt_in_map = _ground_truth_in_map(with_, sim) if plan_in_map is not None else None
     grid = with_.slam.occupancy_grid(0.05)
     outputs.write(
         out / "slam_compare.png",
-        lambda p: save_trajectory_png(
+        lambda p: save_compare_png(
             p,
             trajectories,
-            gt_in_map,
+            sim.ground_truth,
             grid=grid,
             plan=plan_in_map,
-            title="apartment: trajectories in the map frame",
+            title="apartment: with and without floor-plan priors",
         ),
     )
+    _write_viz(outputs, viz, runs)
     _print_metrics({name: r.metrics for name, r in runs.items()})
-
-
-def _ground_truth_in_map(run, sim) -> np.ndarray:
-    """Ground truth aligned into the SLAM map frame (for the plot only)."""
-    from frslam_graph.metrics import align_2d, associate
-
-    est, ref = associate(run.result.trajectory, sim.ground_truth, 0.02)
-    _, al = align_2d(ref, est)
-    gt = sim.ground_truth.copy()
-    c, s = np.cos(al.yaw), np.sin(al.yaw)
-    xy = gt[:, 1:3] @ np.array([[c, s], [-s, c]]) + (al.tx, al.ty)
-    gt[:, 1:3] = xy
-    return gt
+    return with_.metrics

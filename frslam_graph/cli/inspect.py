@@ -14,6 +14,14 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.recording_options import (
+    Laser,
+    Odom,
+    OdomTopic,
+    PlaneTol,
+    ScanTopic,
+    open_recording_with,
+)
 
 
 @app.command("inspect")
@@ -21,30 +29,19 @@ def inspect(
     recording: Annotated[
         Path, typer.Argument(help="CARMEN log, ROS 1/2 bag, simulator output or PCD/PLY folder.")
     ],
-    scan_topic: Annotated[str | None, typer.Option(help="Bag: scan topic (default: auto-detected).")] = None,
-    odom_topic: Annotated[
-        str | None, typer.Option(help="Bag: odometry topic (default: auto-detected; '' = none).")
-    ] = None,
-    laser: Annotated[str | None, typer.Option(help="CARMEN: front, rear or all (default front).")] = None,
-    odom: Annotated[
-        str | None, typer.Option(help="CARMEN: odometry from the 'laser' lines, interpolated 'odom', 'none'.")
-    ] = None,
-    plane_tol: Annotated[
-        float | None, typer.Option(help="Point clouds: half thickness of the slice kept, m.")
-    ] = None,
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    laser: Laser = None,
+    odom: Odom = None,
+    plane_tol: PlaneTol = None,
 ) -> None:
     """Read RECORDING once and print record counts, duration, beams, invalid beams and scans per second."""
-    from frslam_graph.datasets import RecordingWarning, open_recording
+    from frslam_graph.datasets import RecordingWarning
 
-    opts = {
-        k: v
-        for k, v in dict(
-            scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
-        ).items()
-        if v is not None
-    }
     t0 = time.perf_counter()
-    rec = open_recording(recording, **opts)
+    rec = open_recording_with(
+        recording, scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
+    )
     t_open = time.perf_counter() - t0
     beams: list[int] = []
     with_odom = 0

@@ -11,8 +11,13 @@ from frslam_graph.cli.app import console, map_app
 
 @map_app.command("show")
 def show(
-    map_yaml: Path = typer.Argument(..., help="ROS map_server YAML (image + resolution + origin)."),
+    map_yaml: Path = typer.Argument(
+        ..., help="ROS map_server YAML (image + resolution + origin), or an image with --resolution."
+    ),
     out: Path = typer.Option(Path("map.png"), "--out", "-o", help="PNG to write."),
+    resolution: float | None = typer.Option(
+        None, "--resolution", help="Metres per pixel of a map image without a YAML (not for a YAML map)."
+    ),
 ) -> None:
     """Render a map_server occupancy map to PNG with metric axes, and print its summary."""
     from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs
@@ -21,7 +26,7 @@ def show(
 
     outputs = Outputs()
     outputs.file(out, FIGURE_SUFFIXES)
-    grid = OccupancyGrid.load(map_yaml)
+    grid = OccupancyGrid.load(map_yaml, resolution=resolution)
     outputs.write(out, lambda p: save_grid_png(grid, p, title=map_yaml.name))
     free = int(grid.free_mask().sum())
     occ = int(grid.occupied_mask().sum())

@@ -45,8 +45,27 @@ def navigate(
     outputs = Outputs()
     outputs.file(out, FIGURE_SUFFIXES)
     plan = FloorPlan.load(plan_path)
+    if plan.units != "m":
+        raise FrslamError(
+            f"the plan is in {plan.units!r}, not metres: navigate needs a registered plan "
+            "(frslam register PLAN MAP.yaml --out DIR writes DIR/registered_plan.json; "
+            "frslam run --floor-plan writes one too)",
+            source=plan_path,
+        )
     goal = _goal(to)
-    path = plan_route(plan, start, goal, grid_resolution=resolution, clearance=clearance)
+    try:
+        path = plan_route(plan, start, goal, grid_resolution=resolution, clearance=clearance)
+    except FrslamError as exc:  # the library names its arguments: say the options instead
+        option = {
+            "start": f"--from {start[0]:g} {start[1]:g}",
+            "goal": f"--to {to[:80]}",
+            "clearance": f"--clearance {clearance:g}",
+            "grid_resolution": f"--resolution {resolution:g}",
+            "bounds": f"--resolution {resolution:g}",  # the plan's raster at that resolution is too large
+        }.get(exc.where or "")
+        if option is None:
+            raise
+        raise type(exc)(exc.message, source=exc.source, where=option) from None
     fig = Figure(figsize=(9, 8))
     ax = fig.add_subplot(1, 1, 1)
     draw_plan(ax, plan, alpha=0.35)
@@ -64,8 +83,10 @@ def navigate(
     if not path.ok:
         links = room_graph(plan)
         doors = ", ".join(f"{a}-{b}" for a in sorted(links) for b in sorted(links[a]) if a < b) or "none"
+        culprit = path.info.get("culprit", "goal")
+        option = f"--from {start[0]:g} {start[1]:g}" if culprit == "start" else f"--to {to[:80]}"
         raise FrslamError(
-            f"no path: {path.reason} (doors: {doors}); wrote {out}", source=plan_path, where="--to"
+            f"no path: {path.reason} (doors: {doors}); wrote {out}", source=plan_path, where=option
         )
     console.print(
         f"path of {path.length:.2f} m through {' -> '.join(path.rooms) or 'no room'} "

@@ -17,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import typer
+from rich.markup import escape
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.summary import print_written
 
 #: what register writes (a previous registration's files of these names are replaced)
 OUTPUTS = ("registered_plan.json", "overlay.png", "report.json")
@@ -71,6 +73,22 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _check_seed_rooms(plan, plan_path: Path, seed_rooms: list[str]) -> None:
+    """FloorPlanError naming ``--seed-room`` and the plan's rooms for an id the plan lacks."""
+    from frslam_graph.errors import FloorPlanError
+    from frslam_graph.limits import short_repr
+
+    ids = [r.id for r in plan.rooms]
+    for room in seed_rooms:
+        if room not in ids:
+            listed = ", ".join(ids[:30]) + (f", ... ({len(ids)} in all)" if len(ids) > 30 else "")
+            raise FloorPlanError(
+                f"no such room in the plan (its rooms: {listed or 'none'})",
+                source=plan_path,
+                where=f"--seed-room {short_repr(room)}",
+            )
+
+
 @app.command("register")
 def register_cmd(
     plan_path: Path = typer.Argument(
@@ -100,6 +118,7 @@ def register_cmd(
     with Outputs() as outputs:
         folder = outputs.folder(out, "report.json", OUTPUTS)
         plan, _ = _load(plan_path, plan_yaml)
+        _check_seed_rooms(plan, plan_path, seed_room)
         grid = OccupancyGrid.load(map_yaml, resolution=resolution)
         options = {"seed_rooms": list(seed_room)} if seed_room else {}
         reg = register(plan, grid, method=method, **options)
@@ -130,8 +149,8 @@ def register_cmd(
             highlight=False,
             soft_wrap=True,
         )
-        console.print(f"wrote {out / 'registered_plan.json'}, {out / 'overlay.png'}, {out / 'report.json'}")
+        print_written(outputs.files(), out, "floor plan: [bold green]registered[/] to the map")
     else:
-        console.print(f"[bold red]no registration:[/] {reg.reason}", highlight=False, soft_wrap=True)
-        console.print(f"wrote {out / 'overlay.png'}, {out / 'report.json'}")
+        print_written(outputs.files(), out)
+        console.print(f"[bold red]no registration:[/] {escape(reg.reason)}", highlight=False, soft_wrap=True)
         raise typer.Exit(1)

@@ -10,62 +10,55 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.progress import ScanProgress
+from frslam_graph.cli.recording_options import (
+    Laser,
+    Odom,
+    OdomTopic,
+    PlaneTol,
+    ScanTopic,
+    open_recording_with,
+)
+from frslam_graph.cli.summary import plan_status, print_written
 
 if TYPE_CHECKING:
     import numpy as np
 
+    from frslam_graph.atomic import Outputs
     from frslam_graph.offline import RunOutput
 
 
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]}"),
-        TimeRemainingColumn(),
-        console=console,
-        transient=False,
-    )
-
-
-def _run_one(rec, plan, config, label: str, progress: Progress, sequential: bool = False):
+def _run_one(rec, plan, config, label: str, progress: ScanProgress, sequential: bool = False):
     from frslam_graph.offline import run_recording
 
-    task = progress.add_task(label, total=len(rec), rate="")
-    import time
-
-    t0 = time.perf_counter()
-
-    def tick(i: int) -> None:
-        if i % 25 == 0 or i == len(rec):
-            dt = time.perf_counter() - t0
-            progress.update(task, completed=i, rate=f"{i / dt:.0f} scans/s" if dt > 0 else "")
-
-    run = run_recording(
+    tick = progress.task(label, len(rec))
+    return run_recording(
         rec, floor_plan=plan, config=config, progress=tick, parallel=False if sequential else None
     )
-    progress.update(task, completed=len(rec))
-    return run
 
 
-def _inputs(recording: Path, config: Path | None, ground_truth: Path | None, relations: Path | None):
-    """Open and check every input before the run (which may take long): the recording, the
-    configuration, the ground truth (``--ground-truth`` or the recording's own) and the relations.
-    A bad one is reported now, not after the run with its outputs lost. Returns (recording,
-    config, ground truth, relations, sources: how to name the ground truth / relations)."""
+def _inputs(
+    recording: Path,
+    config: Path | None,
+    ground_truth: Path | None,
+    relations: Path | None,
+    reader_options: dict[str, Any],
+):
+    """Open and check every input before the run (which may take long): the recording (with the
+    reader options given: topics, laser, odometry), the configuration, the ground truth
+    (``--ground-truth`` or the recording's own) and the relations. A bad one is reported now, not
+    after the run with its outputs lost. Returns (recording, config, ground truth, relations,
+    sources: how to name the ground truth / relations)."""
     from frslam_graph.config import FRSlamConfig
-    from frslam_graph.datasets import open_recording
     from frslam_graph.metrics import load_relations, load_tum
 
-    rec = open_recording(recording)
+    rec = open_recording_with(recording, **reader_options)
     cfg = FRSlamConfig.load(config) if config is not None else None
     sources = {"relations": f"--relations {relations}"}
     if ground_truth is not None:
@@ -102,6 +95,34 @@ def _trajectory_figure(
     return lambda path: save_trajectory_png(path, trajectories, gt, grid=grid, plan=plan, title=title)
 
 
+def _compare_figure(
+    trajectories: dict[str, np.ndarray], gt: np.ndarray | None, result: RunOutput
+) -> Callable[[Path], object]:
+    """A writer of compare.png: the overview over ``result``'s map and plan, and with a ground
+    truth each run coloured by its error and the errors over the distance travelled."""
+    from frslam_graph.viz import save_compare_png
+
+    grid = result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None
+    plan = result.slam.registered_plan()
+    return lambda path: save_compare_png(path, trajectories, gt, grid=grid, plan=plan)
+
+
+def _check_viz(outputs: Outputs, viz: Path | None) -> None:
+    """Before the run: rerun-sdk is installed and ``--viz`` can be written (a ``.rrd``)."""
+    if viz is not None:
+        from frslam_graph.rerun_viz import require_rerun
+
+        require_rerun("--viz")
+        outputs.file(viz, (".rrd",), option="--viz")
+
+
+def _write_viz(outputs: Outputs, viz: Path | None, runs: dict[str, RunOutput]) -> None:
+    if viz is not None:
+        from frslam_graph.rerun_viz import write_rerun
+
+        outputs.write(viz, lambda path: write_rerun(path, runs))
+
+
 def _load_plan(path: Path | None):
     if path is None:
         return None
@@ -129,6 +150,17 @@ def run(
         help="Run the scan odometry in this process (default: in a second process where possible; "
         "same results, about 1.5x as fast on two cores).",
     ),
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    laser: Laser = None,
+    odom: Odom = None,
+    plane_tol: PlaneTol = None,
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
+    ),
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
     from frslam_graph.atomic import Outputs
@@ -136,15 +168,20 @@ def run(
 
     with Outputs() as outputs:
         folder = outputs.folder(out, "metrics.json", RUN_OUTPUTS)
+        _check_viz(outputs, viz)
         plan = None if no_priors else _load_plan(floor_plan)
-        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
-        with _progress() as progress:
+        reader_options = dict(
+            scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
+        )
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
+        with ScanProgress() as progress:
             label = "with priors" if plan is not None else "no priors"
             result = _run_one(rec, plan, cfg, label, progress, sequential)
         figure = _trajectory_figure({"estimate": result.result.trajectory}, gt, result)
         write_outputs(result, folder, gt, rel, figures={"trajectory.png": figure})
+        _write_viz(outputs, viz, {"run": result})
     _print_metrics({"run": result.metrics})
-    console.print(f"outputs in {out}: " + ", ".join(sorted(p.name for p in result.files.values())))
+    print_written(outputs.files(), out, plan_status(result.metrics))
     _check_evaluation(result.metrics, sources, out)
 
 
@@ -162,6 +199,17 @@ def compare(
         help="Run the scan odometry in this process (default: in a second process where possible; "
         "same results, about 1.5x as fast on two cores).",
     ),
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    laser: Laser = None,
+    odom: Odom = None,
+    plane_tol: PlaneTol = None,
+    viz: Path | None = typer.Option(
+        None,
+        "--viz",
+        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
+    ),
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
     from frslam_graph.atomic import Outputs
@@ -170,9 +218,13 @@ def compare(
     with Outputs() as outputs:
         top = outputs.folder(out, "compare.json", ("compare.png",))
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in RUN_FOLDERS}
+        _check_viz(outputs, viz)
         plan = _load_plan(floor_plan)
-        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations)
-        with _progress() as progress:
+        reader_options = dict(
+            scan_topic=scan_topic, odom_topic=odom_topic, laser=laser, odom=odom, plane_tol=plane_tol
+        )
+        rec, cfg, gt, rel, sources = _inputs(recording, config, ground_truth, relations, reader_options)
+        with ScanProgress() as progress:
             without = _run_one(rec, None, cfg, "without priors", progress, sequential)
             write_outputs(without, runs["without_priors"], gt, rel)  # kept whatever the second run does
             with_ = _run_one(rec, plan, cfg, "with priors", progress, sequential)
@@ -180,10 +232,11 @@ def compare(
         trajectories = {"without priors": without.result.trajectory, "with priors": with_.result.trajectory}
         summary = {"without priors": without.metrics, "with priors": with_.metrics}
         with top:
-            top.write("compare.png", _trajectory_figure(trajectories, gt, with_))
+            top.write("compare.png", _compare_figure(trajectories, gt, with_))
             top.commit({k: _summary(v) for k, v in summary.items()})
+        _write_viz(outputs, viz, {"without priors": without, "with priors": with_})
     _print_metrics(summary)
-    console.print(f"outputs in {out}")
+    print_written(outputs.files(), out, plan_status(with_.metrics, "with priors"))
     _check_evaluation(with_.metrics, sources, out)
 
 
@@ -201,6 +254,7 @@ def _summary(m: dict) -> dict:
         "latency_ms",
         "decisions",
         "priors",
+        "plan_accepted",
         "ate",
         "ate_unaligned",
         "rpe_1m",

@@ -14,6 +14,7 @@ from typing import Any
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.summary import print_written
 
 
 def _load_plan(path: Path):
@@ -101,7 +102,7 @@ def simulate_cmd(
         caster=caster,
     )
     options = SimulationOptions(**values)
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, "--overwrite")
     stages = ("house", "route", "lidar", "map", "bag")
     with (
         Progress(
@@ -139,6 +140,4 @@ def simulate_cmd(
         highlight=False,
         soft_wrap=True,
     )
-    console.print(
-        f"wrote {res.out_dir}/ (bag/, ground_truth.tum, house.json, map.yaml, meta.json)", highlight=False
-    )
+    print_written(outputs.files(), out)
