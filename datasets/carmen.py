@@ -41,7 +41,7 @@ from frslam_graph.limits import bounded_lines, open_binary, short_repr
 FRONT = ("FLASER", "ROBOTLASER1")
 REAR = ("RLASER", "ROBOTLASER2")
 LASERS = {"front": FRONT, "rear": REAR, "all": FRONT + REAR}
-ODOM_MODES = ("laser", "odom", "none")
+ODOM_MODES = ("auto", "laser", "odom", "none")
 # Record types CARMEN logs contain that carry no scan: counted, not warned about.
 OTHER_TYPES = frozenset(
     "PARAM SYNC ODOM TRUEPOS NMEAGGA NMEARMC NMEA-GGA NMEA-RMC GPSNMEA RAWLASER1 RAWLASER2 RAWLASER3"
@@ -164,8 +164,11 @@ class CarmenLog(Recording):
     Args:
         path: ``.clf`` / ``.log`` file, optionally ``.gz`` / ``.bz2``.
         laser: ``"front"`` (FLASER, ROBOTLASER1; default), ``"rear"`` or ``"all"``.
-        odom: ``"laser"`` takes the robot pose written in each laser line (default); ``"odom"``
-            interpolates the ODOM records at the scan stamps; ``"none"`` attaches none.
+        odom: ``"laser"`` takes the robot pose written in each laser line; ``"odom"``
+            interpolates the ODOM records at the scan stamps; ``"none"`` attaches none;
+            ``"auto"`` (default) interpolates when the log shows that the laser lines' poses are
+            stale and the stamps can be trusted, else takes the laser lines' poses: see
+            :attr:`odom_source` and :attr:`odom_reason`.
         max_range: readings at or beyond it become ``nan``; ``None`` = detect (see module doc).
         backwards: a scan stamped before an earlier line's scan is ``"keep"`` (kept in file
             order, counted in the warning: the Intel log has 1,612 such FLASER lines, and its
@@ -179,7 +182,7 @@ class CarmenLog(Recording):
         path: str | Path,
         *,
         laser: Literal["front", "rear", "all"] = "front",
-        odom: Literal["laser", "odom", "none"] = "laser",
+        odom: Literal["auto", "laser", "odom", "none"] = "auto",
         max_range: float | None = None,
         backwards: Literal["keep", "skip", "error"] = "keep",
         odom_tolerance: float = 0.5,
@@ -196,7 +199,7 @@ class CarmenLog(Recording):
             )
         if odom not in ODOM_MODES:
             raise OptionError(
-                f"odom must be 'laser', 'odom' or 'none', got {short_repr(odom)}",
+                f"odom must be 'auto', 'laser', 'odom' or 'none', got {short_repr(odom)}",
                 path,
                 option="odom",
                 value=odom,
@@ -243,6 +246,7 @@ class CarmenLog(Recording):
                 choices=[m for m in ODOM_MODES if m != "odom"],
                 problem="no usable ODOM records in the log",
             )
+        self.odom_source, self.odom_reason = self._odom_source(odom)
         if max_range is not None:
             self.max_range, self.max_range_source = float(max_range), "given"
         else:
@@ -254,12 +258,40 @@ class CarmenLog(Recording):
             if 0 < sample_max < self.max_range and sample_hits >= max(5, 0.005 * sample_beams):
                 self.max_range, self.max_range_source = sample_max, "saturation value of the log"
 
+    def _odom_source(self, mode: str) -> tuple[str, str]:
+        """Where each scan's wheel pose comes from (``"laser"``, ``"odom"`` or ``"none"``), and why.
+
+        CARMEN writes into a laser line the robot pose of the last ODOM record it received (ACES,
+        Intel) or one interpolated at the scan's time (FR079). A copied pose is up to one ODOM
+        period old (ACES: 0.18 s, 5-12 deg while turning in place), which the scan matcher then
+        inherits as a wrong seed; interpolating the ODOM records at the scan's stamp removes it,
+        but only where the stamps are trustworthy: on Intel laser and ODOM stamps go backwards by
+        up to 0.9 s, and the file order (the copied pose) is then the better clock.
+        """
+        if mode != "auto":
+            return mode, "chosen"
+        stale, checked, backwards = self._pose_check
+        if checked == 0:
+            return "laser", "robot pose of each laser line"
+        if stale < checked:
+            return "laser", "robot pose of each laser line (interpolated by the logger)"
+        if backwards or len(self._odom) < 2:
+            return "laser", (
+                "robot pose of each laser line (a copy of the last ODOM record, kept: "
+                f"{backwards} stamps earlier than an earlier one)"
+            )
+        return "odom", "ODOM records interpolated at the scan stamps (the laser lines copy the last one)"
+
     # ---------------------------------------------------------------- first pass
     def _index(self) -> tuple[float, int, int, float | None]:
         odom_rows: list[tuple[float, float, float, float]] = []
         sample_max, sample_hits, sample_beams, sampled = 0.0, 0, 0, 0
         param_max: float | None = None
         stamps_first = stamps_last = float("nan")
+        # laser lines whose robot pose is the last ODOM record's, lines checked, backward stamps
+        stale = checked = backwards = 0
+        last_odom: tuple[float, float, float] | None = None
+        last_laser_stamp = last_odom_stamp = -math.inf
         first_pass = RecordingStats()
         self._first_pass = first_pass
         for _lineno, line in _lines(self.path, first_pass):
@@ -285,6 +317,18 @@ class CarmenLog(Recording):
                 if not math.isfinite(stamps_first):
                     stamps_first = stamp
                 stamps_last = stamp
+                backwards += stamp < last_laser_stamp
+                last_laser_stamp = max(last_laser_stamp, stamp)
+                if kind in ("FLASER", "RLASER"):
+                    try:  # ... odom_x odom_y odom_theta ipc_timestamp host logger_timestamp
+                        robot = tuple(float(v) for v in line.rsplit(None, 6)[1:4])
+                    except ValueError:
+                        robot = None
+                    if robot is not None and last_odom is not None:
+                        checked += 1
+                        stale += last_odom is not None and all(
+                            abs(a - b) <= 1e-9 for a, b in zip(robot, last_odom, strict=True)
+                        )
                 if sampled < SATURATION_SAMPLE and kind in ("FLASER", "RLASER"):
                     sampled += 1
                     tok = tok or line.split()
@@ -304,15 +348,21 @@ class CarmenLog(Recording):
             if kind == "ODOM":
                 if len(tok) >= 8:
                     try:
-                        odom_rows.append((float(tok[-3]), float(tok[1]), float(tok[2]), float(tok[3])))
+                        row = (float(tok[-3]), float(tok[1]), float(tok[2]), float(tok[3]))
                     except ValueError:
-                        pass
+                        row = None
+                    if row is not None:
+                        odom_rows.append(row)
+                        last_odom = row[1:]
+                        backwards += row[0] < last_odom_stamp
+                        last_odom_stamp = max(last_odom_stamp, row[0])
             elif kind == "PARAM" and len(tok) >= 3 and tok[1] == "robot_front_laser_max":
                 try:
                     param_max = float(tok[2])
                 except ValueError:
                     pass
         self._first_stamp, self._last_stamp = stamps_first, stamps_last
+        self._pose_check = (stale, checked, backwards)
         if odom_rows:
             table = np.array(odom_rows, dtype=np.float64)
             keep = np.ones(len(table), dtype=bool)  # drop records stamped before their predecessor
@@ -342,7 +392,7 @@ class CarmenLog(Recording):
         angles_cache: dict[tuple[int, float, float], np.ndarray] = {}
         last_stamp = -math.inf
         name = self.path.name
-        use_odom_table = self.odom_mode == "odom"
+        use_odom_table = self.odom_source == "odom"
         odom_at = PoseInterpolator(self._odom, self.odom_tolerance)
         for lineno, line in _lines(self.path, stats):
             tok = line.split()
@@ -407,7 +457,7 @@ class CarmenLog(Recording):
             c, s = math.cos(rth), math.sin(rth)
             dx, dy = lx - rx, ly - ry
             offset = (c * dx + s * dy, -s * dx + c * dy, _wrap(lth - rth))
-            if self.odom_mode == "laser":
+            if self.odom_source == "laser":
                 odom = (rx, ry, rth)
             elif use_odom_table:
                 odom = odom_at(rec.stamp)

@@ -91,9 +91,13 @@ def test_run_on_a_carmen_log_names_the_laser_and_odom_choices(small_log, test_da
     assert main(["run", str(log), "--laser", "left", *out]) == 2
     assert "--laser left: no such laser (choices: front, rear, all)" in one_line_error(capsys)
     assert main(["run", str(log), "--odom", "odom", *out]) == 2
-    assert "--odom odom: no usable ODOM records in the log (choices: laser, none)" in one_line_error(capsys)
+    assert "--odom odom: no usable ODOM records in the log (choices: auto, laser, none)" in one_line_error(
+        capsys
+    )
     assert main(["run", str(log), "--odom", "wheels", *out]) == 2
-    assert "--odom wheels: no such odometry source (choices: laser, odom, none)" in one_line_error(capsys)
+    assert "--odom wheels: no such odometry source (choices: auto, laser, odom, none)" in one_line_error(
+        capsys
+    )
     assert main(["run", str(log), "--scan-topic", "/scan", *out]) == 2
     assert "--scan-topic does not apply to a CARMEN log (its options: --laser, --odom)" in one_line_error(
         capsys

@@ -90,7 +90,8 @@ def inspect(
         table.add_row("max range", f"{rec.max_range:g} m ({rec.max_range_source})")
     table.add_row(
         "odometry",
-        f"{with_odom:,} scans with a pose; {len(rec.odometry()):,} odometry records (increasing stamps)",
+        f"{with_odom:,} scans with a pose; {len(rec.odometry()):,} odometry records (increasing stamps)"
+        + (f"; scan poses: {rec.odom_reason}" if hasattr(rec, "odom_reason") else ""),
     )
     gt_path = getattr(rec, "ground_truth_path", None)
     if gt_path is not None:

@@ -26,7 +26,10 @@ Laser = Annotated[str | None, typer.Option("--laser", help="CARMEN: front, rear 
 Odom = Annotated[
     str | None,
     typer.Option(
-        "--odom", help="CARMEN: odometry from the 'laser' lines (default), interpolated 'odom', 'none'."
+        "--odom",
+        help="CARMEN: 'auto' (default: ODOM records interpolated at the scan stamps when the laser "
+        "lines copy a stale pose and the stamps never go backwards, else the laser lines' poses), "
+        "'laser', interpolated 'odom', 'none'.",
     ),
 ]
 PlaneTol = Annotated[
