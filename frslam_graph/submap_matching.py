@@ -133,7 +133,10 @@ class ReferenceSubmap:
         margin: float,
         scans: list[tuple[np.ndarray, np.ndarray]] | None = None,
         free_margin: float = 0.3,
+        likelihood: bool = True,
     ):
+        """``likelihood`` False: no likelihood field (``field`` None; for ICP and inlier tests
+        only, which need the nearest-point map alone)."""
         pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
         self.points = pts
         self.resolution = res = float(resolution)
@@ -162,8 +165,10 @@ class ReferenceSubmap:
             free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
         )
         dist *= res
-        self.field = np.zeros((h, w), np.float32)
-        self.field[pad : pad + hi_, pad : pad + wi] = np.exp(-0.5 * (dist / sigma) ** 2)
+        self.field: np.ndarray | None = None
+        if likelihood:
+            self.field = np.zeros((h, w), np.float32)
+            self.field[pad : pad + hi_, pad : pad + wi] = np.exp(-0.5 * (dist / sigma) ** 2)
         self._occupied = free.ravel() == 0  # inner grid
         self._scans = scans
         # free space must be farther than free_margin from any end point
