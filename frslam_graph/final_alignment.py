@@ -219,14 +219,17 @@ def _icp_many(
     h = np.zeros((n_pairs, 3, 3))
     ok = np.ones(n_pairs, bool)
     done = np.zeros(n_pairs, bool)
+    dropped = done.copy()  # pairs whose points left queries / owner
     eye = 1e-9 * np.eye(3)
     for it in range(ICP_ITERATIONS):
         dmax = ICP_MAX_DISTANCE if it < ICP_ITERATIONS // 2 else max(2.0 * ICP_KERNEL, ICP_MAX_DISTANCE / 2.0)
-        live = np.flatnonzero(~done[owner])
-        if not len(live):
-            break
-        own = owner[live]
-        p = _transform_each(x, queries[live], own)
+        if not np.array_equal(done, dropped):  # keep the points of the pairs still iterating
+            live = ~done[owner]
+            if not live.any():
+                break
+            queries, owner, dropped = queries[live], owner[live], done.copy()
+        own = owner
+        p = _transform_each(x, queries, own)
         sel, j = stack.nearest_points(p, ref[own], dmax)
         own, p = own[sel], p[sel]
         running = ~done
