@@ -59,11 +59,7 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def rigid_points(x, y, c, s, p: np.ndarray) -> np.ndarray:
     """(x, y) + R(c, s) p for points p (M, 2); x, y, c, s scalars or (M,) per point."""
-    px, py = p[:, 0], p[:, 1]
-    out = np.empty((len(p), 2), np.result_type(p.dtype, np.float64))
-    out[:, 0] = x + c * px - s * py
-    out[:, 1] = y + s * px + c * py
-    return out
+    return np.column_stack((x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]))
 
 
 def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
