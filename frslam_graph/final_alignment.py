@@ -21,6 +21,9 @@ its 3×3 covariance in GTSAM's Pose2 tangent (body frame of the query).
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import pickle
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -286,18 +289,74 @@ _CHUNK_CELLS = 4_000_000
 
 
 def align_pairs(
-    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float
+    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float, processes: int = 1
 ) -> list[AlignmentConstraint]:
     """ICP of each pair's query submap onto its reference submap, from the current estimate.
 
     Vectorised over pairs, in chunks of reference submaps (each built once; each query submap
     once): the start-overlap gate, the ICP (:func:`_icp_many`) and the final gates. The
-    constraints come in the order of ``pairs`` sorted (stably) by reference."""
-    out: list[AlignmentConstraint] = []
+    constraints come in the order of ``pairs`` sorted (stably) by reference. ``processes`` 2:
+    the pairs of the second half of the references are matched in a forked process (Linux
+    ``fork``; each pair's numbers do not depend on the others': the same constraints)."""
     if len(pairs) == 0:
-        return out
+        return []
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     local = _in_range(points, max_range)
+    if processes < 2 or len(pairs) < 2 or "fork" not in mp.get_all_start_methods():
+        return _align_refs(poses, local, pairs)
+    half = int(np.searchsorted(pairs[:, 0], pairs[len(pairs) // 2, 0]))  # whole references each
+    if half == 0:
+        return _align_refs(poses, local, pairs)
+    second = _in_child(lambda: _constraint_rows(_align_refs(poses, local, pairs[half:])))
+    out = _align_refs(poses, local, pairs[:half])
+    rows = second()
+    if rows is None:  # the child failed: its half here
+        return out + _align_refs(poses, local, pairs[half:])
+    return out + [
+        AlignmentConstraint(int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]))
+        for r in rows
+    ]
+
+
+def _constraint_rows(cons: list[AlignmentConstraint]) -> np.ndarray:
+    """Constraints as rows (reference, query, relative 3, covariance 9, inlier fraction)."""
+    return np.array(
+        [[c.reference, c.query, *c.relative, *c.covariance.ravel(), c.inlier_fraction] for c in cons]
+    ).reshape(-1, 15)
+
+
+def _in_child(fn: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
+    """Start ``fn()`` in a forked process; returns a function that waits for its array (None
+    when the child failed)."""
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+
+    def child() -> None:
+        try:
+            send.send_bytes(pickle.dumps(fn()))
+        finally:
+            send.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    send.close()
+
+    def result() -> np.ndarray | None:
+        try:
+            return pickle.loads(receive.recv_bytes())
+        except (EOFError, OSError, pickle.UnpicklingError):
+            return None
+        finally:
+            receive.close()
+            proc.join()
+
+    return result
+
+
+def _align_refs(poses: np.ndarray, local: list[np.ndarray], pairs: np.ndarray) -> list[AlignmentConstraint]:
+    """:func:`align_pairs` of ``pairs`` (sorted by reference) in one process, ``local`` the
+    keyframes' points in range (:func:`_in_range`)."""
+    out: list[AlignmentConstraint] = []
     queries: dict[int, np.ndarray] = {}
     refs, chunk, cells = [], [], 0
     for c in np.unique(pairs[:, 0]):
@@ -376,10 +435,12 @@ def dense_constraints(
     radius: float,
     max_range: float,
     per_keyframe: int = 3,
+    processes: int = 1,
 ) -> list[AlignmentConstraint]:
-    """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel."""
+    """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel;
+    ``processes``: see :func:`align_pairs`."""
     steps = np.hypot(*np.diff(odom_poses[:, :2], axis=0).T)
     travel = np.concatenate(([0.0], np.cumsum(steps)))
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
-    return align_pairs(poses, points, pairs, max_range)
+    return align_pairs(poses, points, pairs, max_range, processes)

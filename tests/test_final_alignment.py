@@ -149,3 +149,30 @@ def test_pairs_matched_at_once_equal_pair_by_pair_icp(monkeypatch, chunk_cells):
         np.testing.assert_allclose(c.relative, x, rtol=0, atol=1e-9)
         np.testing.assert_allclose(c.covariance, cov, rtol=1e-7, atol=0)
         assert c.inlier_fraction == inliers
+
+
+def test_two_processes_give_the_same_constraints():
+    """processes=2 matches the second half of the references in a forked process: the same
+    constraints, bit for bit, in the same order."""
+    truth, estimate, points, _ = _two_laps()
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    one = fa.align_pairs(estimate, points, pairs, 15.0)
+    two = fa.align_pairs(estimate, points, pairs, 15.0, processes=2)
+    assert len(one) >= 10
+    assert [(c.reference, c.query) for c in two] == [(c.reference, c.query) for c in one]
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.relative, b.relative)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        assert a.inlier_fraction == b.inlier_fraction
+
+
+def test_child_work_runs_in_another_process_and_a_failed_child_gives_none():
+    import os
+
+    assert fa._in_child(lambda: np.array([os.getpid()]))()[0] != os.getpid()
+
+    def fail():
+        raise RuntimeError("boom")
+
+    assert fa._in_child(fail)() is None
