@@ -21,6 +21,9 @@ its 3×3 covariance in GTSAM's Pose2 tangent (body frame of the query).
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import pickle
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -29,11 +32,10 @@ from scipy.spatial import cKDTree
 
 from frslam_graph.factors.between import pose2
 from frslam_graph.graph import key
-from frslam_graph.motion_model import between, wrap
+from frslam_graph.motion_model import between, between_many, wrap
 from frslam_graph.submap_matching import (
     ReferenceSubmap,
-    icp_point_to_line,
-    transform_points,
+    rigid_points,
     voxel_downsample,
 )
 
@@ -124,58 +126,299 @@ def candidate_pairs(
     return np.unique(pairs, axis=0)
 
 
-def _submap(poses: np.ndarray, points: list[np.ndarray], i: int, span: int, max_range: float) -> np.ndarray:
-    """Points of keyframes i-span..i+span in keyframe i's frame (voxel-thinned)."""
-    lo, hi = max(0, i - span), min(len(points) - 1, i + span)
-    parts = []
-    for j in range(lo, hi + 1):
-        p = np.asarray(points[j], dtype=np.float64)
-        p = p[np.hypot(p[:, 0], p[:, 1]) <= max_range]
-        parts.append(transform_points(between(poses[i], poses[j]), p))
-    pts = np.concatenate(parts) if parts else np.zeros((0, 2))
+def _in_range(points: list[np.ndarray], max_range: float) -> list[np.ndarray]:
+    """Per keyframe its points within ``max_range`` of base_link (float64): what submaps take."""
+    out = []
+    for p in points:
+        p = np.asarray(p, dtype=np.float64)
+        out.append(p[np.hypot(p[:, 0], p[:, 1]) <= max_range])
+    return out
+
+
+def _submap(poses: np.ndarray, local: list[np.ndarray], i: int, span: int) -> np.ndarray:
+    """Points of keyframes i-span..i+span (``local``: :func:`_in_range`) in keyframe i's frame
+    (voxel-thinned); one transform for all (per point the products of ``transform_points``)."""
+    ks = range(max(0, i - span), min(len(local) - 1, i + span) + 1)
+    rels = [between(poses[i], poses[j]) for j in ks]
+    sizes = [len(local[j]) for j in ks]
+    rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
+    pts = rigid_points(*rep.T, np.concatenate([local[j] for j in ks]))
     return voxel_downsample(pts, RESOLUTION)
 
 
+class _ReferenceStack:
+    """The nearest-point look-ups of many reference submaps as one (their cell grids and points
+    concatenated): :meth:`ReferenceSubmap.nearest_points` for points that each belong to one of
+    them, in a handful of array operations instead of a handful per submap."""
+
+    def __init__(self, refs: list[ReferenceSubmap]):
+        self.refs = refs
+        self.resolution = refs[0].resolution
+        self.origin = np.array([r.origin for r in refs])
+        self.shape = np.array([r.shape for r in refs], dtype=np.int64)  # (h, w) per submap
+        cells = self.shape[:, 0] * self.shape[:, 1]
+        self.cell_offset = np.concatenate(([0], np.cumsum(cells)[:-1]))
+        sizes = np.array([len(r.points) for r in refs])
+        self.point_offset = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+        self.nearest = np.concatenate([r.nearest for r in refs])  # indices into each submap's points
+        self.points = np.concatenate([r.points for r in refs])
+        self.normals = self.quality = None
+
+    def prepare_icp(self, used: np.ndarray) -> None:
+        """Normals and line quality of the submaps ``used`` (indices; the others' stay zero)."""
+        self.normals = np.zeros_like(self.points)
+        self.quality = np.zeros(len(self.points))
+        for r in used:
+            ref, o = self.refs[r], self.point_offset[r]
+            self.normals[o : o + len(ref.points)] = ref.normals
+            self.quality[o : o + len(ref.points)] = ref.quality
+
+    def nearest_points(
+        self, points: np.ndarray, ref: np.ndarray, max_distance: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(indices into ``points`` with a point of their submap ``ref`` (per point) within
+        ``max_distance``, those points' indices into ``self.points``)."""
+        h, w = self.shape[ref, 0], self.shape[ref, 1]
+        ij = np.floor((points - self.origin[ref]) / self.resolution).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        sel = np.flatnonzero(inside)
+        rs = ref[sel]
+        j = self.nearest[self.cell_offset[rs] + ij[sel, 1] * w[sel] + ij[sel, 0]]
+        j = np.where(j >= 0, j + self.point_offset[rs], -1)
+        d = np.hypot(*(points[sel] - self.points[np.maximum(j, 0)]).T)
+        ok = (j >= 0) & (d <= max_distance)
+        return sel[ok], j[ok]
+
+    def inlier_fractions(
+        self, queries: np.ndarray, owner: np.ndarray, ref: np.ndarray, poses: np.ndarray, distance: float
+    ) -> np.ndarray:
+        """Per pair: share of its query points (``queries`` rows of pair ``owner``) within
+        ``distance`` of its reference ``ref[pair]`` at ``poses[pair]``."""
+        sel, _ = self.nearest_points(_transform_each(poses, queries, owner), ref[owner], distance)
+        n = np.bincount(owner, minlength=len(poses))
+        return np.bincount(owner[sel], minlength=len(poses)) / np.maximum(n, 1)
+
+
+def _transform_each(poses: np.ndarray, points: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """Points (N, 2) each in the frame ``poses[owner]`` -> the frame the poses live in."""
+    return rigid_points(
+        poses[owner, 0], poses[owner, 1], np.cos(poses[:, 2])[owner], np.sin(poses[:, 2])[owner], points
+    )
+
+
+def _icp_many(
+    stack: _ReferenceStack,
+    queries: np.ndarray,
+    owner: np.ndarray,
+    ref: np.ndarray,
+    start: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`~frslam_graph.submap_matching.icp_point_to_line` of many pairs at once (the same
+    iterations, gates and covariance; ICP_* settings): pair p's query points are the rows of
+    ``queries`` whose ``owner`` is p, matched onto submap ``ref[p]`` from ``start[p]``. Returns
+    (poses (P, 3), body covariances (P, 3, 3), ok (P,): False where ICP gave up)."""
+    n_pairs = len(start)
+    x = np.array(start, dtype=np.float64)
+    h = np.zeros((n_pairs, 3, 3))
+    ok = np.ones(n_pairs, bool)
+    done = np.zeros(n_pairs, bool)
+    dropped = done.copy()  # pairs whose points left queries / owner
+    eye = 1e-9 * np.eye(3)
+    for it in range(ICP_ITERATIONS):
+        dmax = ICP_MAX_DISTANCE if it < ICP_ITERATIONS // 2 else max(2.0 * ICP_KERNEL, ICP_MAX_DISTANCE / 2.0)
+        if not np.array_equal(done, dropped):  # keep the points of the pairs still iterating
+            live = ~done[owner]
+            if not live.any():
+                break
+            queries, owner, dropped = queries[live], owner[live], done.copy()
+        own = owner
+        p = _transform_each(x, queries, own)
+        sel, j = stack.nearest_points(p, ref[own], dmax)
+        own, p = own[sel], p[sel]
+        running = ~done
+        ok &= ~running | (np.bincount(own, minlength=n_pairs) >= 10)
+        done |= ~ok
+        n, q = stack.normals[j], stack.quality[j]
+        r = np.einsum("ij,ij->i", p - stack.points[j], n)
+        rel = p - x[own, :2]
+        jac = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]))
+        wgt = q / (1.0 + (r / ICP_KERNEL) ** 2)
+        step = np.flatnonzero(~done)
+        hh = np.zeros((n_pairs, 3, 3))
+        g = np.zeros((n_pairs, 3))
+        wr = wgt * r
+        wj = wgt[:, None] * jac
+        for a in range(3):  # per pair jac.T @ (wgt * r) and jac.T @ (wgt * jac), as icp_point_to_line
+            g[:, a] = np.bincount(own, jac[:, a] * wr, n_pairs)
+            for b in range(a, 3):
+                hh[:, a, b] = hh[:, b, a] = np.bincount(own, jac[:, a] * wj[:, b], n_pairs)
+        h[step] = hh[step]
+        try:
+            delta = -np.linalg.solve(hh[step] + eye, g[step][:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # a singular pair: each on its own
+            delta = np.zeros((len(step), 3))
+            for k, s in enumerate(step):
+                try:
+                    delta[k] = -np.linalg.solve(hh[s] + eye, g[s])
+                except np.linalg.LinAlgError:
+                    ok[s], done[s] = False, True
+        x[step] += delta
+        x[step, 2] = wrap(x[step, 2])
+        done[step] |= (np.hypot(delta[:, 0], delta[:, 1]) < 1e-4) & (np.abs(delta[:, 2]) < 1e-5)
+    # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
+    c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
+    a = np.zeros((n_pairs, 3, 3))
+    a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1], a[:, 2, 2] = c, -s, s, c, 1.0
+    hb = np.transpose(a, (0, 2, 1)) @ h @ a / ICP_SIGMA**2
+    cov = np.full((n_pairs, 3, 3), np.nan)
+    good = np.flatnonzero(ok)
+    try:
+        cov[good] = np.linalg.inv(hb[good] + eye)
+    except np.linalg.LinAlgError:
+        for s_ in good:
+            try:
+                cov[s_] = np.linalg.inv(hb[s_] + eye)
+            except np.linalg.LinAlgError:
+                ok[s_] = False
+    return x, cov, ok
+
+
+#: reference grid cells matched at once (the look-up tables of a chunk of reference submaps:
+#: 4 bytes per cell, plus the pairs' query points)
+_CHUNK_CELLS = 4_000_000
+
+
 def align_pairs(
-    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float
+    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float, processes: int = 1
 ) -> list[AlignmentConstraint]:
-    """ICP of each pair's query submap onto its reference submap, from the current estimate."""
-    out: list[AlignmentConstraint] = []
+    """ICP of each pair's query submap onto its reference submap, from the current estimate.
+
+    Vectorised over pairs, in chunks of reference submaps (each built once; each query submap
+    once): the start-overlap gate, the ICP (:func:`_icp_many`) and the final gates. The
+    constraints come in the order of ``pairs`` sorted (stably) by reference. ``processes`` 2:
+    the pairs of the second half of the references are matched in a forked process (Linux
+    ``fork``; each pair's numbers do not depend on the others': the same constraints)."""
     if len(pairs) == 0:
-        return out
-    order = np.argsort(pairs[:, 0], kind="stable")  # reference submaps are built once each
-    ref_index, ref = -1, None
-    for c, k in pairs[order]:
-        if c != ref_index:
-            ref_index = int(c)
-            pts = _submap(poses, points, ref_index, REFERENCE_SPAN, max_range)
-            ref = (
-                ReferenceSubmap(pts, RESOLUTION, INLIER_DISTANCE, ICP_MAX_DISTANCE)
-                if len(pts) >= 30
-                else None
-            )
-        if ref is None:
+        return []
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    local = _in_range(points, max_range)
+    if processes < 2 or len(pairs) < 2 or "fork" not in mp.get_all_start_methods():
+        return _align_refs(poses, local, pairs)
+    half = int(np.searchsorted(pairs[:, 0], pairs[len(pairs) // 2, 0]))  # whole references each
+    if half == 0:
+        return _align_refs(poses, local, pairs)
+    second = _in_child(lambda: _constraint_rows(_align_refs(poses, local, pairs[half:])))
+    out = _align_refs(poses, local, pairs[:half])
+    rows = second()
+    if rows is None:  # the child failed: its half here
+        return out + _align_refs(poses, local, pairs[half:])
+    return out + [
+        AlignmentConstraint(int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]))
+        for r in rows
+    ]
+
+
+def _constraint_rows(cons: list[AlignmentConstraint]) -> np.ndarray:
+    """Constraints as rows (reference, query, relative 3, covariance 9, inlier fraction)."""
+    return np.array(
+        [[c.reference, c.query, *c.relative, *c.covariance.ravel(), c.inlier_fraction] for c in cons]
+    ).reshape(-1, 15)
+
+
+def _in_child(fn: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
+    """Start ``fn()`` in a forked process; returns a function that waits for its array (None
+    when the child failed)."""
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+
+    def child() -> None:
+        try:
+            send.send_bytes(pickle.dumps(fn()))
+        finally:
+            send.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    send.close()
+
+    def result() -> np.ndarray | None:
+        try:
+            return pickle.loads(receive.recv_bytes())
+        except (EOFError, OSError, pickle.UnpicklingError):
+            return None
+        finally:
+            receive.close()
+            proc.join()
+
+    return result
+
+
+def _align_refs(poses: np.ndarray, local: list[np.ndarray], pairs: np.ndarray) -> list[AlignmentConstraint]:
+    """:func:`align_pairs` of ``pairs`` (sorted by reference) in one process, ``local`` the
+    keyframes' points in range (:func:`_in_range`)."""
+    out: list[AlignmentConstraint] = []
+    queries: dict[int, np.ndarray] = {}
+    refs, chunk, cells = [], [], 0
+    for c in np.unique(pairs[:, 0]):
+        pts = _submap(poses, local, int(c), REFERENCE_SPAN)
+        if len(pts) < 30:
             continue
-        query = _submap(poses, points, int(k), QUERY_SPAN, max_range)
-        if len(query) < 30:
-            continue
-        start = between(poses[c], poses[k])
-        if ref.inlier_fraction(query, start, 2.0 * INLIER_DISTANCE) < MIN_START_OVERLAP:
-            continue  # the two barely overlap at the converged estimate: not worth an ICP
-        res = icp_point_to_line(ref, query, start, ICP_ITERATIONS, ICP_MAX_DISTANCE, ICP_KERNEL, ICP_SIGMA)
-        if res is None:
-            continue
-        x, cov = res
-        if (
-            np.hypot(*(x[:2] - start[:2])) > MAX_CORRECTION_XY
-            or abs(wrap(x[2] - start[2])) > MAX_CORRECTION_THETA
-        ):
-            continue
-        inliers = ref.inlier_fraction(query, x, INLIER_DISTANCE)
-        if inliers < MIN_INLIER_FRACTION or not np.all(np.isfinite(cov)):
-            continue
-        out.append(AlignmentConstraint(int(c), int(k), x, cov, inliers))
+        ref = ReferenceSubmap(pts, RESOLUTION, INLIER_DISTANCE, ICP_MAX_DISTANCE, likelihood=False)
+        refs.append(ref)
+        chunk.append(int(c))
+        cells += ref.shape[0] * ref.shape[1]
+        if cells >= _CHUNK_CELLS:
+            out.extend(_align_chunk(poses, local, pairs, chunk, refs, queries))
+            refs, chunk, cells = [], [], 0
+    if chunk:
+        out.extend(_align_chunk(poses, local, pairs, chunk, refs, queries))
     return out
+
+
+def _align_chunk(
+    poses: np.ndarray,
+    local: list[np.ndarray],
+    pairs: np.ndarray,
+    chunk: list[int],
+    refs: list[ReferenceSubmap],
+    queries: dict[int, np.ndarray],
+) -> list[AlignmentConstraint]:
+    """:func:`align_pairs` for the pairs whose reference is one of ``chunk`` (submaps ``refs``);
+    ``queries`` caches the query submaps by keyframe."""
+    which = {c: r for r, c in enumerate(chunk)}
+    mine = pairs[np.isin(pairs[:, 0], chunk)]
+    sel, parts = [], []
+    for c, k in mine:
+        q = queries.get(int(k))
+        if q is None:
+            q = queries[int(k)] = _submap(poses, local, int(k), QUERY_SPAN)
+        if len(q) >= 30:
+            sel.append((which[int(c)], int(c), int(k)))
+            parts.append(q)
+    if not sel:
+        return []
+    stack = _ReferenceStack(refs)
+    ref = np.array([s[0] for s in sel])
+    cs, ks = np.array([s[1] for s in sel]), np.array([s[2] for s in sel])
+    owner = np.repeat(np.arange(len(sel)), [len(q) for q in parts])
+    qpts = np.concatenate(parts)
+    start = between_many(poses[cs], poses[ks])
+    # the two barely overlap at the converged estimate: not worth an ICP
+    keep = stack.inlier_fractions(qpts, owner, ref, start, 2.0 * INLIER_DISTANCE) >= MIN_START_OVERLAP
+    renumber = np.cumsum(keep) - 1
+    rows = keep[owner]
+    qpts, owner = qpts[rows], renumber[owner[rows]]
+    ref, cs, ks, start = ref[keep], cs[keep], ks[keep], start[keep]
+    stack.prepare_icp(np.unique(ref))  # normals of the submaps still in use only
+    x, cov, ok = _icp_many(stack, qpts, owner, ref, start)
+    ok &= np.hypot(*(x[:, :2] - start[:, :2]).T) <= MAX_CORRECTION_XY
+    ok &= np.abs(wrap(x[:, 2] - start[:, 2])) <= MAX_CORRECTION_THETA
+    inliers = stack.inlier_fractions(qpts, owner, ref, x, INLIER_DISTANCE)
+    ok &= (inliers >= MIN_INLIER_FRACTION) & np.all(np.isfinite(cov), axis=(1, 2))
+    return [
+        AlignmentConstraint(int(cs[p]), int(ks[p]), x[p].copy(), cov[p].copy(), float(inliers[p]))
+        for p in np.flatnonzero(ok)
+    ]
 
 
 def constraint_factor(con: AlignmentConstraint) -> gtsam.BetweenFactorPose2:
@@ -192,10 +435,12 @@ def dense_constraints(
     radius: float,
     max_range: float,
     per_keyframe: int = 3,
+    processes: int = 1,
 ) -> list[AlignmentConstraint]:
-    """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel."""
+    """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel;
+    ``processes``: see :func:`align_pairs`."""
     steps = np.hypot(*np.diff(odom_poses[:, :2], axis=0).T)
     travel = np.concatenate(([0.0], np.cumsum(steps)))
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
-    return align_pairs(poses, points, pairs, max_range)
+    return align_pairs(poses, points, pairs, max_range, processes)

@@ -698,7 +698,13 @@ class FRSlam:
         for round_ in range(lc.final_alignment_rounds):
             t0 = time.perf_counter()
             cons = dense_constraints(
-                self.graph.estimates(), odom, self._kf_points, lc.final_alignment_radius, lc.max_point_range
+                self.graph.estimates(),
+                odom,
+                self._kf_points,
+                lc.final_alignment_radius,
+                lc.max_point_range,
+                # an offline run with the odometry in a worker: its core is free now
+                processes=2 if self._odometry_elsewhere else 1,
             )
             new = [constraint_factor(c) for c in cons]
             self.graph.replace_factors([i for i in self.graph.factor_indices(factors) if i >= 0], new)

@@ -43,6 +43,9 @@ _MS_PER_POINT_ICP = 3.7e-4  # ... and per query point and iteration
 _MS_FINE = 2.3  # finer level of the correlative search (a few hundred poses)
 
 
+_EPS_EYE = 1e-9 * np.eye(3)  # regularises the ICP's normal equations
+
+
 def _wrap(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
@@ -133,7 +136,10 @@ class ReferenceSubmap:
         margin: float,
         scans: list[tuple[np.ndarray, np.ndarray]] | None = None,
         free_margin: float = 0.3,
+        likelihood: bool = True,
     ):
+        """``likelihood`` False: no likelihood field (``field`` None; for ICP and inlier tests
+        only, which need the nearest-point map alone)."""
         pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
         self.points = pts
         self.resolution = res = float(resolution)
@@ -162,8 +168,13 @@ class ReferenceSubmap:
             free, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
         )
         dist *= res
-        self.field = np.zeros((h, w), np.float32)
-        self.field[pad : pad + hi_, pad : pad + wi] = np.exp(-0.5 * (dist / sigma) ** 2)
+        self.field: np.ndarray | None = None
+        if likelihood:  # exp(-0.5 (dist / sigma)²), in place
+            lik = dist / sigma
+            np.square(lik, out=lik)
+            lik *= -0.5
+            self.field = np.zeros((h, w), np.float32)
+            self.field[pad : pad + hi_, pad : pad + wi] = np.exp(lik, out=lik)
         self._occupied = free.ravel() == 0  # inner grid
         self._scans = scans
         # free space must be farther than free_margin from any end point
@@ -191,9 +202,8 @@ class ReferenceSubmap:
                 owner[self._cells] = np.arange(len(self.points), dtype=np.int32)
                 owner = owner.reshape(h, w)[pad : pad + hi_, pad : pad + wi].ravel()
                 # labels number the (inner grid's) zero cells in raster order
-                zeros = np.flatnonzero(self._occupied)
-                labels = self._labels.ravel()
-                inner = owner[zeros[np.clip(labels - 1, 0, len(zeros) - 1)]]
+                owner_of_label = owner[np.flatnonzero(self._occupied)]
+                inner = np.take(owner_of_label, self._labels.ravel() - 1, mode="clip")
                 nearest[pad : pad + hi_, pad : pad + wi] = inner.reshape(hi_, wi)
             self._nearest = nearest.ravel()
             self._labels = None
@@ -226,12 +236,13 @@ class ReferenceSubmap:
         if self._free is None and self._scans:
             h, w = self.shape
             seen = np.zeros((h, w), np.uint8)
-            polys = [
-                np.round((np.vstack((o[None], e)) - self.origin) / self.resolution).astype(np.int32)
-                for o, e in self._scans
-                if len(e) >= 2
-            ]
-            cv2.fillPoly(seen, polys, 1)
+            scans = [(o, e) for o, e in self._scans if len(e) >= 2]
+            if scans:  # each polygon: sensor origin, then the end points; all rounded at once
+                ij = np.round(
+                    (np.vstack([np.vstack((o[None], e)) for o, e in scans]) - self.origin) / self.resolution
+                )
+                polys = np.split(ij.astype(np.int32), np.cumsum([len(e) + 1 for _, e in scans])[:-1])
+                cv2.fillPoly(seen, polys, 1)
             self._free = (seen.ravel() > 0) & self._far
         return self._free
 
@@ -243,22 +254,41 @@ class ReferenceSubmap:
     def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
         """(indices into ``points`` with a reference point within max_distance, those reference
         points' indices): nearest neighbours by a cell look-up (exact up to one cell)."""
+        sel, j, _, _ = self._nearest_offsets(points, max_distance)
+        return sel, j
+
+    def _nearest_offsets(
+        self, points: np.ndarray, max_distance: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`nearest_points`, ``points[sel]`` and the offsets ``points[sel] - self.points[j]``."""
         h, w = self.shape
-        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        sel = np.flatnonzero(inside)
-        j = self.nearest[ij[sel, 1] * w + ij[sel, 0]]
-        d = np.hypot(*(points[sel] - self.points[np.maximum(j, 0)]).T)
-        ok = (j >= 0) & (d <= max_distance)
-        return sel[ok], j[ok]
+        ix = np.floor((points[:, 0] - self.origin[0]) / self.resolution).astype(np.int64)
+        iy = np.floor((points[:, 1] - self.origin[1]) / self.resolution).astype(np.int64)
+        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+        if inside.all():  # usual: the grid's margin holds the query (no gathers then)
+            sel, ps, flat = np.arange(len(points)), points, iy * w + ix
+        else:
+            sel = np.flatnonzero(inside)
+            ps, flat = points[sel], iy[sel] * w + ix[sel]
+        j = self.nearest[flat]
+        off = ps - self.points[np.maximum(j, 0)]
+        ok = np.flatnonzero((j >= 0) & (np.hypot(off[:, 0], off[:, 1]) <= max_distance))
+        return sel[ok], j[ok], ps[ok], off[ok]
 
     def dilated(self, cells: int) -> np.ndarray:
         """The likelihood field max-filtered over a (2·cells + 1)² window (flattened)."""
         f = self._dilated.get(cells)
         if f is None:
             if cells > 0:
+                # beyond `cells` of the inner grid the field is zero padding, and stays zero
+                h, w = self.shape
+                pad, hi_, wi = self._inner
+                r0, r1 = max(pad - cells, 0), min(pad + hi_ + cells, h)
+                c0, c1 = max(pad - cells, 0), min(pad + wi + cells, w)
                 kernel = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
-                f = cv2.dilate(self.field, kernel).ravel()
+                f = np.zeros((h, w), np.float32)
+                f[r0:r1, c0:c1] = cv2.dilate(np.ascontiguousarray(self.field[r0:r1, c0:c1]), kernel)
+                f = f.ravel()
             else:
                 f = self.field.ravel()
             self._dilated[cells] = f
@@ -442,22 +472,23 @@ def icp_point_to_line(
         return None
     x = np.asarray(pose, dtype=np.float64).copy()
     h = None
+    normals, quality = ref.normals, ref.quality
     for it in range(iterations):
         dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
-        p = transform_points(x, query)
-        sel, j = ref.nearest_points(p, dmax)
+        sel, j, p, off = ref._nearest_offsets(transform_points(x, query), dmax)
         if len(sel) < 10:
             return None
-        p = p[sel]
-        n, q = ref.normals[j], ref.quality[j]
-        r = np.einsum("ij,ij->i", p - ref.points[j], n)
-        rel = p - x[:2]
-        jac = np.column_stack((n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]))
+        n, q = normals[j], quality[j]
+        r = np.einsum("ij,ij->i", off, n)
+        rel_x, rel_y = p[:, 0] - x[0], p[:, 1] - x[1]
+        jac = np.empty((len(sel), 3))
+        jac[:, 0], jac[:, 1] = n[:, 0], n[:, 1]
+        jac[:, 2] = n[:, 1] * rel_x - n[:, 0] * rel_y
         wgt = q / (1.0 + (r / kernel) ** 2)
         h = jac.T @ (wgt[:, None] * jac)
         g = jac.T @ (wgt * r)
         try:
-            delta = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+            delta = -np.linalg.solve(h + _EPS_EYE, g)
         except np.linalg.LinAlgError:
             return None
         x += delta

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from frslam_graph import final_alignment as fa
 from frslam_graph.final_alignment import candidate_pairs, dense_constraints, field_of_view
 from frslam_graph.motion_model import between, compose
+from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line
 from tests import synthetic_world as sw
 
 
@@ -37,9 +39,9 @@ def test_field_of_view_from_points():
     assert field_of_view([np.column_stack((np.cos(full), np.sin(full)))] * 5) == pytest.approx(2 * np.pi)
 
 
-def test_constraints_measure_the_true_relative_pose_of_two_passes():
-    """Two laps of a room; the estimate of the second lap is off by 6 cm and 1°: every
-    constraint between the laps measures the true relative pose, not the estimate's."""
+def _two_laps() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+    """Keyframes of two laps of a room: true poses, estimate (second lap 6 cm and 1° off), points
+    and the mask of the second lap."""
     world = sw.room_world()
     truth = sw.route(sw.ROOM_LOOP + sw.ROOM_LOOP[1:], speed=0.5, rate=2.0)[:, 1:]  # two laps
     keep = [0]
@@ -57,7 +59,13 @@ def test_constraints_measure_the_true_relative_pose_of_two_passes():
     second = np.arange(len(truth)) >= len(truth) // 2
     shift = np.array([0.06, -0.04, np.deg2rad(1.0)])
     estimate[second] = np.array([compose(shift, p) for p in truth[second]])
+    return truth, estimate, points, second
 
+
+def test_constraints_measure_the_true_relative_pose_of_two_passes():
+    """Two laps of a room; the estimate of the second lap is off by 6 cm and 1°: every
+    constraint between the laps measures the true relative pose, not the estimate's."""
+    truth, estimate, points, second = _two_laps()
     cons = dense_constraints(estimate, truth, points, radius=2.0, max_range=15.0)
     across = [c for c in cons if second[c.reference] != second[c.query]]
     assert len(across) >= 10
@@ -90,3 +98,81 @@ def test_finish_adds_the_constraints_and_rounds_zero_or_no_loop_closure_turn_it_
     assert len(events[2]) == 2
     assert all(e.data["constraints"] > 0 for e in events[2])
     assert errors[2] <= errors[0] + 0.005
+
+
+def _align_one_by_one(poses, points, pairs, max_range):
+    """The constraints of align_pairs computed pair by pair with icp_point_to_line."""
+    out = []
+    local = fa._in_range(points, max_range)
+    for c, k in pairs[np.argsort(pairs[:, 0], kind="stable")]:
+        pts = fa._submap(poses, local, int(c), fa.REFERENCE_SPAN)
+        query = fa._submap(poses, local, int(k), fa.QUERY_SPAN)
+        if len(pts) < 30 or len(query) < 30:
+            continue
+        ref = ReferenceSubmap(pts, fa.RESOLUTION, fa.INLIER_DISTANCE, fa.ICP_MAX_DISTANCE)
+        start = between(poses[c], poses[k])
+        if ref.inlier_fraction(query, start, 2.0 * fa.INLIER_DISTANCE) < fa.MIN_START_OVERLAP:
+            continue
+        res = icp_point_to_line(
+            ref, query, start, fa.ICP_ITERATIONS, fa.ICP_MAX_DISTANCE, fa.ICP_KERNEL, fa.ICP_SIGMA
+        )
+        if res is None:
+            continue
+        x, cov = res
+        d = between(start, x)
+        if np.hypot(*(x[:2] - start[:2])) > fa.MAX_CORRECTION_XY or abs(d[2]) > fa.MAX_CORRECTION_THETA:
+            continue
+        inliers = ref.inlier_fraction(query, x, fa.INLIER_DISTANCE)
+        if inliers >= fa.MIN_INLIER_FRACTION and np.all(np.isfinite(cov)):
+            out.append((int(c), int(k), x, cov, inliers))
+    return out
+
+
+@pytest.mark.parametrize("chunk_cells", [fa._CHUNK_CELLS, 20_000])
+def test_pairs_matched_at_once_equal_pair_by_pair_icp(monkeypatch, chunk_cells):
+    """align_pairs runs the ICP of all pairs as one vectorised computation (in chunks of reference
+    submaps): the same constraints as icp_point_to_line pair by pair, in the same order."""
+    monkeypatch.setattr(fa, "_CHUNK_CELLS", chunk_cells)
+    truth, estimate, points, _ = _two_laps()
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    want = _align_one_by_one(estimate, points, pairs, 15.0)
+    built = []
+    submap = fa._submap
+    monkeypatch.setattr(fa, "_submap", lambda *a: built.append(a[2]) or submap(*a))
+    got = fa.align_pairs(estimate, points, pairs, 15.0)
+    # each reference and each query submap built once, however many pairs share it
+    assert len(built) == len(np.unique(pairs[:, 0])) + len(np.unique(pairs[:, 1]))
+    assert len(want) >= 10
+    assert [(c.reference, c.query) for c in got] == [w[:2] for w in want]
+    for c, (_, _, x, cov, inliers) in zip(got, want, strict=True):
+        np.testing.assert_allclose(c.relative, x, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(c.covariance, cov, rtol=1e-7, atol=0)
+        assert c.inlier_fraction == inliers
+
+
+def test_two_processes_give_the_same_constraints():
+    """processes=2 matches the second half of the references in a forked process: the same
+    constraints, bit for bit, in the same order."""
+    truth, estimate, points, _ = _two_laps()
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    one = fa.align_pairs(estimate, points, pairs, 15.0)
+    two = fa.align_pairs(estimate, points, pairs, 15.0, processes=2)
+    assert len(one) >= 10
+    assert [(c.reference, c.query) for c in two] == [(c.reference, c.query) for c in one]
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.relative, b.relative)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        assert a.inlier_fraction == b.inlier_fraction
+
+
+def test_child_work_runs_in_another_process_and_a_failed_child_gives_none():
+    import os
+
+    assert fa._in_child(lambda: np.array([os.getpid()]))()[0] != os.getpid()
+
+    def fail():
+        raise RuntimeError("boom")
+
+    assert fa._in_child(fail)() is None

@@ -364,6 +364,20 @@ def test_padded_reference_equals_the_unpadded_one():
     np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
 
 
+@pytest.mark.parametrize("cells", [1, 4, 7, 200])
+def test_max_filtered_field_equals_filtering_the_whole_grid(cells):
+    """dilated() filters only the inner grid and `cells` around it (the rest is zero padding and
+    stays zero): the same field as cv2.dilate over the whole padded grid."""
+    import cv2
+
+    world = room_world()
+    pts = _points(world, np.array([4.0, 3.0, 0.2]), 1)
+    ref = ReferenceSubmap(pts, 0.05, 0.1, 6.0, [(np.zeros(2), pts)])
+    assert ref._inner[0] > cells or cells == 200  # padded (200: wider than the padding)
+    whole = cv2.dilate(ref.field, np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)).ravel()
+    np.testing.assert_array_equal(ref.dilated(cells), whole)
+
+
 def _fake_slam(est: np.ndarray, priors: bool = False):
     """The part of FRSlam that LoopCloser._plan reads: the estimates and whether floor-plan
     priors are in the graph."""
