@@ -76,7 +76,7 @@ def test_angle_increment_follows_carmen_convention():
 
 @pytest.mark.parametrize("name", ["log.clf", "log.log", "log.clf.gz", "log.clf.bz2"])
 def test_flaser_scans_plain_and_compressed(tmp_path, name):
-    rec = open_recording(write(tmp_path, simple_log(), name), odom="laser")
+    rec = open_recording(write(tmp_path, simple_log(), name))
     assert isinstance(rec, CarmenLog)
     assert len(rec) == 5
     scans, warns = read_all(rec)
@@ -175,13 +175,13 @@ def test_copied_laser_poses_are_replaced_by_odom_interpolated_at_the_stamps(tmp_
     """A laser line that copies the last ODOM record carries a pose up to one ODOM period old
     (ACES: 5-12 deg while turning): with trustworthy stamps the ODOM records are interpolated at
     the scan's stamp instead; the choice and its reason are reported."""
-    rec = open_recording(write(tmp_path, _moving_log(copied=True)))
+    rec = open_recording(write(tmp_path, _moving_log(copied=True)), odom="auto")
     assert rec.odom_source == "odom" and "interpolated" in rec.odom_reason
     scans, _ = read_all(rec)
     for s in scans:
         assert s.odom[0] == pytest.approx(s.stamp - 10.0, abs=1e-6)
         assert s.odom[2] == pytest.approx(math.atan2(math.sin(s.stamp), math.cos(s.stamp)), abs=1e-6)
-    copied, _ = read_all(open_recording(write(tmp_path, _moving_log(copied=True)), odom="laser"))
+    copied, _ = read_all(open_recording(write(tmp_path, _moving_log(copied=True))))  # the default
     assert copied[1].odom[0] == pytest.approx(copied[1].stamp - 10.0 - 0.05, abs=1e-6)
 
 
@@ -189,12 +189,12 @@ def test_laser_poses_kept_when_stamps_go_backwards_or_the_logger_interpolated(tm
     """Stamps that go backwards cannot place a scan between ODOM records (Intel: by up to 0.9 s;
     its file order is the better clock): the copied pose stays. A pose the logger interpolated
     (FR079) stays too."""
-    jittery = open_recording(write(tmp_path, _moving_log(copied=True, backwards=True), "j.clf"))
+    jittery = open_recording(write(tmp_path, _moving_log(copied=True, backwards=True), "j.clf"), odom="auto")
     assert jittery.odom_source == "laser" and "earlier than an earlier one" in jittery.odom_reason
     scans, _ = read_all(jittery)
     assert scans[4].stamp < scans[3].stamp
     assert scans[4].odom[0] == pytest.approx(2.2, abs=1e-6)  # the last ODOM record before it
-    fresh = open_recording(write(tmp_path, _moving_log(copied=False), "f.clf"))
+    fresh = open_recording(write(tmp_path, _moving_log(copied=False), "f.clf"), odom="auto")
     assert fresh.odom_source == "laser" and "interpolated by the logger" in fresh.odom_reason
 
 

@@ -27,9 +27,8 @@ Odom = Annotated[
     str | None,
     typer.Option(
         "--odom",
-        help="CARMEN: 'auto' (default: ODOM records interpolated at the scan stamps when the laser "
-        "lines copy a stale pose and the stamps never go backwards, else the laser lines' poses), "
-        "'laser', interpolated 'odom', 'none'.",
+        help="CARMEN: the 'laser' lines' poses (default), interpolated 'odom', 'auto' (interpolated "
+        "when the laser lines copy a stale pose and the stamps never go backwards, else 'laser'), 'none'.",
     ),
 ]
 PlaneTol = Annotated[
