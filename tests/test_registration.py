@@ -376,6 +376,50 @@ def test_cli_register_writes_outputs(plan, tmp_path):
     assert img is not None and img.shape[0] > 100
 
 
+def other_building_grid():
+    """Map of a 3 x 3 grid of equal square rooms: MFR places the synthetic plan on it but refuses
+    the placement ("no match")."""
+    rooms = [
+        Room(f"g{i}{j}", "bedroom", box(i * 3.0, j * 3.0, i * 3.0 + 3.0, j * 3.0 + 3.0))
+        for i in range(3)
+        for j in range(3)
+    ]
+    doors = [
+        Door(
+            f"h{i}{j}",
+            (i * 3.0 + 3.0, j * 3.0 + 1.0),
+            (i * 3.0 + 3.0, j * 3.0 + 2.0),
+            (f"g{i}{j}", f"g{i + 1}{j}"),
+        )
+        for i in range(2)
+        for j in range(3)
+    ]
+    return ring_map(FloorPlan(rooms, doors, units="m"), np.eye(3), [r.id for r in rooms])
+
+
+def test_cli_register_draws_a_refused_placement_dashed_and_writes_no_plan(plan, tmp_path, capsys):
+    from frslam_graph.cli import main
+    from frslam_graph.cli.register import _overlay, refused_placement
+
+    grid = other_building_grid()
+    reg = register(plan, grid)
+    assert not reg.ok and "no match" in reg.reason and refused_placement(reg)
+    assert not refused_placement(Registration.failure("plan has 1 room(s)", "mfr"))
+    # the overlay shows the refused rooms (it differs from the map alone)
+    _overlay(grid, reg.apply(plan), reg, tmp_path / "with.png", "t")
+    _overlay(grid, None, reg, tmp_path / "without.png", "t")
+    assert not np.array_equal(
+        cv2.imread(str(tmp_path / "with.png")), cv2.imread(str(tmp_path / "without.png"))
+    )
+    grid.save(tmp_path / "map.yaml")
+    plan.save(tmp_path / "plan.json")
+    out = tmp_path / "out"
+    assert main(["register", str(tmp_path / "plan.json"), str(tmp_path / "map.yaml"), "--out", str(out)]) == 1
+    assert "no match" in capsys.readouterr().out
+    assert (out / "overlay.png").is_file() and not (out / "registered_plan.json").exists()
+    assert json.loads((out / "report.json").read_text())["registration"]["ok"] is False
+
+
 def test_cli_register_bad_map_path(plan, tmp_path, capsys):
     from frslam_graph.cli import main
 

@@ -7,7 +7,9 @@ Writes into DIR: ``registered_plan.json`` (the plan in map metres, our JSON form
 ``overlay.png`` (the map in grey, the registered rooms coloured; matched rooms outlined) and
 ``report.json`` (the registration: matrix plan -> map, flip, rotation, scales, score, ambiguity,
 covariance, matched rooms, timing). A failed match still writes the report (``ok: false`` and the
-reason) and exits with code 1; bad input files exit with code 2 and a one-line message. The
+reason) and the overlay, with the refused placement's rooms dashed when there was one (MFR's "no
+match": a plan drawn differently from the building can be right and still refused), and exits
+with code 1; bad input files exit with code 2 and a one-line message. The
 report is written last and lists the outputs; they replace a previous registration's as a whole.
 """
 
@@ -26,8 +28,19 @@ from frslam_graph.cli.summary import print_written
 OUTPUTS = ("registered_plan.json", "overlay.png", "report.json")
 
 
+def refused_placement(reg) -> bool:
+    """A failed registration that still places the plan (MFR's "no match": the best placement,
+    refused by its checks), as opposed to one that never got a placement (too few rooms, no
+    subset fits, a degenerate fit): its matrix is drawn in the overlay for a user to judge."""
+    if reg.ok or not reg.candidates:
+        return False
+    a = np.asarray(reg.matrix, dtype=float)
+    return bool(np.all(np.isfinite(a)) and abs(np.linalg.det(a[:2, :2])) > 0.0)
+
+
 def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
-    """Map (free white, occupied black, unknown grey) with the registered rooms on top."""
+    """Map (free white, occupied black, unknown grey) with the registered rooms on top (a refused
+    placement: dashed outlines, no fill)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -56,8 +69,11 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     for i, room in enumerate(plan_m.rooms if plan_m is not None else []):
         xy = np.asarray(room.polygon.exterior.coords)
         colour = cmap(i % 20)
-        ax.add_patch(MplPolygon(xy, closed=True, facecolor=(*colour[:3], 0.3), edgecolor=colour, lw=1.0))
-        if room.id in matched:
+        if not reg.ok:
+            ax.add_patch(MplPolygon(xy, closed=True, fill=False, edgecolor=colour, lw=1.4, ls="--"))
+        else:
+            ax.add_patch(MplPolygon(xy, closed=True, facecolor=(*colour[:3], 0.3), edgecolor=colour, lw=1.0))
+        if reg.ok and room.id in matched:
             ax.plot(xy[:, 0], xy[:, 1], "-", color=colour, lw=2.2)
         cx, cy = room.polygon.representative_point().coords[0]
         ax.text(cx, cy, f"{room.id}\n{room.type}", fontsize=6, ha="center", va="center")
@@ -128,15 +144,19 @@ def register_cmd(
             "n_rooms": len(plan.rooms),
             "registration": reg.to_dict(),
         }
-        plan_m = reg.apply(plan) if reg.ok else None
-        title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + (
+        refused = refused_placement(reg)
+        plan_m = reg.apply(plan) if reg.ok or refused else None
+        placement = (
             f"score {reg.score:.3f}, ambiguity {reg.ambiguity:.2f}, flip {reg.flipped}, "
             f"rot {reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.4g}/{reg.scale[1]:.4g} m/unit"
+        )
+        title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + (
+            placement
             if reg.ok
-            else f"FAILED: {reg.reason}"
+            else f"FAILED: {reg.reason}" + (f"\nrefused placement (dashed): {placement}" if refused else "")
         )
         with folder:
-            if plan_m is not None:
+            if reg.ok:
                 folder.write("registered_plan.json", plan_m.save)
             folder.write("overlay.png", lambda p: _overlay(grid, plan_m, reg, p, title))
             folder.commit(report)
