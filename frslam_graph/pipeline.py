@@ -675,7 +675,9 @@ class FRSlam:
         if self._kfs:
             t0 = time.perf_counter()
             before = self.graph.error()
-            self.graph.optimize_batch()
+            # iSAM2 is not rebuilt at the end of a run: the estimates are the batch's values (its
+            # factorisation of the whole graph would be the run's largest allocation)
+            self.graph.optimize_batch(incremental=False)
             self.log_event(
                 "batch_optimised",
                 "final LM batch",
@@ -704,7 +706,7 @@ class FRSlam:
             self.graph.replace_factors([i for i in self.graph.factor_indices(factors) if i >= 0], new)
             factors = new
             before = self.graph.error()
-            self.graph.optimize_batch()
+            self.graph.optimize_batch(incremental=False)
             self.log_event(
                 "final_alignment",
                 f"round {round_ + 1}: {len(cons)} constraints between passes",
