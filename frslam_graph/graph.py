@@ -109,10 +109,8 @@ class PoseGraph:
     def _update(
         self, factors: list, values: gtsam.Values | None = None, remove: list[int] | None = None
     ) -> list[int]:
-        if self._isam is None:
-            if values is None or values.empty():  # released: factors change, the estimate does not
-                return self._update_released(factors, remove or [])
-            self._restore_isam()
+        if self._isam is None:  # released: factors change, the estimate does not
+            return self._update_released(factors, remove or [])
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
             graph.add(f)
@@ -200,6 +198,8 @@ class PoseGraph:
         """Append keyframe n linked to n-1 by the odometry ``relative`` (tangent ``covariance``)."""
         if not self._n:
             raise FrslamError("add_first() must come before add_keyframe()", where="add_keyframe")
+        if self._isam is None:  # released by the last batch: streaming goes on
+            self._restore_isam()
         i = self._n
         factor = between_factor(key(i - 1), key(i), relative, covariance, self._floor_xy, self._floor_th)
         guess = (
