@@ -664,7 +664,9 @@ class FRSlam:
         """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`.
 
         Before it, the update strategy's ``on_finish(slam)`` when it has one (the floor-plan
-        updater's final refinement) and the loop closer's queued work."""
+        updater's final refinement) and the loop closer's queued work. The batches free iSAM2
+        (``PoseGraph.optimize_batch(incremental=False)``): the estimates are then the batch's
+        values, and a scan added afterwards rebuilds iSAM2 from them."""
         self.run_deferred()
         on_finish = getattr(self.update_strategy, "on_finish", None)
         if on_finish is not None:
