@@ -34,8 +34,9 @@ over all relations (no scan matching at all).
 ``--long``: a synthetic recording of about ``--long-hours`` (default 2 h) from the project's
 simulator (the five-room plan, 720 beams, 10 Hz; route length = hours × 3600 × 0.41 m/s, the
 simulator's mean speed there), scored by ATE RMSE (SE(2)-aligned) against its ground truth, with
-peak RSS and × real time. Simulating takes ~1.5 min and the run ~7 min at ~20× real time: off by
-default.
+peak RSS and × real time. Simulating takes a few minutes; the run (~74,000 scans, a 2-h route
+through the same five rooms, so the graph densifies) took over an hour on a shared two-core machine
+(2026-12-02): off by default.
 
 ``--workers N`` runs the tasks concurrently through Dask distributed (a ``LocalCluster`` of N
 single-threaded worker processes, or ``--scheduler ADDRESS``); each task still starts its own
@@ -429,7 +430,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=None, help="keep each run's outputs here")
     ap.add_argument("--csv", type=Path, default=None, help="also write every figure as CSV")
     ap.add_argument("--no-baseline", action="store_true", help="skip the KISS-ICP / wheel-odometry runs")
-    ap.add_argument("--long", action="store_true", help="add the simulated long recording (~10 min)")
+    ap.add_argument("--long", action="store_true", help="add the simulated long recording (an hour or more)")
     ap.add_argument("--long-hours", type=float, default=2.0)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
