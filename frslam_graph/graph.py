@@ -490,8 +490,8 @@ class PoseGraph:
         """Levenberg-Marquardt on the whole graph from the iSAM2 estimate; iSAM2 is rebuilt on the
         result so streaming can continue. Returns the (N, 3) optimised poses.
 
-        ``incremental=False`` (the end of an offline run): iSAM2 is freed before the batch and
-        not rebuilt; the estimates are the batch's values. iSAM2 holds a dense factorisation of
+        iSAM2 is freed before the batch runs. ``incremental=False`` (the end of an offline run): it
+        is not rebuilt; the estimates are the batch's values. iSAM2 holds a dense factorisation of
         the graph (~15-30 kB per keyframe where places are passed often), so a run's final
         batches and alignment need not hold it. Factors added or removed meanwhile only change
         the graph (the next batch takes them); anything needing iSAM2 (a new keyframe, settle,
@@ -502,11 +502,11 @@ class PoseGraph:
         params.setMaxIterations(self.config.batch_max_iterations)
         params.setRelativeErrorTol(self.config.batch_relative_tolerance)
         initial = self._current_values()
-        if not incremental:  # freed first (a failed batch leaves the graph at ``initial``)
-            self._isam, self._batch_values = None, initial
+        # iSAM2 is freed before the batch, not after: its factorisation and LM's do not coexist
+        # (a failed batch leaves the graph released at ``initial``)
+        self._isam, self._batch_values = None, initial
         values = gtsam.LevenbergMarquardtOptimizer(self._graph(), initial, params).optimize()
         if incremental:
-            self._batch_values = None
             self._rebuild(values)
         else:
             self._version += 1

@@ -352,3 +352,22 @@ def test_batch_without_incremental_frees_isam_and_streaming_rebuilds_it():
     freed.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
     assert freed.incremental and len(freed) == 121
     assert freed.marginal_covariance().shape == (3, 3)
+
+
+def test_batch_runs_after_isam_is_freed(monkeypatch):
+    """A batch during streaming frees iSAM2 before LM (not after: both factorisations at once) and
+    rebuilds it on the result, with the same estimates as LM's."""
+    g = chain(n=80, drift=np.deg2rad(0.05), prior_every=20)
+    held = []
+    lm = gtsam.LevenbergMarquardtOptimizer
+
+    def spy(graph, values, params):
+        held.append(g.incremental)
+        return lm(graph, values, params)
+
+    monkeypatch.setattr(gtsam, "LevenbergMarquardtOptimizer", spy)
+    out = g.optimize_batch()
+    assert held == [False] and g.incremental
+    np.testing.assert_array_equal(out, g.estimates())
+    g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    assert len(g.estimates()) == 81
