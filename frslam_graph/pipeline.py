@@ -664,7 +664,9 @@ class FRSlam:
         """Final Levenberg-Marquardt batch over the whole graph; returns :meth:`trajectory`.
 
         Before it, the update strategy's ``on_finish(slam)`` when it has one (the floor-plan
-        updater's final refinement) and the loop closer's queued work."""
+        updater's final refinement) and the loop closer's queued work. The batches free iSAM2
+        (``PoseGraph.optimize_batch(incremental=False)``): the estimates are then the batch's
+        values, and a scan added afterwards rebuilds iSAM2 from them."""
         self.run_deferred()
         on_finish = getattr(self.update_strategy, "on_finish", None)
         if on_finish is not None:
@@ -675,7 +677,9 @@ class FRSlam:
         if self._kfs:
             t0 = time.perf_counter()
             before = self.graph.error()
-            self.graph.optimize_batch()
+            # iSAM2 is not rebuilt at the end of a run: the estimates are the batch's values (its
+            # factorisation of the whole graph would be the run's largest allocation)
+            self.graph.optimize_batch(incremental=False)
             self.log_event(
                 "batch_optimised",
                 "final LM batch",
@@ -710,7 +714,7 @@ class FRSlam:
             self.graph.replace_factors([i for i in self.graph.factor_indices(factors) if i >= 0], new)
             factors = new
             before = self.graph.error()
-            self.graph.optimize_batch()
+            self.graph.optimize_batch(incremental=False)
             self.log_event(
                 "final_alignment",
                 f"round {round_ + 1}: {len(cons)} constraints between passes",

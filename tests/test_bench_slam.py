@@ -30,7 +30,7 @@ def excerpts(test_data, tmp_path):
     return {"head": (head, None), "short": (short, None)}
 
 
-TIMING = {"wall_s", "xrt", "latency_ms", "peak_rss_mb"}
+TIMING = {"wall_s", "xrt", "latency_ms", "peak_rss_mb", "peak_rss_backend_mb", "peak_rss_worker_mb"}
 
 
 def test_workers_give_the_sequential_results(bench, test_data, tmp_path):

@@ -176,3 +176,37 @@ def test_child_work_runs_in_another_process_and_a_failed_child_gives_none():
         raise RuntimeError("boom")
 
     assert fa._in_child(fail)() is None
+
+
+def test_pairs_of_a_place_passed_many_times_need_memory_for_a_chunk_only():
+    """Keyframes of 60 passes of one 1 m circle all lie within the radius of each other: the pairs
+    are gathered ``PAIRS_CHUNK`` keyframes at a time (all pairs at once: 4.5 million, ~300 MB of
+    index arrays) and equal a direct computation."""
+    import tracemalloc
+
+    from frslam_graph import final_alignment as fa
+
+    n = 1500
+    t = np.arange(n) * 0.125  # 0.125 m steps on a circle of radius 0.5 m: a pass is 25 keyframes
+    poses = np.column_stack((0.5 * np.cos(t / 0.5), 0.5 * np.sin(t / 0.5), t / 0.5 + np.pi / 2))
+    travel = t.copy()
+    tracemalloc.start()
+    try:
+        pairs = candidate_pairs(poses, travel, radius=2.0, heading_window=np.pi, per_keyframe=3)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 40 * 2**20, f"{peak / 2**20:.0f} MB"
+    # the same pairs directly: per keyframe the nearest of other passes (ties: lower index)
+    want = set()
+    for k in range(n):
+        d = np.hypot(*(poses[:, :2] - poses[k, :2]).T)
+        chosen: list[int] = []
+        for c in np.lexsort((np.arange(n), d)):
+            if d[c] <= 2.0 and abs(travel[c] - travel[k]) >= fa.MIN_PASS_TRAVEL:
+                if all(abs(travel[c] - travel[o]) >= fa.MIN_PASS_TRAVEL for o in chosen):
+                    chosen.append(int(c))
+                    if len(chosen) == 3:
+                        break
+        want |= {(min(c, k), max(c, k)) for c in chosen}
+    assert set(map(tuple, pairs.tolist())) == want

@@ -321,3 +321,53 @@ def test_settle_steps_are_settle_one_iteration_at_a_time():
         pass
     assert len(c) == 61
     assert abs(c.estimate(50)[0] - (c.estimate(49)[0] + 0.3)) < 0.1
+
+
+def test_batch_without_incremental_frees_isam_and_streaming_rebuilds_it():
+    """optimize_batch(incremental=False) (the end of a run) holds no iSAM2: the estimates are the
+    batch's values; factor changes only change the graph until the next batch; a new keyframe,
+    settle or a marginal rebuilds iSAM2 from those values."""
+    kept = chain(n=120, drift=np.deg2rad(0.05), prior_every=25)
+    freed = chain(n=120, drift=np.deg2rad(0.05), prior_every=25)
+    want = kept.optimize_batch()
+    got = freed.optimize_batch(incremental=False)
+    assert kept.incremental and not freed.incremental
+    # the rebuilt iSAM2 took one more Gauss-Newton step from the same LM values
+    assert np.abs(got - want).max() < 1e-6
+    np.testing.assert_array_equal(freed.estimates(), got)
+    np.testing.assert_array_equal(freed.estimate(), got[-1])
+    assert freed.error() == pytest.approx(kept.error(), rel=1e-6)
+    # factors replaced while freed: new slots after the last, found again by identity
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
+    loop = [gtsam.BetweenFactorPose2(key(10), key(100), gtsam.Pose2(27.0, 0.0, 0.0), noise)]
+    for g in (kept, freed):
+        (idx,) = g.replace_factors([], loop)
+        assert g.factor_indices(loop) == [idx]
+    assert not freed.incremental
+    np.testing.assert_array_equal(freed.estimates(), got)  # no step taken: the next batch takes it
+    np.testing.assert_allclose(freed.optimize_batch(incremental=False), kept.optimize_batch(), atol=1e-6)
+    g2 = freed.replace_factors(freed.factor_indices(loop), [])
+    assert g2 == [] and freed.factor_indices(loop) == [-1]
+    # streaming on: iSAM2 comes back
+    freed.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    assert freed.incremental and len(freed) == 121
+    assert freed.marginal_covariance().shape == (3, 3)
+
+
+def test_batch_runs_after_isam_is_freed(monkeypatch):
+    """A batch during streaming frees iSAM2 before LM (not after: both factorisations at once) and
+    rebuilds it on the result, with the same estimates as LM's."""
+    g = chain(n=80, drift=np.deg2rad(0.05), prior_every=20)
+    held = []
+    lm = gtsam.LevenbergMarquardtOptimizer
+
+    def spy(graph, values, params):
+        held.append(g.incremental)
+        return lm(graph, values, params)
+
+    monkeypatch.setattr(gtsam, "LevenbergMarquardtOptimizer", spy)
+    out = g.optimize_batch()
+    assert held == [False] and g.incremental
+    np.testing.assert_array_equal(out, g.estimates())
+    g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    assert len(g.estimates()) == 81

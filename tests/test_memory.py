@@ -112,3 +112,26 @@ def test_growable_rows_keep_every_row_in_order(width):
         rows.append(w)
     assert len(rows) == 37
     np.testing.assert_array_equal(rows.array, np.array(want))
+
+
+def test_finish_frees_isam_and_a_later_scan_rebuilds_it():
+    """The final batch and alignment run without iSAM2 (its factorisation of the densely
+    constrained graph was a run's largest allocation); streaming on afterwards rebuilds it."""
+    truth = route(ROOM_LOOP + ROOM_LOOP[1:], speed=0.6, rate=5.0)  # two laps
+    rng = np.random.default_rng(2)
+    scans = [cast(room_world(), row[1:], n_beams=360, rng=rng) for row in truth]
+    n = len(truth) - 10
+    slam = FRSlam()
+    for row, (r, amin, inc) in zip(truth[:n], scans[:n], strict=True):
+        slam.add_scan(row[0], r, amin, inc, odom=tuple(row[1:]))
+    done = slam.finish()
+    assert [e.kind for e in slam.log].count("final_alignment") == 2
+    assert not slam.graph.incremental
+    np.testing.assert_array_equal(slam.keyframe_array()[:, 1:], slam.graph.estimates())
+    keyframes = len(slam.graph)
+    for row, (r, amin, inc) in zip(truth[n:], scans[n:], strict=True):
+        slam.add_scan(row[0], r, amin, inc, odom=tuple(row[1:]))
+    assert len(slam.trajectory()) == len(truth)
+    assert len(slam.keyframe_array()) == len(slam.graph)
+    assert len(slam.graph) > keyframes and slam.graph.incremental  # rebuilt by a new keyframe
+    np.testing.assert_allclose(slam.trajectory()[:n, 1:3], done[:, 1:3], atol=0.05)
