@@ -691,14 +691,9 @@ class LoopCloser:
         self.stats.verifications += 1
 
     def _consistent_pending(self, lc: LoopClosure, est: np.ndarray) -> LoopClosure | None:
-        """The latest pending closure that agrees with ``lc`` and is independent evidence: its
-        query submap shares no scan with ``lc``'s (their keyframes are more than ``query_travel``
-        apart along the path). Two matches of overlapping queries are one look at the place; on
-        ACES such pairs confirmed an aliased corridor 150 degrees off."""
         cfg = self.config
-        trav = self._travel
         for p in reversed(self._pending):
-            if abs(trav[lc.query] - trav[p.query]) <= cfg.query_travel:
+            if p.query == lc.query:
                 continue
             implied = between(compose(est[p.reference], p.relative), compose(est[lc.reference], lc.relative))
             odo = between(est[p.query], est[lc.query])
