@@ -314,8 +314,9 @@ def test_fails_on_one_room_plan(plan):
     assert not reg.ok and "1 room" in reg.reason
 
 
-def test_fails_on_another_building(plan):
-    """A 3 × 3 grid of equal square rooms cannot be explained by the synthetic plan."""
+def other_building_grid():
+    """Map of a 3 x 3 grid of equal square rooms: MFR places the synthetic plan on it but refuses
+    the placement ("no match")."""
     rooms = [
         Room(f"g{i}{j}", "bedroom", box(i * 3.0, j * 3.0, i * 3.0 + 3.0, j * 3.0 + 3.0))
         for i in range(3)
@@ -331,9 +332,12 @@ def test_fails_on_another_building(plan):
         for i in range(2)
         for j in range(3)
     ]
-    other = FloorPlan(rooms, doors, units="m")
-    grid = ring_map(other, np.eye(3), [r.id for r in rooms])
-    reg = register(plan, grid)
+    return ring_map(FloorPlan(rooms, doors, units="m"), np.eye(3), [r.id for r in rooms])
+
+
+def test_fails_on_another_building(plan):
+    """A 3 × 3 grid of equal square rooms cannot be explained by the synthetic plan."""
+    reg = register(plan, other_building_grid())
     assert not reg.ok and "no match" in reg.reason
     assert 0.0 <= reg.score < 1.0
 
@@ -374,27 +378,6 @@ def test_cli_register_writes_outputs(plan, tmp_path):
         assert p.intersection(r.polygon).area / p.union(r.polygon).area > 0.97
     img = cv2.imread(str(out / "overlay.png"))
     assert img is not None and img.shape[0] > 100
-
-
-def other_building_grid():
-    """Map of a 3 x 3 grid of equal square rooms: MFR places the synthetic plan on it but refuses
-    the placement ("no match")."""
-    rooms = [
-        Room(f"g{i}{j}", "bedroom", box(i * 3.0, j * 3.0, i * 3.0 + 3.0, j * 3.0 + 3.0))
-        for i in range(3)
-        for j in range(3)
-    ]
-    doors = [
-        Door(
-            f"h{i}{j}",
-            (i * 3.0 + 3.0, j * 3.0 + 1.0),
-            (i * 3.0 + 3.0, j * 3.0 + 2.0),
-            (f"g{i}{j}", f"g{i + 1}{j}"),
-        )
-        for i in range(2)
-        for j in range(3)
-    ]
-    return ring_map(FloorPlan(rooms, doors, units="m"), np.eye(3), [r.id for r in rooms])
 
 
 def test_cli_register_draws_a_refused_placement_dashed_and_writes_no_plan(plan, tmp_path, capsys):
