@@ -33,6 +33,25 @@ def save_grid_png(grid: OccupancyGrid, out: str | Path, title: str = "") -> Path
     return save_figure(fig, out, dpi=120)
 
 
+def _draw_overview(
+    ax: Any,
+    trajectories: dict[str, np.ndarray],
+    grid: OccupancyGrid | None,
+    plan: Any,
+    ground_truth: np.ndarray | None = None,
+) -> None:
+    """The map, the registered plan (faint), the ground truth (dashed) and each trajectory on ``ax``."""
+    if grid is not None:
+        draw_grid(ax, grid)
+    if plan is not None:
+        draw_plan(ax, plan, alpha=0.25, labels=False, legend=False)
+    if ground_truth is not None and len(ground_truth):
+        ax.plot(ground_truth[:, 1], ground_truth[:, 2], color="black", lw=1.2, ls="--", label="ground truth")
+    for name, traj in trajectories.items():
+        if len(traj):
+            ax.plot(traj[:, 1], traj[:, 2], lw=1.2, label=name)
+
+
 def save_trajectory_png(
     out: str | Path,
     trajectories: dict[str, np.ndarray],
@@ -46,15 +65,7 @@ def save_trajectory_png(
     out.parent.mkdir(parents=True, exist_ok=True)
     fig = Figure(figsize=(10, 8))
     ax = fig.add_subplot(1, 1, 1)
-    if grid is not None:
-        draw_grid(ax, grid)
-    if plan is not None:
-        draw_plan(ax, plan, alpha=0.25, labels=False, legend=False)
-    if ground_truth is not None and len(ground_truth):
-        ax.plot(ground_truth[:, 1], ground_truth[:, 2], color="black", lw=1.2, ls="--", label="ground truth")
-    for name, traj in trajectories.items():
-        if len(traj):
-            ax.plot(traj[:, 1], traj[:, 2], lw=1.2, label=name)
+    _draw_overview(ax, trajectories, grid, plan, ground_truth)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
@@ -92,13 +103,7 @@ def compare_figure(
     fig = Figure(figsize=(6 * (1 + n), 9 if n else 7), layout="constrained")
     grid_spec = fig.add_gridspec(2 if n else 1, 1 + n, height_ratios=[3, 1.4] if n else [1])
     ax = fig.add_subplot(grid_spec[0, 0])
-    if grid is not None:
-        draw_grid(ax, grid)
-    if plan is not None:
-        draw_plan(ax, plan, alpha=0.25, labels=False, legend=False)
-    for name, traj in trajectories.items():
-        if len(traj):
-            ax.plot(traj[:, 1], traj[:, 2], lw=1.2, label=name)
+    _draw_overview(ax, trajectories, grid, plan)
     ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal", title="trajectories (map frame)")
     ax.legend(loc="best", fontsize=8)
     if n:
