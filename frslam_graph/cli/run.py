@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.table import Table
@@ -26,6 +26,24 @@ from frslam_graph.cli.recording_options import (
     open_recording_with,
 )
 from frslam_graph.cli.summary import plan_status, print_written
+
+#: options of both run and compare
+Sequential = Annotated[
+    bool,
+    typer.Option(
+        "--sequential",
+        help="Run the scan odometry in this process (default: in a second process where possible; "
+        "same results, about 1.5x as fast on two cores).",
+    ),
+]
+Viz = Annotated[
+    Path | None,
+    typer.Option(
+        "--viz",
+        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
+        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
+    ),
+]
 
 if TYPE_CHECKING:
     import numpy as np
@@ -144,23 +162,13 @@ def run(
     ground_truth: Path | None = typer.Option(None, "--ground-truth", help="TUM ground truth for ATE/RPE."),
     relations: Path | None = typer.Option(None, "--relations", help="Relations file (Kümmerle et al.)."),
     out: Path = typer.Option(Path("out/run"), "--out", "-o", help="Output folder."),
-    sequential: bool = typer.Option(
-        False,
-        "--sequential",
-        help="Run the scan odometry in this process (default: in a second process where possible; "
-        "same results, about 1.5x as fast on two cores).",
-    ),
+    sequential: Sequential = False,
     scan_topic: ScanTopic = None,
     odom_topic: OdomTopic = None,
     laser: Laser = None,
     odom: Odom = None,
     plane_tol: PlaneTol = None,
-    viz: Path | None = typer.Option(
-        None,
-        "--viz",
-        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
-        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
-    ),
+    viz: Viz = None,
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
     from frslam_graph.atomic import Outputs
@@ -193,23 +201,13 @@ def compare(
     relations: Path | None = typer.Option(None, "--relations", help="Relations file (Kümmerle et al.)."),
     config: Path | None = typer.Option(None, "--config", "-c", help="FRSlamConfig YAML/JSON."),
     out: Path = typer.Option(Path("out/compare"), "--out", "-o", help="Output folder."),
-    sequential: bool = typer.Option(
-        False,
-        "--sequential",
-        help="Run the scan odometry in this process (default: in a second process where possible; "
-        "same results, about 1.5x as fast on two cores).",
-    ),
+    sequential: Sequential = False,
     scan_topic: ScanTopic = None,
     odom_topic: OdomTopic = None,
     laser: Laser = None,
     odom: Odom = None,
     plane_tol: PlaneTol = None,
-    viz: Path | None = typer.Option(
-        None,
-        "--viz",
-        help="Also write a rerun recording (FILE.rrd: scans, map, trajectory, registered plan; "
-        "view it with 'rerun FILE.rrd'). Needs rerun-sdk: pip install 'frslam\\[viz]'.",
-    ),
+    viz: Viz = None,
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
     from frslam_graph.atomic import Outputs
