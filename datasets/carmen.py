@@ -215,7 +215,6 @@ class CarmenLog(Recording):
         if not self.path.is_file():
             raise RecordingError("no such file", source=self.path)
         self.laser_types = LASERS[laser]
-        self.odom_mode = odom
         self.backwards = backwards
         self.odom_tolerance = float(odom_tolerance)
         self.counts: Counter = Counter()  # record type -> lines, from the first pass
