@@ -439,7 +439,7 @@ def open_plan(plan: FloorPlan) -> FloorPlan:
 
 
 def test_open_plan_boundary_links_rooms_and_is_not_a_wall(plan):
-    from frslam_graph.registration.mfr import prepare_plan
+    from frslam_graph.registration.mfr.plan_side import prepare_plan
 
     pm = prepare_plan(open_plan(plan))
     i = pm.ids.index
@@ -471,13 +471,13 @@ def test_registers_open_plan_house(plan):
 
 
 def test_dominant_angles_ignore_a_few_diagonal_walls():
-    from frslam_graph.registration.mfr import _dominant_angles
+    from frslam_graph.registration.mfr.geometry import dominant_angles
 
     rng = np.random.default_rng(0)
     main = np.radians(20.0) + rng.normal(0, 0.01, 400) + rng.integers(0, 4, 400) * np.pi / 2
     diag = np.radians(65.0) + rng.normal(0, 0.01, 60)
     ang = np.concatenate([main, diag])
     vec = np.column_stack([np.cos(ang), np.sin(ang)])
-    found = _dominant_angles(vec)
+    found = dominant_angles(vec)
     assert math.degrees(found[0]) == pytest.approx(20.0, abs=0.3)
     assert len(found) == 1  # the diagonal family is too weak to be a second direction

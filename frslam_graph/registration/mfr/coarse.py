@@ -1,0 +1,298 @@
+"""MFR step 3, the coarse search: IoU and wall agreement over placements of room subsets.
+
+Every (connected room subset, dihedral case, map wall direction) gets axis scales from second
+moments (the paper's eq. 7 uses bounding boxes) within the aspect bound, ranked by scale- and
+aspect-invariant shape features plus an aspect and door-width tie-break; the best are scored:
+key = IoU with the footprint × wall precision (plan walls on the observed area that are map
+walls) × wall recall (map walls explained by plan walls) × exit agreement × door-width
+plausibility, all vectorised over the hypotheses (cv2.remap lookups). A poor best fit triggers a
+scale/shift search (:func:`local_search`).
+
+Placements are 3 × 3 matrices from plan units to the map's grid frame (metres).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup, rotation_matrix
+from frslam_graph.registration.mfr.map_side import MapObservation
+from frslam_graph.registration.mfr.plan_side import PlanModel
+from frslam_graph.registration.refine import RefineResult
+from frslam_graph.registration.subsets import SubsetGeometry, mask_matrix
+
+
+def _features(area, cx, cy, vxx, vxy, vyy, x0, y0, x1, y1) -> np.ndarray:
+    w = np.maximum(x1 - x0, 1e-12)
+    h = np.maximum(y1 - y0, 1e-12)
+    sx, sy = np.sqrt(vxx), np.sqrt(vyy)
+    return np.stack(
+        [
+            area / (w * h),
+            (cx - x0) / w,
+            (cy - y0) / h,
+            sx / w * 2.0,
+            sy / h * 2.0,
+            vxy / (sx * sy),
+            area / (sx * sy) / 12.0,
+        ],
+        axis=-1,
+    )
+
+
+@dataclass
+class Hypothesis:
+    mask: int
+    k: int
+    flipped: bool
+    matrix: np.ndarray  # plan -> grid frame metres
+    feature_cost: float
+    angle_index: int = 0  # which of the map's wall directions
+    coarse_iou: float = 0.0
+    refined: RefineResult | None = None
+    key: float = 0.0  # coarse IoU x structure precision x recall
+    quick: float = 0.0  # the same after the screening refinement
+    score: float = 0.0
+    rooms: tuple[int, ...] = ()
+
+
+def coarse_hypotheses(
+    pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
+) -> dict[str, np.ndarray]:
+    """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
+    the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
+    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction)."""
+    n = len(pm.ids)
+    member = mask_matrix(masks, n)
+    geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
+    parts = [
+        _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
+        for ai in range(len(obs.angles))
+    ]
+    pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(pool["cost"], kind="stable")[:top_k]
+    return {k: v[order] for k, v in pool.items()}
+
+
+def _coarse_hypotheses_at(
+    pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
+) -> dict[str, np.ndarray]:
+    angle = obs.angles[ai]
+    rm = rotation_matrix(-angle)
+    mc = rm @ obs.centroid
+    mcov = rm @ obs.cov @ rm.T
+    bx0, by0, bx1, by1 = obs.bboxes[ai]
+    fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
+    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
+    for k, flipped in DIHEDRAL:
+        g = dihedral(k, flipped)  # signed permutation
+        swap = g[0, 0] == 0
+        ux, uy = (geo.cy, geo.cx) if swap else (geo.cx, geo.cy)
+        vx, vy = (geo.vyy, geo.vxx) if swap else (geo.vxx, geo.vyy)
+        lo_x, hi_x = (geo.y0, geo.y1) if swap else (geo.x0, geo.x1)
+        lo_y, hi_y = (geo.x0, geo.x1) if swap else (geo.y0, geo.y1)
+        sx_ = g[0, 1] if swap else g[0, 0]
+        sy_ = g[1, 0] if swap else g[1, 1]
+        cx, cy = sx_ * ux, sy_ * uy
+        x0, x1 = (lo_x, hi_x) if sx_ > 0 else (-hi_x, -lo_x)
+        y0, y1 = (lo_y, hi_y) if sy_ > 0 else (-hi_y, -lo_y)
+        vxy = sx_ * sy_ * geo.vxy
+        f = _features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1)
+        a = np.sqrt(mcov[0, 0] / vx)
+        b = np.sqrt(mcov[1, 1] / vy)
+        ratio = b / a
+        # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
+        cost = np.sum((f - fmap) ** 2, axis=1) + 0.01 * np.log(ratio) ** 2
+        cost = cost - 0.01 * np.log(np.maximum(_door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
+        costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
+        a_all.append(a)
+        b_all.append(b)
+        cx_all.append(cx)
+        cy_all.append(cy)
+    costs = np.stack(costs, axis=1)  # (S, 8)
+    flat = np.argsort(costs, axis=None, kind="stable")[:top_k]
+    flat = flat[np.isfinite(costs.ravel()[flat])]
+    si, ji = np.divmod(flat, len(DIHEDRAL))
+    a = np.stack(a_all, axis=1)[si, ji]
+    b = np.stack(b_all, axis=1)[si, ji]
+    cx = np.stack(cx_all, axis=1)[si, ji]
+    cy = np.stack(cy_all, axis=1)[si, ji]
+    gs = np.stack([dihedral(k, f) for k, f in DIHEDRAL])[ji]  # (H, 2, 2)
+    rp = rotation_matrix(-pm.angle)
+    rmap = rotation_matrix(angle)
+    lin = rmap[None] @ (np.stack([a, b], axis=1)[:, :, None] * gs) @ rp[None]
+    t_al = np.column_stack([mc[0] - a * cx, mc[1] - b * cy])
+    mats = np.zeros((len(flat), 3, 3))
+    mats[:, :2, :2] = lin
+    mats[:, :2, 2] = t_al @ rmap.T
+    mats[:, 2, 2] = 1.0
+    return {
+        "mask": masks[si],
+        "case": ji,
+        "mats": mats,
+        "cost": costs[si, ji],
+        "angle": np.full(len(si), ai),
+    }
+
+
+def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
+    """Plausibility (0..1] of a scale (metres per plan unit) from the plan's median door width:
+    1 while the door is ``door_width_m`` = (lo, hi) metres wide, a log-normal fall-off outside."""
+    scale = np.asarray(scale, dtype=np.float64)
+    if door_width_m is None or pm.door_width <= 0:
+        return np.ones_like(scale)
+    lo, hi = door_width_m
+    w = np.log(np.maximum(scale * pm.door_width, 1e-12))
+    excess = np.maximum(0.0, np.maximum(math.log(lo) - w, w - math.log(hi)))
+    return np.exp(-0.5 * (excess / 0.5) ** 2)
+
+
+def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
+    """(H,) 0.5 + 0.5 × share of the map's doorway-like exits (free space running into unobserved
+    space) that land near a plan opening (door or open-plan boundary); 1 without either."""
+    exits = obs.exit_points if exits is None else exits
+    if pm.open_dt is None or len(exits) == 0:
+        return np.ones(len(ainv))
+    x, y = apply_affine(ainv, tinv, exits)
+    pf = pm.plan_frame
+    d = lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9)
+    near = d < (np.maximum(tol, 0.3) / scale + pf.resolution)[:, None]
+    return 0.5 + 0.5 * near.mean(axis=1)
+
+
+def coarse_scores(
+    pm: PlanModel,
+    obs: MapObservation,
+    mats: np.ndarray,
+    masks: np.ndarray,
+    door_width_m=None,
+    points: int | None = None,
+    tol: float | None = None,
+    matched_cover: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
+
+    IoU from the plan's interior grid points landing on the coarse footprint; precision from the
+    boundary samples landing near a wall-side free cell; recall from the map's wall-side free
+    cells landing near a plan boundary (all at tolerance 1.5 coarse cells). ``points`` caps the
+    points of each kind (a cheaper first pass); ``tol`` overrides the tolerance (metres);
+    ``matched_cover`` scores the rooms placed on the footprint (at least that share of their
+    area) instead of each hypothesis's subset.
+    """
+    n = len(pm.ids)
+
+    def sub(arr: np.ndarray) -> np.ndarray:
+        return arr if points is None or len(arr) <= points else arr[:: int(math.ceil(len(arr) / points))]
+
+    a, t = mats[:, :2, :2], mats[:, :2, 2]
+    det = np.abs(np.linalg.det(a))
+    member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
+    cf = obs.coarse_frame
+    tol = 1.5 * cf.resolution if tol is None else tol
+    # IoU
+    inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
+    x, y = apply_affine(a, t, inner)
+    on = lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
+    frac = (on.astype(np.float32) @ inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
+        member = (frac >= matched_cover).astype(np.float64)
+    inter = (frac * member) @ pm.room_areas * det
+    area_s = member @ pm.room_areas * det
+    iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
+    # precision: plan walls that land on the observed area must be walls of the map
+    samples = sub(pm.coarse_samples)
+    x, y = apply_affine(a, t, samples)
+    res = obs.frame.resolution
+    inside = lookup(obs.footprint_u8, x, y, res, (0.0, 0.0), 0) > 0
+    near = (lookup(obs.edge_dt, x, y, res, (0.0, 0.0), 1e9) < tol) & inside
+    precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
+    # recall
+    ainv = np.linalg.inv(a)
+    tinv = -np.einsum("hij,hj->hi", ainv, t)
+    edges = sub(obs.edge_points)
+    x, y = apply_affine(ainv, tinv, edges)
+    pf = pm.plan_frame
+    dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
+    tol_plan = tol / np.sqrt(det) + pf.resolution
+    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
+    exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
+    key = iou * precision * recall * exits * _door_prior(pm, np.sqrt(det), door_width_m)
+    return iou, key
+
+
+def _score_hypotheses(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], door_width_m=None) -> None:
+    """:func:`coarse_scores` for a list of hypotheses (sets ``coarse_iou`` and ``key``)."""
+    iou, key = coarse_scores(
+        pm,
+        obs,
+        np.stack([h.matrix for h in hyps]),
+        np.array([h.mask for h in hyps], dtype=np.uint64),
+        door_width_m,
+    )
+    for h, i_, k_ in zip(hyps, iou, key, strict=True):
+        h.coarse_iou = float(i_)
+        h.key = float(k_)
+
+
+def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opts: dict) -> None:
+    """Coordinate search on the coarse key over each map axis's scale and shift (about the
+    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis."""
+    rounds = (((0.85, 0.92, 1.0, 1.08, 1.17), 0.08), ((0.96, 0.98, 1.0, 1.02, 1.04), 0.03))
+    for h in hyps:
+        angle, bbox = obs.angles[h.angle_index], obs.bboxes[h.angle_index]
+        rm = np.eye(3)
+        rm[:2, :2] = rotation_matrix(angle)
+        c = rotation_matrix(-angle) @ obs.centroid
+        ext = bbox[2:] - bbox[:2]
+        for factors, shift in rounds:
+            for axis in (0, 1):
+                trials = []
+                for f in factors:
+                    for sh in (-shift, 0.0, shift):
+                        d = np.eye(3)
+                        d[axis, axis] = f
+                        d[axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+                        trials.append(
+                            Hypothesis(h.mask, h.k, h.flipped, rm @ d @ rm.T @ h.matrix, h.feature_cost)
+                        )
+                _score_hypotheses(pm, obs, trials, opts["door_width_m"])
+                top = max(trials, key=lambda t: t.key)
+                if top.key > h.key:
+                    h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
+
+
+def search(pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict) -> list[Hypothesis]:
+    """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
+    no subset fits the map's shape within the aspect bound).
+
+    The best ``pool_k`` by shape features, the best ``top_k`` of those by the key on
+    ``first_pass_points`` points, then all of those on every point; a best IoU below
+    ``search_below_iou`` triggers :func:`local_search` on the two best.
+    """
+    pool = coarse_hypotheses(
+        pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
+    )
+    if len(pool["mask"]) == 0:
+        return []
+    if len(pool["mask"]) > opts["top_k"]:  # cheap first pass on a few points of each kind
+        _, key = coarse_scores(
+            pm, obs, pool["mats"], pool["mask"], opts["door_width_m"], points=opts["first_pass_points"]
+        )
+        keep = np.argsort(-key, kind="stable")[: opts["top_k"]]
+        pool = {k: v[keep] for k, v in pool.items()}
+    iou, key = coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
+    hyps = [
+        Hypothesis(int(m), DIHEDRAL[c][0], DIHEDRAL[c][1], mat, float(cost), int(ai), float(i), key=float(k))
+        for m, c, mat, cost, ai, i, k in zip(
+            pool["mask"], pool["case"], pool["mats"], pool["cost"], pool["angle"], iou, key, strict=True
+        )
+    ]
+    hyps.sort(key=lambda h: -h.key)
+    if hyps[0].coarse_iou < opts["search_below_iou"]:
+        # the map holds area the plan lacks (or the reverse): the moment fit is off; search
+        local_search(pm, obs, hyps[:2], opts)
+        hyps.sort(key=lambda h: -h.key)
+    return hyps

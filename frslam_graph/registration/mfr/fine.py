@@ -1,0 +1,243 @@
+"""MFR step 4, refinement: the best distinct coarse placements refined and scored.
+
+The best ``refine_k`` distinct placements are refined coarsely and re-scored; the best is refined
+at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation, two scales
+along the plan's wall directions and the wall offset) and scored: the IoU of the rooms it places
+on the footprint, and the wall precision and recall at the fine tolerance.
+
+Placements are 3 × 3 matrices from plan units to the map's grid frame (metres).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from frslam_graph.raster import RasterFrame
+from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores
+from frslam_graph.registration.mfr.geometry import lookup, rotation_matrix
+from frslam_graph.registration.mfr.map_side import MapObservation
+from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
+from frslam_graph.registration.refine import RefineResult, refine
+from frslam_graph.registration.result import params_from_matrix
+
+
+def refine_from(
+    pm: PlanModel,
+    obs: MapObservation,
+    matrix: np.ndarray,
+    delta: float,
+    opts: dict,
+    *,
+    scales: tuple,
+    spacing_px: float,
+    max_points: int,
+    iterations: int,
+) -> RefineResult:
+    """Refine the placement ``matrix`` (plan -> grid frame) on a subsample of the plan's boundary
+    samples about ``spacing_px`` map cells apart (at most ``max_points``).
+
+    The scales act along the plan's wall directions: the plan is first turned by ``-pm.angle``
+    (zero for plans drawn axis-aligned); the result's matrix includes that turn.
+    """
+    pre = np.eye(3)
+    pre[:2, :2] = rotation_matrix(-pm.angle)
+    flipped, theta, sx, sy, tx, ty = params_from_matrix(matrix @ pre.T)
+    base = pm.sample_step  # plan units between samples
+    want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
+    stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
+    r = refine(
+        pm.samples[::stride] @ pre[:2, :2].T,
+        pm.sample_normals[::stride] @ pre[:2, :2].T,
+        obs.field,
+        flipped,
+        theta,
+        tx,
+        ty,
+        sx,
+        sy,
+        delta=delta,
+        delta_sigma=opts["delta_sigma"],
+        scales=scales,
+        iterations=iterations,
+        # the wall offset trades against the scales under wide robust scales: hold it there
+        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+        # one independent wall error per 0.5 m of wall
+        correlation=0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9),
+    )
+    r.pre = pre
+    return r
+
+
+def plausible(r: RefineResult, opts: dict) -> bool:
+    """Finite, non-degenerate, and the aspect within the bound."""
+    m = r.matrix
+    if not np.all(np.isfinite(m)) or not (r.sx > 0 and r.sy > 0):
+        return False
+    ratio = r.sy / r.sx
+    return 1.0 / opts["max_aspect"] ** 2 <= ratio <= opts["max_aspect"] ** 2
+
+
+def placed_rooms_iou(
+    pm: PlanModel, frame: RasterFrame, footprint: np.ndarray, matrix: np.ndarray, min_cover: float
+) -> tuple[float, tuple[int, ...]]:
+    """IoU of the rooms the placement puts on the footprint (>= ``min_cover`` of their area) with
+    the footprint, and those rooms (indices)."""
+    if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
+        return 0.0, ()
+    n = len(pm.ids)
+    labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True)
+    on = np.bincount(labels[footprint].ravel(), minlength=n + 1)[1:]
+    det = abs(np.linalg.det(matrix[:2, :2]))
+    px_area = pm.room_areas * det / frame.resolution**2
+    cover = on / np.maximum(px_area, 1e-9)
+    rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
+    if not rooms:
+        return 0.0, rooms
+    sel = np.zeros(n + 1, bool)
+    sel[np.asarray(rooms) + 1] = True
+    placed = sel[labels]
+    inter = np.count_nonzero(placed & footprint)
+    union = np.count_nonzero(placed | footprint)
+    return (inter / union if union else 0.0), rooms
+
+
+def wall_precision_recall(
+    pm: PlanModel,
+    obs: MapObservation,
+    matrix: np.ndarray,
+    tol: float,
+    max_points: int = 300,
+) -> tuple[float, float]:
+    """(precision, recall) of the room structure under a placement, within ``tol`` metres.
+
+    precision: share of the plan's wall samples landing on the observed footprint that land near
+    a wall-side free cell of the map (unobserved rooms' walls off the footprint do not count); recall: share of the map's wall-side free cells that land
+    near a boundary of any plan room. A room stretched over several observed rooms explains
+    the outline but not the inner walls: its recall is low.
+    """
+    res = obs.frame.resolution
+    pts = pm.samples
+    if len(pts) == 0 or len(obs.edge_points) == 0:
+        return 0.0, 0.0
+    pts = pts[:: max(1, len(pts) // max_points)]
+    a, t = matrix[:2, :2], matrix[:2, 2]
+    q = pts @ a.T + t
+    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
+    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)
+    precision = float(np.sum((d < tol) & inside) / max(int(inside.sum()), 1))
+    det = abs(float(np.linalg.det(a)))
+    if det <= 0:
+        return precision, 0.0
+    ainv = np.linalg.inv(a)
+    e = (obs.edge_points - t) @ ainv.T
+    pf = pm.plan_frame
+    pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)
+    pr = np.floor((e[:, 1] - pf.origin[1]) / pf.resolution).astype(np.intp)
+    hp, wp = pm.plan_dt.shape
+    okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
+    dp = np.full(len(e), np.inf, np.float32)
+    dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
+    recall = float(np.mean(dp < tol + pf.resolution * math.sqrt(det)))
+    return precision, recall
+
+
+def placement_test(mats: np.ndarray, obs: MapObservation):
+    """A function ``same(m) -> (H,) bool``: which of the (H, 3, 3) placements ``mats`` place the
+    plan nearly as ``m`` does (see :func:`same_placement`)."""
+    h, w = obs.frame.shape
+    res = obs.frame.resolution
+    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
+    plan_pts = np.linalg.solve(mats, np.broadcast_to(corners, (len(mats), 3, 4)))  # (H, 3, 4)
+    signs = np.linalg.det(mats[:, :2, :2]) > 0
+    thr = 0.15 * math.sqrt(obs.area)
+
+    def same(m: np.ndarray) -> np.ndarray:
+        d = np.einsum("ij,hjk->hik", m[:2], plan_pts) - corners[:2]
+        dist = np.hypot(d[:, 0], d[:, 1]).max(axis=1)
+        return (signs == (np.linalg.det(m[:2, :2]) > 0)) & (dist < thr)
+
+    return same
+
+
+def same_placement(m1: np.ndarray, m2: np.ndarray, obs: MapObservation) -> bool:
+    """True when two plan -> map matrices place the plan nearly the same on the observed area:
+    the same handedness and the observed area's corners moved by less than 15 % of its size."""
+    if (np.linalg.det(m1[:2, :2]) > 0) != (np.linalg.det(m2[:2, :2]) > 0):
+        return False
+    h, w = obs.frame.shape
+    res = obs.frame.resolution
+    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
+    d = (m1 @ np.linalg.solve(m2, corners) - corners)[:2]
+    return bool(np.max(np.hypot(d[0], d[1])) < 0.15 * math.sqrt(obs.area))
+
+
+def choose_distinct(
+    hyps: list[Hypothesis], obs: MapObservation, k: int
+) -> tuple[list[Hypothesis], np.ndarray]:
+    """The first ``k`` hypotheses of ``hyps`` (best first) that place the plan differently, and a
+    (len(hyps),) bool mask of the hypotheses that place it as one of those."""
+    chosen: list[Hypothesis] = []
+    covered = np.zeros(len(hyps), bool)  # same placement as a chosen one
+    same_as = placement_test(np.stack([h.matrix for h in hyps]), obs)
+    for i, h in enumerate(hyps):
+        if len(chosen) >= k:
+            break
+        if covered[i]:
+            continue
+        chosen.append(h)
+        covered |= same_as(h.matrix)
+    return chosen, covered
+
+
+def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: dict, tol: float) -> None:
+    """Refine each of ``chosen`` cheaply (coarse robust scales, few points), set its ``refined``
+    and its ``quick`` key (the coarse key of the refined placement at tolerance ``tol`` metres,
+    0 for a degenerate one), and sort ``chosen`` by it, best first."""
+    delta0 = float(opts["delta"])
+    for h in chosen:  # screen: coarse robust scales, few points, scored on the coarse grid
+        h.refined = refine_from(
+            pm,
+            obs,
+            h.matrix,
+            delta0,
+            opts,
+            scales=opts["quick_scales"],
+            spacing_px=4.0,
+            max_points=opts["quick_points"],
+            iterations=opts["quick_iterations"],
+        )
+    mats = np.stack([h.refined.matrix for h in chosen])
+    bad = ~np.all(np.isfinite(mats), axis=(1, 2))
+    bad |= ~(np.abs(np.linalg.det(np.where(bad[:, None, None], np.eye(3), mats)[:, :2, :2])) > 1e-12)
+    mats[bad] = np.stack([h.matrix for h in chosen])[bad]
+    _, quick = coarse_scores(  # all screened placements at once, at the fine tolerance
+        pm,
+        obs,
+        mats,
+        np.array([h.mask for h in chosen], dtype=np.uint64),
+        opts["door_width_m"],
+        tol=tol,
+        matched_cover=opts["min_cover"],
+    )
+    for h, q, b in zip(chosen, quick, bad, strict=True):
+        h.quick = 0.0 if b or not np.isfinite(q) else float(q)
+    chosen.sort(key=lambda h: -h.quick)
+
+
+def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
+    """The screened placement refined at full resolution (``sample_px``, ``max_points``,
+    ``iterations``, robust scale 0.05 m); the screened one when that final fit is degenerate."""
+    r = refine_from(
+        pm,
+        obs,
+        screened.matrix,
+        screened.delta,
+        opts,
+        scales=(0.05,),
+        spacing_px=opts["sample_px"],
+        max_points=opts["max_points"],
+        iterations=opts["iterations"],
+    )
+    return r if plausible(r, opts) else screened

@@ -1,0 +1,97 @@
+"""Small helpers shared by the MFR steps: rotations, the dihedral group, wall directions, and
+raster lookups at metric points.
+
+Angles are radians; a raster has row 0 at the lowest y, cells of ``resolution`` metres (or plan
+units) from ``origin``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+DIHEDRAL: tuple[tuple[int, bool], ...] = tuple((k, f) for f in (False, True) for k in range(4))
+
+
+def rotation_matrix(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+def dihedral(k: int, flipped: bool) -> np.ndarray:
+    """2×2 ``R(k·90°) · diag(1, -1 if flipped)`` with exact integer entries."""
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k % 4]
+    r = np.array([[c, -s], [s, c]], dtype=np.float64)
+    return r @ np.diag([1.0, -1.0 if flipped else 1.0])
+
+
+def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) -> list[float]:
+    """Wall directions modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors weighted by their
+    length: peaks of a circular histogram (smoothed, σ = 3°), the strongest first, each refined by
+    the weighted circular mean within ±10°; a second peak counts when it is at least ``rel`` of
+    the first and 20° away. Robust to a few diagonal walls, unlike one overall mean."""
+    if len(vectors) > 6000:  # a regular subsample keeps the histogram
+        vectors = vectors[:: int(math.ceil(len(vectors) / 6000))]
+    mag = np.hypot(vectors[:, 0], vectors[:, 1])
+    ok = mag > 0
+    if not ok.any():
+        return [0.0]
+    v, w = vectors[ok], mag[ok]
+    a4 = np.mod(4.0 * np.arctan2(v[:, 1], v[:, 0]), 2 * np.pi)  # 4x angle: walls at 90° agree
+    bins = 360
+    hist = np.bincount((a4 / (2 * np.pi) * bins).astype(np.intp) % bins, weights=w, minlength=bins)
+    # smoothing σ = 3° of wall angle (12 bins of the 4x angle): gradients of rasterised oblique
+    # walls alias into two lobes a few degrees either side of the true direction
+    half = 36
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / 12.0) ** 2)
+    smooth = np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), kernel, mode="valid")
+    is_peak = (smooth >= np.roll(smooth, 1)) & (smooth > np.roll(smooth, -1))
+    peaks = np.flatnonzero(is_peak)
+    peaks = peaks[np.argsort(-smooth[peaks], kind="stable")].tolist()
+    out: list[float] = []
+    for i in peaks[:max_peaks]:
+        if out and smooth[i] < rel * smooth[peaks[0]]:
+            break
+        centre = (i + 0.5) / bins * 2 * np.pi
+        d = np.angle(np.exp(1j * (a4 - centre)))
+        near = np.abs(d) < np.radians(40.0)  # ±10° of wall angle
+        mean = centre + (np.sum(w[near] * d[near]) / max(np.sum(w[near]), 1e-12))
+        ang = float(np.angle(np.exp(1j * mean)) / 4.0)
+        if all(abs(np.angle(np.exp(4j * (ang - o)))) > np.radians(80.0) for o in out):  # 20° apart
+            out.append(ang)
+    return out or [0.0]
+
+
+def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
+    """Nearest-cell values of ``img`` (row 0 = lowest y; uint8 or float32) at metric points
+    (x, y arrays of one shape, at most 32767 wide); ``fill`` outside (cv2.remap)."""
+    shape = x.shape
+    if x.size == 0:
+        return np.full(shape, fill, dtype=img.dtype)
+    x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
+    y2 = y.reshape(x2.shape)
+    inv = np.float32(1.0 / resolution)
+    mx = (x2 - np.float32(origin[0])) * inv - np.float32(0.5)
+    my = (y2 - np.float32(origin[1])) * inv - np.float32(0.5)
+    out = cv2.remap(
+        img,
+        mx.astype(np.float32),
+        my.astype(np.float32),
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float(fill),
+    )
+    return out.reshape(shape)
+
+
+def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, 2, 2), (H, 2) affine maps applied to (P, 2) points: x, y arrays of shape (H, P)."""
+    a = a.astype(np.float32)
+    t = t.astype(np.float32)
+    p = pts.astype(np.float32)
+    px, py = p[None, :, 0], p[None, :, 1]
+    x = a[:, 0, 0, None] * px + a[:, 0, 1, None] * py + t[:, 0, None]
+    y = a[:, 1, 0, None] * px + a[:, 1, 1, None] * py + t[:, 1, None]
+    return x, y

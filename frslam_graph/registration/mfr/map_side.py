@@ -1,0 +1,188 @@
+"""MFR step 1, the map side: the partial occupancy map prepared for registration.
+
+Observed footprint = free ∪ occupied with holes filled, main connected component; free space with
+small obstacles filled; its signed distance field (full resolution); the "wall-side" free cells
+(free next to a wall) and doorway-like exits (free running into unobserved space, 0.4–2.5 m wide);
+up to two wall directions (peaks of the histogram of 4 × gradient angle, so walls at 90° agree);
+area moments and bounding boxes per direction.
+
+Frame and units: the *grid frame* of the known-area crop (origin = corner of its cell (0, 0), axes
+along the grid), metres; ``MapObservation.to_map`` maps it to ``map``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from frslam_graph.raster import RasterFrame
+from frslam_graph.registration.mfr.geometry import dominant_angles, rotation_matrix
+from frslam_graph.registration.refine import DistanceField
+
+
+@dataclass
+class MapObservation:
+    """The map, prepared for registration (grid frame of the known-area crop, metres)."""
+
+    to_map: np.ndarray
+    frame: RasterFrame
+    footprint: np.ndarray
+    free: np.ndarray
+    field: DistanceField
+    angles: list[float]  # wall directions (radians), strongest first
+    area: float
+    centroid: np.ndarray
+    cov: np.ndarray
+    bboxes: list[np.ndarray]  # per angle: x0, y0, x1, y1 in the frame rotated by -angle
+    coarse_frame: RasterFrame
+    coarse_footprint: np.ndarray
+    coarse_footprint_u8: np.ndarray
+    footprint_u8: np.ndarray
+    edge_dt: np.ndarray  # metres to the nearest wall-side free cell (full resolution)
+    edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
+    exit_points: np.ndarray  # (J, 2) free cells next to unobserved space outside the footprint
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with every region not connected to the image border filled."""
+    h, w = mask.shape
+    pad = np.zeros((h + 2, w + 2), np.uint8)
+    pad[1:-1, 1:-1] = mask
+    ff = pad.copy()
+    flood = np.zeros((h + 4, w + 4), np.uint8)
+    cv2.floodFill(ff, flood, (0, 0), 2)
+    return ff[1:-1, 1:-1] != 2
+
+
+def observe_map(
+    grid,
+    *,
+    min_area_m2: float = 2.0,
+    obstacle_m2: float = 0.5,
+    coarse_px: int = 80,
+    max_edge_points: int = 400,
+    min_exit_m: float = 0.4,
+    max_exit_m: float = 2.5,
+    max_resolution: float = 0.5,
+) -> MapObservation | str:
+    """Prepare ``grid`` (an OccupancyGrid); returns a failure reason string when unusable."""
+    known_all = ~grid.unknown_mask()
+    if not known_all.any():
+        return "map has no observed cells (all unknown)"
+    if grid.resolution > max_resolution:
+        return f"map resolution {grid.resolution:g} m per cell is too coarse (at most {max_resolution:g} m)"
+    g = grid.crop_to_known(margin_cells=4)
+    res = g.resolution
+    free = g.free_mask()
+    occ = g.occupied_mask()
+    if not free.any():
+        return "map has no free cells"
+    known = free | occ
+    filled = _fill_holes(known.astype(np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(filled.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return "map has no observed area"
+    main = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    footprint = labels == main
+    area = float(footprint.sum()) * res * res
+    if area < min_area_m2:
+        return f"observed area too small ({area:.2f} m² < {min_area_m2} m²)"
+    free = free & footprint
+    # small obstacles (furniture, people) inside free space are not walls
+    nonfree = (~free & footprint).astype(np.uint8)
+    m, lab2, st2, _ = cv2.connectedComponentsWithStats(nonfree, connectivity=8)
+    small = np.zeros(m, bool)
+    small[1:] = st2[1:, cv2.CC_STAT_AREA] * res * res < obstacle_m2
+    # keep components that touch the footprint's outside (outer walls) even when small
+    free = free | (small[lab2] & _interior(footprint, lab2, m))
+    field_ = DistanceField.from_masks(free, res, (0.0, 0.0))
+    # free cells on a wall (not on a frontier to unknown): the map's room structure
+    walls_in = (footprint & ~free).astype(np.uint8)
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
+    edge = free & cv2.dilate(walls_in, cross).astype(bool)
+    edge_dt = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3) * np.float32(res)
+    er, ec = np.nonzero(edge)
+    if len(er) < 10:
+        return "map shows no walls next to free space: nothing to match"
+    stride = max(1, len(er) // max_edge_points)
+    edge_points = (np.column_stack([ec[::stride], er[::stride]]).astype(np.float64) + 0.5) * res
+    # exits: where free space runs out of the observed area (open doorways, open-plan boundaries)
+    outside = (~footprint).astype(np.uint8)
+    exits = free & cv2.dilate(outside, cross).astype(bool)
+    # doorway-like exits: 0.4 to 2.5 m across (single missing wall cells are noise; big ragged
+    # openings are gaps in what the sensor saw, not doors); one point (centroid) per doorway
+    m, _, st3, cen3 = cv2.connectedComponentsWithStats(exits.astype(np.uint8), connectivity=8)
+    span = np.maximum(st3[1:, cv2.CC_STAT_WIDTH], st3[1:, cv2.CC_STAT_HEIGHT]) * res
+    door_like = (span >= min_exit_m) & (span <= max_exit_m)
+    exit_points = (cen3[1:][door_like] + 0.5) * res
+
+    # dominant wall direction from the free-space edges
+    fimg = cv2.GaussianBlur(free.astype(np.float32), (9, 9), 2.0)  # σ 2 cells: less aliasing
+    gx = cv2.Sobel(fimg, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(fimg, cv2.CV_32F, 0, 1, ksize=3)
+    sel = (np.abs(gx) + np.abs(gy)) > 0.05
+    if sel.sum() > 30000:  # plenty: a regular subsample keeps the histogram
+        idx = np.flatnonzero(sel)
+        sel = np.zeros(sel.shape, bool)
+        sel.flat[idx[:: int(math.ceil(len(idx) / 30000))]] = True
+    angles = dominant_angles(np.column_stack([gx[sel], gy[sel]]).astype(np.float64)) if sel.any() else [0.0]
+
+    mom = cv2.moments(footprint.astype(np.uint8), binaryImage=True)
+    m00 = max(mom["m00"], 1.0)
+    centroid = np.array([(mom["m10"] / m00 + 0.5) * res, (mom["m01"] / m00 + 0.5) * res])
+    cov = np.array([[mom["mu20"], mom["mu11"]], [mom["mu11"], mom["mu02"]]]) / m00 * res * res
+    cov += np.eye(2) * res * res / 12.0
+    contours, _ = cv2.findContours(footprint.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    pts = (np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64) + 0.5) * res
+    half = 0.5 * res
+    bboxes = []
+    for angle in angles:
+        pa = pts @ rotation_matrix(-angle).T
+        bboxes.append(
+            np.array(
+                [pa[:, 0].min() - half, pa[:, 1].min() - half, pa[:, 0].max() + half, pa[:, 1].max() + half]
+            )
+        )
+
+    h, w = footprint.shape
+    k = max(1, int(math.ceil(max(h, w) / coarse_px)))
+    hc, wc = max(1, h // k), max(1, w // k)
+    block = footprint[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3))
+    coarse_frame = RasterFrame(res * k, (0.0, 0.0), (hc, wc))
+    return MapObservation(
+        to_map=g.map_from_grid(),
+        frame=RasterFrame(res, (0.0, 0.0), (h, w)),
+        footprint=footprint,
+        free=free,
+        field=field_,
+        angles=angles,
+        area=area,
+        centroid=centroid,
+        cov=cov,
+        bboxes=bboxes,
+        coarse_frame=coarse_frame,
+        coarse_footprint=block >= 0.5,
+        coarse_footprint_u8=(block >= 0.5).astype(np.uint8),
+        footprint_u8=footprint.astype(np.uint8),
+        edge_dt=edge_dt,
+        edge_points=edge_points,
+        exit_points=exit_points,
+    )
+
+
+def _ring(mask: np.ndarray) -> np.ndarray:
+    """One-pixel ring just outside ``mask`` (counts as observed: walls end there)."""
+    return cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~mask
+
+
+def _interior(footprint: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Bool per pixel: its non-free component does not touch the footprint's border ring."""
+    ring = _ring(footprint)
+    border = cv2.dilate(ring.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    touching = np.zeros(n, bool)
+    touching[np.unique(labels[border])] = True
+    touching[0] = True
+    return ~touching[labels]

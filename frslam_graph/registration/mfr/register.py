@@ -1,0 +1,231 @@
+"""Our MFR registration: room-subset × dihedral search around the map's wall direction, then
+sub-pixel refinement of rotation, translation and the two scales.
+
+Frames and units: the plan is in plan units (right-handed, y up); the map in metres. Internally
+the map is handled in the *grid frame* of the known-area crop (origin = corner of its cell (0, 0),
+axes along the grid); the result is composed with the grid's ``origin`` (x, y, yaw) to give a
+matrix from plan coordinates to ``map`` metres.
+
+Steps
+1. Map: observed footprint = free ∪ occupied with holes filled, main connected component; free
+   space with small obstacles filled; its signed distance field (full resolution); the
+   "wall-side" free cells (free next to a wall) and doorway-like exits (free running into
+   unobserved space, 0.4–2.5 m wide); up to two wall directions (peaks of the histogram of
+   4 × gradient angle, so walls at 90° agree); area moments and bounding boxes per direction.
+2. Plan: its wall direction; per-room area moments and bounding boxes; boundary samples with
+   inward normals, leaving out doors and open-plan boundaries (no plan wall along them, as in
+   R2V's living-dining-kitchens); the room graph (doors, open-plan boundaries, shared walls for
+   rooms without doors) and its connected subsets (:mod:`frslam_graph.registration.subsets`).
+3. Coarse: every (subset, dihedral case, map direction) gets axis scales from second moments
+   (the paper's eq. 7 uses bounding boxes) within the aspect bound, ranked by scale- and
+   aspect-invariant shape features plus an aspect and door-width tie-break; the best ``pool_k``
+   are scored on few points, the best ``top_k`` of those on more: key = IoU with the footprint
+   × wall precision (plan walls on the observed area that are map walls) × wall recall (map walls
+   explained by plan walls) × exit agreement × door-width plausibility, all vectorised over the
+   hypotheses (cv2.remap lookups). A poor best fit triggers a scale/shift search.
+4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored; the best
+   is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
+   two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
+   the rooms it places on the footprint; ``ambiguity`` = best re-score of a different placement
+   (or unrefined coarse key, scaled) / the best's; ``details["alternatives"]`` hold up to
+   ``alternatives`` runner-up placements (relative score, plan -> map matrix) for a caller that
+   can tell them apart with other data; failure when IoU × precision × recall or the recall is
+   too low.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from frslam_graph.registration.mfr import coarse, fine
+from frslam_graph.registration.mfr.coarse import Hypothesis
+from frslam_graph.registration.mfr.geometry import rotation_matrix
+from frslam_graph.registration.mfr.map_side import observe_map
+from frslam_graph.registration.mfr.plan_side import prepare_plan
+from frslam_graph.registration.result import Registration, _wrap_deg, params_from_matrix
+from frslam_graph.registration.subsets import MAX_ROOMS, connected_subsets, mask_ids
+
+METHOD = "mfr"
+
+
+DEFAULTS: dict[str, Any] = {
+    "adjacency": "doors",  # room graph for subsets: doors | touch | both
+    "max_aspect": 1.6,  # bound on sy/sx (plan aspect errors up to about ±30 %)
+    "pool_k": 384,  # hypotheses (subset, dihedral case) kept by shape features, scored coarsely
+    "first_pass_points": 80,  # points of each kind in that first, cheap coarse pass
+    "top_k": 64,  # hypotheses scored on the coarse grid with all points
+    "refine_k": 3,  # distinct hypotheses refined
+    "search_below_iou": 0.85,  # search scales and shifts when the best coarse IoU is below this
+    "max_subsets_per_level": 3000,
+    "coarse_px": 80,
+    "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
+    "max_points": 1500,
+    "quick_points": 300,  # boundary samples when screening the refined hypotheses
+    "quick_scales": (0.15,),  # robust scales (m) of the screening refinement
+    "quick_iterations": 6,  # Gauss-Newton iterations per robust-scale stage when screening
+    "iterations": 10,  # Gauss-Newton iterations of the final stage
+    "delta": 0.06,  # prior of the wall half-thickness (m): plan room boundary to free-space edge
+    "delta_sigma": 0.05,
+    "min_cover": 0.5,  # a room is matched when this share of it lies on the footprint
+    "min_score": 0.25,  # below this IoU x structure precision x recall: no match (another building)
+    "min_recall": 0.5,  # share of the map's walls the placed plan must explain
+    "ambiguous_at": 0.9,  # details["ambiguous"] when the ambiguity reaches this
+    "alternatives": 2,  # details["alternatives"]: up to this many runner-up placements
+    "min_area_m2": 2.0,
+    "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
+    "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
+}
+
+
+def register_mfr(plan, grid, **options: Any) -> Registration:
+    """Register ``plan`` to ``grid`` with our MFR; see the module docstring and :data:`DEFAULTS`.
+
+    Never raises on a valid FloorPlan and OccupancyGrid: failures are ``ok == False`` + reason.
+    """
+    t0 = time.perf_counter()
+    unknown = set(options) - set(DEFAULTS)
+    if unknown:
+        from frslam_graph.errors import ConfigError
+
+        raise ConfigError(f"unknown mfr option(s) {sorted(unknown)}; expected some of {sorted(DEFAULTS)}")
+    opts = {**DEFAULTS, **options}
+    try:
+        return _register(plan, grid, opts, t0)
+    except Exception as exc:  # never raise on data: report it
+        return Registration.failure(
+            f"internal error: {type(exc).__name__}: {exc}", METHOD, time.perf_counter() - t0
+        )
+
+
+def _register(plan, grid, opts: dict, t0: float) -> Registration:
+    def fail(reason: str, **details: Any) -> Registration:
+        return Registration.failure(reason, METHOD, time.perf_counter() - t0, **details)
+
+    n = len(plan.rooms)
+    if n < 2:
+        return fail(f"plan has {n} room(s): flip and rotation of a single room are undetermined")
+    if n > MAX_ROOMS:
+        return fail(f"plan has {n} rooms; at most {MAX_ROOMS} are supported")
+    # 1. map side
+    obs = observe_map(grid, min_area_m2=opts["min_area_m2"], coarse_px=opts["coarse_px"])
+    if isinstance(obs, str):
+        return fail(obs)
+    t_map = time.perf_counter()
+    # 2. plan side, and the room subsets to try
+    pm = prepare_plan(plan, adjacency=opts["adjacency"])
+    seeds = None
+    if opts["seed_rooms"]:
+        seeds = np.array([pm.ids.index(r) for r in opts["seed_rooms"] if r in pm.ids], dtype=np.int64)
+        if len(seeds) == 0:
+            return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
+    masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=opts["max_subsets_per_level"])
+    # 3. coarse search
+    hyps = coarse.search(pm, obs, masks, opts)
+    if not hyps:
+        return fail("no room subset fits the map's shape within the aspect bound")
+    t_coarse = time.perf_counter()
+    # 4. refinement: screen the best distinct placements, refine the best at full resolution
+    chosen, covered = fine.choose_distinct(hyps, obs, opts["refine_k"])
+    tol_f = max(3.0 * obs.frame.resolution, 0.1)
+    fine.screen(pm, obs, chosen, opts, tol_f)
+    best = chosen[0]
+    r0 = best.refined
+    best.refined = r = fine.refine_final(pm, obs, r0, opts)
+    if not fine.plausible(r, opts):
+        return fail("degenerate fit (scales collapsed or exploded)")
+    best.score, best.rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000)
+    quality = best.score * prec * rec
+    ambiguity = _ambiguity(chosen, hyps, covered, r0.matrix, obs)
+    alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
+    t_fine = time.perf_counter()
+
+    matrix = obs.to_map @ r.matrix
+    cov = r.covariance
+    if cov is not None and grid.origin[2] != 0.0:
+        rot3 = np.eye(3)
+        rot3[:2, :2] = rotation_matrix(grid.origin[2])
+        cov = rot3 @ cov @ rot3.T
+    details = {
+        "ambiguous": bool(ambiguity >= opts["ambiguous_at"]),
+        "alternatives": alternatives,
+        "quality": float(quality),
+        "precision": prec,
+        "recall": rec,
+        "delta_m": r.delta,
+        "fit": r.inliers,
+        "rms_m": r.rms,
+        "n_points": r.n_points,
+        "map_angles_deg": [math.degrees(a) for a in obs.angles],
+        "plan_angle_deg": math.degrees(pm.angle),
+        "observed_area_m2": obs.area,
+        "n_subsets": int(len(masks)),
+        "n_hypotheses": len(hyps),
+        "coarse_iou": best.coarse_iou,
+        "coarse_rooms": list(mask_ids(best.mask, pm.ids)),
+        "time_map_s": t_map - t0,
+        "time_coarse_s": t_coarse - t_map,
+        "time_fine_s": t_fine - t_coarse,
+    }
+    candidates = [
+        (
+            float(h.quick),
+            *(lambda f, r: (bool(f), _wrap_deg(math.degrees(r))))(*params_from_matrix(h.refined.matrix)[:2]),
+        )
+        for h in chosen
+    ]
+    reg = Registration.from_matrix(
+        matrix,
+        score=float(best.score),
+        ambiguity=ambiguity,
+        rooms=tuple(pm.ids[i] for i in best.rooms),
+        covariance=cov,
+        method=METHOD,
+        candidates=candidates,
+        details=details,
+    )
+    if quality < opts["min_score"] or rec < opts["min_recall"]:
+        reg.ok = False
+        reg.reason = (
+            f"no match: IoU {best.score:.2f} x wall precision {prec:.2f} x recall {rec:.2f} = {quality:.2f} "
+            f"(needs >= {opts['min_score']} and recall >= {opts['min_recall']}; a plan of another building?)"
+        )
+    reg.time_s = time.perf_counter() - t0
+    return reg
+
+
+def _ambiguity(
+    chosen: list[Hypothesis], hyps: list[Hypothesis], covered: np.ndarray, screened: np.ndarray, obs
+) -> float:
+    """Best screened key of a placement other than the best's (``screened``, plan -> grid frame),
+    or the best unrefined coarse key scaled by the best's screened / coarse key, over the best's
+    screened key, at most 1 (1 when the best scored 0)."""
+    best = chosen[0]
+    second = max(
+        (h.quick for h in chosen[1:] if not fine.same_placement(h.refined.matrix, screened, obs)), default=0.0
+    )
+    rest = [h.key for h, c in zip(hyps, covered, strict=True) if not c]
+    if rest:  # unrefined placements: their coarse key relative to the best's coarse key
+        second = max(second, best.quick * max(rest) / max(best.key, 1e-9))
+    return float(min(1.0, second / best.quick)) if best.quick > 0 else 1.0
+
+
+def _alternatives(chosen: list[Hypothesis], screened: np.ndarray, obs, limit: int) -> list[dict[str, Any]]:
+    """Up to ``limit`` runner-up placements (each different from the best's ``screened`` one and
+    from each other) as ``relative_score`` and ``matrix`` (plan -> map), for a caller that can tell
+    them apart with other data (e.g. the robot's scans)."""
+    best = chosen[0]
+    alternatives: list[dict[str, Any]] = []
+    placed = [screened]
+    for h in chosen[1:]:
+        if len(alternatives) >= limit or h.quick <= 0.0:
+            break
+        if any(fine.same_placement(h.refined.matrix, m, obs) for m in placed):
+            continue
+        placed.append(h.refined.matrix)
+        alternatives.append({"relative_score": h.quick / best.quick, "matrix": obs.to_map @ h.refined.matrix})
+    return alternatives
