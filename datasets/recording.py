@@ -111,21 +111,6 @@ class Recording(ABC):
         return f"{type(self).__name__}({str(self.path)!r}, scans={len(self)})"
 
 
-def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """(M, 3) SE(2) poses linearly interpolated at ``query`` from ``poses`` (N, 3) at increasing
-    ``stamps`` (N,): x, y linearly, the heading unwrapped then wrapped to (-pi, pi]. Queries
-    outside the stamps take the end poses (``np.interp``)."""
-    q = np.asarray(query, dtype=np.float64)
-    heading = np.interp(q, stamps, np.unwrap(poses[:, 2]))
-    return np.column_stack(
-        (
-            np.interp(q, stamps, poses[:, 0]),
-            np.interp(q, stamps, poses[:, 1]),
-            np.arctan2(np.sin(heading), np.cos(heading)),
-        )
-    )
-
-
 class PoseInterpolator:
     """Pose of an (M, 4) ``stamp, x, y, theta`` table (increasing stamps) at one stamp, O(log M).
 

@@ -376,7 +376,7 @@ class RosBag(Recording):
     def ground_truth(self) -> np.ndarray:
         """(N, 4) ``stamp, x, y, theta`` from a simulator folder's ``ground_truth.tum``; an error
         when the folder lacks ``meta.json``, its completeness marker (an interrupted simulation)."""
-        from frslam_graph.metrics import load_tum
+        from frslam_graph.evaluation.trajectory_io import load_tum
 
         path = self.ground_truth_path
         if path is None:

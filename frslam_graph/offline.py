@@ -139,7 +139,7 @@ def write_outputs(
     stop the writing: ``metrics["evaluation_errors"]`` names the problem.
     """
     from frslam_graph.atomic import atomic_write
-    from frslam_graph.metrics import save_tum
+    from frslam_graph.evaluation.trajectory_io import save_tum
 
     folder = out if isinstance(out, OutputFolder) else OutputFolder(out, "metrics.json", RUN_OUTPUTS)
     res = run.result
@@ -278,7 +278,8 @@ def evaluate(
     max_dt: float = 0.02,
 ) -> dict[str, Any]:
     """ATE (SE(2)-aligned) / RPE against ground truth and/or the relation error; {} without either."""
-    from frslam_graph.metrics import ate, relation_error, rpe
+    from frslam_graph.evaluation.metrics import ate, rpe
+    from frslam_graph.evaluation.relations import relation_error
 
     out: dict[str, Any] = {}
     if ground_truth is not None:

@@ -90,7 +90,7 @@ def compare_figure(
     from matplotlib.colors import Normalize
 
     from frslam_graph.errors import TrajectoryError
-    from frslam_graph.metrics import translation_errors
+    from frslam_graph.evaluation.metrics import translation_errors
 
     errors: dict[str, tuple[np.ndarray, ...]] = {}
     if ground_truth is not None and len(ground_truth) > 1:

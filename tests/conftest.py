@@ -109,7 +109,7 @@ def small_log(tmp_path_factory):
     _write_carmen(log, truth, odom, ranges)
     gt = truth.copy()
     gt[:, 0] += 1000
-    from frslam_graph.metrics import save_tum
+    from frslam_graph.evaluation.trajectory_io import save_tum
 
     save_tum(d / "gt.tum", gt)
     return log, d / "gt.tum"

@@ -9,7 +9,8 @@ import pytest
 from matplotlib.collections import LineCollection
 
 from frslam_graph.cli import main
-from frslam_graph.metrics import save_tum, translation_errors
+from frslam_graph.evaluation.metrics import translation_errors
+from frslam_graph.evaluation.trajectory_io import save_tum
 from frslam_graph.viz import compare_figure
 
 

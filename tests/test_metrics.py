@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from frslam_graph.errors import TrajectoryError
-from frslam_graph.metrics import ate, load_relations, load_tum, relation_error, relative_poses, rpe, save_tum
+from frslam_graph.evaluation.metrics import ate, rpe
+from frslam_graph.evaluation.relations import relation_error, relative_poses
+from frslam_graph.evaluation.trajectory_io import load_relations, load_tum, save_tum
 
 
 def compose(a, b):
@@ -138,7 +140,7 @@ def test_relations_file_and_aces_format(tmp_path):
     p.write_text("\n".join(lines) + "\n")
     loaded = load_relations(p)
     np.testing.assert_allclose(loaded, rel, atol=1e-6)
-    res = relation_error(gt, p)
+    res = relation_error(gt, loaded)
     assert res.trans_mean == pytest.approx(0.035, abs=1e-5) and res.trans_std == pytest.approx(
         0.005, abs=1e-5
     )
@@ -148,6 +150,9 @@ def test_relations_file_and_aces_format(tmp_path):
         TrajectoryError, match=r"bad.relations: line 2: expected 8 numbers 't1 t2 x y z roll pitch yaw'"
     ):
         load_relations(bad)
+    # the metric takes arrays; a path is named as one, with the reader to use
+    with pytest.raises(TrajectoryError, match="not a path .*load_relations"):
+        relation_error(gt, p)
 
 
 def test_tum_round_trip_and_errors(tmp_path):
@@ -238,7 +243,7 @@ def test_aces_odometry_against_its_relations(shared_data):
 
     carmen = shared_data / "carmen"
     traj = np.array([(s.stamp, *s.odom) for s in open_recording(carmen / "aces.clf.bz2")])
-    res = relation_error(traj, carmen / "aces.relations", tolerance=1e-3)
+    res = relation_error(traj, load_relations(carmen / "aces.relations"), tolerance=1e-3)
     assert (res.matched, res.unmatched) == (1279, 0)
     assert 0.0 < res.trans_mean < 5.0 and 0.0 < res.rot_mean < 20.0
     # odometry drifts: long relations are worse than short ones

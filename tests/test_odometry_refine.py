@@ -6,7 +6,8 @@ import numpy as np
 from frslam_graph.datasets import open_recording
 
 from frslam_graph.config import OdometryConfig
-from frslam_graph.metrics import relation_error
+from frslam_graph.evaluation.relations import relation_error
+from frslam_graph.evaluation.trajectory_io import load_relations
 from frslam_graph.odometry import ScanOdometry
 from frslam_graph.pipeline import _body_points
 
@@ -28,7 +29,7 @@ def test_refinement_sharpens_the_real_fr079_odometry(test_data):
     for s in open_recording(test_data / "fr079_250.clf.bz2"):
         pts, _ = _body_points(s.points, s.sensor_offset)
         scans.append((s.stamp, pts, s.odom))
-    rel = test_data / "fr079_250.relations"
+    rel = load_relations(test_data / "fr079_250.relations")
     plain = relation_error(_frontend(scans, 0), rel)
     refined = relation_error(_frontend(scans, 20), rel)
     assert plain.matched == refined.matched == 51

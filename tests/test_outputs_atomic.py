@@ -85,7 +85,7 @@ def test_run_interrupted_while_writing_leaves_the_previous_run_whole(
 ):
     """A signal arriving mid-write (here raised by a writer half-way through trajectory.tum)
     leaves the previous run's outputs as they were, no half file, and one line, exit 143."""
-    import frslam_graph.metrics as metrics
+    import frslam_graph.evaluation.trajectory_io as trajectory_io
 
     log, gt = small_log
     out = tmp_path / "run"
@@ -98,7 +98,7 @@ def test_run_interrupted_while_writing_leaves_the_previous_run_whole(
             fh.write("# stamp x y z qx qy qz qw\n1000.0 0 0 0 0 0 0 1\n")
             raise Interrupted(signal.SIGTERM)
 
-    monkeypatch.setattr(metrics, "save_tum", cut_save_tum)
+    monkeypatch.setattr(trajectory_io, "save_tum", cut_save_tum)
     assert main(["run", str(log), "--ground-truth", str(gt), "--out", str(out)]) == 143
     assert one_line(capsys.readouterr().err) == "frslam: interrupted (SIGTERM); outputs left: none"
     assert listing(out) == before
@@ -322,7 +322,7 @@ def test_ground_truth_of_another_recording_is_named_and_the_outputs_kept(
 ):
     """The mismatch shows once the recording is read: the run's outputs are written, then one
     line naming --ground-truth and the file, exit 2."""
-    from frslam_graph.metrics import load_tum, save_tum
+    from frslam_graph.evaluation.trajectory_io import load_tum, save_tum
 
     log, gt = small_log
     other = tmp_path / "other.tum"
@@ -352,7 +352,7 @@ def test_run_refuses_a_simulation_without_its_completeness_marker(plan_json, tmp
 
 def test_trajectory_file_is_whole_after_the_writer_fails_at_any_line(tmp_path, monkeypatch):
     """save_tum is atomic: a failure while numpy writes the rows leaves no file at all."""
-    import frslam_graph.metrics as metrics
+    import frslam_graph.evaluation.trajectory_io as trajectory_io
 
     def savetxt(fh, rows, fmt):
         fh.write("1000.0 0 0 0 0 0 0 1\n")
@@ -360,5 +360,5 @@ def test_trajectory_file_is_whole_after_the_writer_fails_at_any_line(tmp_path, m
 
     monkeypatch.setattr(np, "savetxt", savetxt)
     with pytest.raises(OSError):
-        metrics.save_tum(tmp_path / "t.tum", np.zeros((3, 4)))
+        trajectory_io.save_tum(tmp_path / "t.tum", np.zeros((3, 4)))
     assert list(tmp_path.iterdir()) == []

@@ -177,7 +177,7 @@ def test_ros2_folder_and_bare_storage_file(tmp_path, storage):
 
 def test_simulator_output_folder(tmp_path):
     """Simulator layout: bag/ (rosbag2) with /scan, /odom and /ground_truth, plus ground_truth.tum."""
-    from frslam_graph.metrics import save_tum
+    from frslam_graph.evaluation.trajectory_io import save_tum
 
     m = Msgs(False)
     msgs = standard_messages(ros1=False)
@@ -380,7 +380,7 @@ def test_shared_demo_bag(shared_data, tmp_path):
 
 def test_header_stamps_match_a_tum_file_exactly(tmp_path):
     """Absolute stamps (about 1.7e9 s) survive bag -> float seconds as a '%.9f' TUM line would."""
-    from frslam_graph.metrics import load_tum, save_tum
+    from frslam_graph.evaluation.trajectory_io import load_tum, save_tum
 
     m = Msgs(False)
     ns = [1_700_000_000_123_456_789 + k * 33_333_333 for k in range(20)]

@@ -9,8 +9,8 @@ import pytest
 from shapely.geometry import box as sbox
 
 from frslam_graph.config import FRSlamConfig
+from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan, Room
-from frslam_graph.metrics import ate
 from frslam_graph.offline import RunOutput, write_outputs
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration

@@ -287,8 +287,8 @@ def house_task(task: dict) -> dict:
     from dev_priors_check import WrongRegistrations  # noqa: PLC0415
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run  # noqa: PLC0415
 
+    from frslam_graph.evaluation.metrics import ate  # noqa: PLC0415
     from frslam_graph.floorplan import FloorPlan  # noqa: PLC0415
-    from frslam_graph.metrics import ate  # noqa: PLC0415
     from frslam_graph.update_strategy import FloorPlanUpdater  # noqa: PLC0415
 
     out = {"plan": task["plan"].name, "other": task["other"].name, "rows": [], "skip": None}

@@ -111,7 +111,7 @@ def child_frslam(spec: dict) -> dict[str, Any]:
     """Run one recording as ``frslam run`` does; write its outputs to ``spec["out"]``."""
     from frslam_graph.datasets import open_recording
 
-    from frslam_graph.metrics import load_relations
+    from frslam_graph.evaluation.trajectory_io import load_relations
     from frslam_graph.offline import run_recording, write_outputs
 
     rec = open_recording(spec["recording"])
@@ -156,7 +156,8 @@ def child_kiss(spec: dict) -> dict[str, Any]:
     from kiss_icp.kiss_icp import KissICP
 
     from frslam_graph.config import FRSlamConfig
-    from frslam_graph.metrics import load_relations, relation_error
+    from frslam_graph.evaluation.relations import relation_error
+    from frslam_graph.evaluation.trajectory_io import load_relations
 
     rec = open_recording(spec["recording"])
     t0 = time.perf_counter()

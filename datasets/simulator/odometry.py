@@ -23,9 +23,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from frslam_graph.datasets.recording import interpolate_poses
 
 from frslam_graph.errors import ConfigError
+from frslam_graph.se2 import interpolate_poses
 
 
 @dataclass(frozen=True)

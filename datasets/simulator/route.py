@@ -21,13 +21,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 import shapely
-from frslam_graph.datasets.recording import interpolate_poses
 from frslam_graph.datasets.simulator.house import House
 from scipy import sparse
 from scipy.sparse.csgraph import dijkstra
 
 from frslam_graph.errors import ConfigError
 from frslam_graph.raster import RasterFrame, rasterise_plan, rasterise_polygons
+from frslam_graph.se2 import interpolate_poses
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,8 @@ def relations(
     from frslam_graph.datasets.carmen import is_carmen
     from frslam_graph.datasets.rosbag import bag_path
     from frslam_graph.errors import TrajectoryError
-    from frslam_graph.metrics import load_tum, relation_error
+    from frslam_graph.evaluation.relations import relation_error
+    from frslam_graph.evaluation.trajectory_io import load_relations, load_tum
 
     if trajectory.is_dir() or is_carmen(trajectory) or bag_path(trajectory) is not None:
         with warnings.catch_warnings():
@@ -51,7 +52,7 @@ def relations(
     else:
         traj = load_tum(trajectory)
         what = "trajectory"
-    res = relation_error(traj, relations_file, tolerance, interpolate)
+    res = relation_error(traj, load_relations(relations_file), tolerance, interpolate)
     console.print(f"{trajectory} ({what}, {len(traj):,} poses) against {relations_file}:")
     console.print(
         f"  translational error {res.trans_mean:.4f} ± {res.trans_std:.4f} m (mean of squares {res.trans_sq_mean:.4f} m²)"

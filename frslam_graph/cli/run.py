@@ -74,7 +74,7 @@ def _inputs(
     after the run with its outputs lost. Returns (recording, config, ground truth, relations,
     sources: how to name the ground truth / relations)."""
     from frslam_graph.config import FRSlamConfig
-    from frslam_graph.metrics import load_relations, load_tum
+    from frslam_graph.evaluation.trajectory_io import load_relations, load_tum
 
     rec = open_recording_with(recording, **reader_options)
     cfg = FRSlamConfig.load(config) if config is not None else None
