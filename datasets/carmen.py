@@ -37,6 +37,7 @@ from frslam_graph.datasets.scan import Scan
 
 from frslam_graph.errors import OptionError, RecordingError
 from frslam_graph.limits import bounded_lines, open_binary, short_repr
+from frslam_graph.se2 import wrap_atan2
 
 FRONT = ("FLASER", "ROBOTLASER1")
 REAR = ("RLASER", "ROBOTLASER2")
@@ -103,10 +104,6 @@ def _lines(path: Path, stats: RecordingStats) -> Iterator[tuple[int, str]]:
         raise
     except (EOFError, OSError, ValueError) as exc:  # truncated .gz/.bz2, corrupt stream
         stats.skip(f"rest of file unreadable ({exc})", f"{path.name}:{lineno + 1}")
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 class _Parsed(NamedTuple):
@@ -461,7 +458,7 @@ class CarmenLog(Recording):
             lx, ly, lth = rec.laser
             c, s = math.cos(rth), math.sin(rth)
             dx, dy = lx - rx, ly - ry
-            offset = (c * dx + s * dy, -s * dx + c * dy, _wrap(lth - rth))
+            offset = (c * dx + s * dy, -s * dx + c * dy, wrap_atan2(lth - rth))
             if self.odom_source == "laser":
                 odom = (rx, ry, rth)
             elif use_odom_table:

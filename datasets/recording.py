@@ -13,7 +13,6 @@ records as an (M, 4) array ``stamp, x, y, theta`` of ``base_link`` in ``odom`` (
 
 from __future__ import annotations
 
-import math
 import warnings
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -23,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 from frslam_graph.datasets.scan import Scan
+
+from frslam_graph.se2 import wrap_atan2
 
 
 class RecordingWarning(UserWarning):
@@ -132,5 +133,5 @@ class PoseInterpolator:
         return (
             float(np.interp(stamp, t, self.x)),
             float(np.interp(stamp, t, self.y)),
-            math.atan2(math.sin(heading), math.cos(heading)),
+            wrap_atan2(heading),
         )

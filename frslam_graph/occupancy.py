@@ -28,6 +28,7 @@ from frslam_graph.errors import FrslamError, MapError
 from frslam_graph.image_files import grey_levels, read_image
 from frslam_graph.limits import short_repr
 from frslam_graph.raster import RasterFrame
+from frslam_graph.se2 import rot, to_matrix
 from frslam_graph.textfile import read_yaml
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
@@ -100,9 +101,7 @@ class OccupancyGrid:
 
     def map_from_grid(self) -> np.ndarray:
         """3×3 transform from the grid's unrotated frame (origin at cell (0,0) corner) to ``map``."""
-        x, y, yaw = self.origin
-        c, s = math.cos(yaw), math.sin(yaw)
-        return np.array([[c, -s, x], [s, c, y], [0, 0, 1.0]])
+        return to_matrix(self.origin)
 
     def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) map coordinates -> (N, 2) continuous cell coordinates (col, row); centres at +0.5."""
@@ -110,8 +109,7 @@ class OccupancyGrid:
         x, y, yaw = self.origin
         d = xy - (x, y)
         if yaw != 0.0:
-            c, s = math.cos(yaw), math.sin(yaw)
-            d = d @ np.array([[c, -s], [s, c]])  # rotate by -yaw
+            d = d @ rot(yaw)  # rotate by -yaw
         return d / self.resolution
 
     def cell_to_world(self, colrow: np.ndarray) -> np.ndarray:
@@ -120,8 +118,7 @@ class OccupancyGrid:
         d = colrow * self.resolution
         x, y, yaw = self.origin
         if yaw != 0.0:
-            c, s = math.cos(yaw), math.sin(yaw)
-            d = d @ np.array([[c, s], [-s, c]])  # rotate by +yaw
+            d = d @ rot(yaw).T  # rotate by +yaw
         return d + (x, y)
 
     # ------------------------------------------------------------------ construction

@@ -39,6 +39,7 @@ from shapely.geometry import LineString, Polygon
 from frslam_graph.errors import FloorPlanError, FrslamError
 from frslam_graph.floorplan.openings import open_boundaries
 from frslam_graph.raster import RasterFrame, rasterise_polygons
+from frslam_graph.se2 import wrap
 
 _CHI2_3_99 = 11.345
 
@@ -493,7 +494,7 @@ class Relocaliser:
                 if lam > 1e4:
                     break
         if abs(pose[2]) > np.pi:  # wrapping changes nothing but the angle's representation
-            pose[2] = _wrap(pose[2])
+            pose[2] = wrap(pose[2])
         return pose, _soft(r, p.truncation)
 
     def _covariance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -552,13 +553,9 @@ def _soft(r: np.ndarray, tau: float) -> float:
     return float(np.mean(1.0 - a * a))
 
 
-def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
-
-
 def _pose_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = np.asarray(a, float) - np.asarray(b, float)
-    d[2] = _wrap(d[2])
+    d[2] = wrap(d[2])
     return d
 
 

@@ -143,11 +143,6 @@ def child_frslam(spec: dict) -> dict[str, Any]:
     return row
 
 
-def _se2(x: float, y: float, th: float) -> np.ndarray:
-    c, s = math.cos(th), math.sin(th)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
-
-
 def child_kiss(spec: dict) -> dict[str, Any]:
     """Bare KISS-ICP on the recording's scans (z = 0), and the wheel odometry as logged."""
     from frslam_graph.datasets import open_recording
@@ -158,6 +153,7 @@ def child_kiss(spec: dict) -> dict[str, Any]:
     from frslam_graph.config import FRSlamConfig
     from frslam_graph.evaluation.relations import relation_error
     from frslam_graph.evaluation.trajectory_io import load_relations
+    from frslam_graph.se2 import to_matrix
 
     rec = open_recording(spec["recording"])
     t0 = time.perf_counter()
@@ -175,12 +171,12 @@ def child_kiss(spec: dict) -> dict[str, Any]:
                     registration=RegistrationConfig(max_num_threads=FRSlamConfig().odometry.num_threads),
                 )
             )
-            offset = _se2(*scan.sensor_offset)
+            offset = to_matrix(scan.sensor_offset)
             offset_inv = np.linalg.inv(offset)
         p = scan.points
         icp.register_frame(np.column_stack((p, np.zeros(len(p)))), no_stamps)
         m = icp.last_pose
-        sensor = _se2(m[0, 3], m[1, 3], math.atan2(m[1, 0], m[0, 0]))
+        sensor = to_matrix((m[0, 3], m[1, 3], math.atan2(m[1, 0], m[0, 0])))
         base = offset @ sensor @ offset_inv  # base_link_0 -> base_link_k
         rows.append((scan.stamp, base[0, 2], base[1, 2], math.atan2(base[1, 0], base[0, 0])))
         if scan.odom is not None:

@@ -20,6 +20,7 @@ from typing import Any, Literal
 import numpy as np
 
 from frslam_graph.errors import ConfigError
+from frslam_graph.se2 import rot
 
 RotationMode = Literal["step90", "any", "none"]
 
@@ -84,9 +85,7 @@ class Distortion:
     @property
     def linear(self) -> np.ndarray:
         """The 2×2 part ``R(rotation) · diag(1, ±1) · diag(sx, sy)``."""
-        c, s = math.cos(self.rotation), math.sin(self.rotation)
-        rot = np.array([[c, -s], [s, c]])
-        return rot @ np.diag([1.0, -1.0 if self.flip else 1.0]) @ np.diag([self.sx, self.sy])
+        return rot(self.rotation) @ np.diag([1.0, -1.0 if self.flip else 1.0]) @ np.diag([self.sx, self.sy])
 
     @property
     def matrix(self) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from frslam_graph.errors import ConfigError
-from frslam_graph.se2 import interpolate_poses
+from frslam_graph.se2 import compose_increments, interpolate_poses, relative_motion
 
 
 @dataclass(frozen=True)
@@ -94,27 +94,6 @@ class OdometryTrack:
         out[1:, 1] = (-s * d[:, 0] + c * d[:, 1]) / dt
         out[1:, 2] = np.diff(np.unwrap(self.poses[:, 2])) / dt
         return out
-
-
-def relative_motion(poses: np.ndarray) -> np.ndarray:
-    """(N-1, 3) increments ``pose[k-1]^-1 ⊕ pose[k]`` in the frame of ``pose[k-1]``."""
-    d = np.diff(poses[:, :2], axis=0)
-    th = poses[:-1, 2]
-    c, s = np.cos(th), np.sin(th)
-    dth = np.diff(poses[:, 2])
-    dth = np.arctan2(np.sin(dth), np.cos(dth))
-    return np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], dth))
-
-
-def compose_increments(start: np.ndarray, inc: np.ndarray) -> np.ndarray:
-    """(N+1, 3) poses from ``start`` composed with the body-frame increments ``inc`` (N, 3)."""
-    th = start[2] + np.concatenate(([0.0], np.cumsum(inc[:, 2])))
-    c, s = np.cos(th[:-1]), np.sin(th[:-1])
-    dx = c * inc[:, 0] - s * inc[:, 1]
-    dy = s * inc[:, 0] + c * inc[:, 1]
-    x = start[0] + np.concatenate(([0.0], np.cumsum(dx)))
-    y = start[1] + np.concatenate(([0.0], np.cumsum(dy)))
-    return np.column_stack((x, y, np.arctan2(np.sin(th), np.cos(th))))
 
 
 def wheel_odometry(

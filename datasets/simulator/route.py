@@ -27,7 +27,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from frslam_graph.errors import ConfigError
 from frslam_graph.raster import RasterFrame, rasterise_plan, rasterise_polygons
-from frslam_graph.se2 import interpolate_poses
+from frslam_graph.se2 import interpolate_poses, wrap_atan2
 
 
 @dataclass(frozen=True)
@@ -344,7 +344,7 @@ def _drive(path: np.ndarray, prm: RouteParams) -> np.ndarray:
             t += 1
         i = max(i, t - look)
         err = math.atan2(py[t] - y, px[t] - x) - th
-        err = math.atan2(math.sin(err), math.cos(err))
+        err = wrap_atan2(err)
         if abs(err) > 2.8 and w != 0.0:
             # target (almost) straight behind: keep turning the way we already turn, or the sign
             # of the error flips every step and the acceleration limit freezes the robot
@@ -368,6 +368,6 @@ def _drive(path: np.ndarray, prm: RouteParams) -> np.ndarray:
         else:
             x += v * dt * math.cos(th)
             y += v * dt * math.sin(th)
-        th = math.atan2(math.sin(th + w * dt), math.cos(th + w * dt))
+        th = wrap_atan2(th + w * dt)
         out.append((x, y, th))
     return np.asarray(out)

@@ -14,6 +14,7 @@ import numpy as np
 
 from frslam_graph.errors import TrajectoryError
 from frslam_graph.evaluation.trajectory import as_trajectory
+from frslam_graph.se2 import wrap_atan2
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,7 @@ def align_2d(
     yaw = math.atan2(r[1, 0], r[0, 0])
     out = traj_est.copy()
     out[:, 1:3] = (c * (r @ traj_est[:, 1:3].T)).T + t
-    out[:, 3] = np.arctan2(np.sin(traj_est[:, 3] + yaw), np.cos(traj_est[:, 3] + yaw))
+    out[:, 3] = wrap_atan2(traj_est[:, 3] + yaw)
     return out, Alignment2D(yaw, float(t[0]), float(t[1]), float(c))
 
 

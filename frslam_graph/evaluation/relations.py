@@ -18,6 +18,7 @@ import numpy as np
 
 from frslam_graph.errors import TrajectoryError
 from frslam_graph.evaluation.trajectory import as_trajectory, interpolate_trajectory, nearest_pose
+from frslam_graph.se2 import wrap_atan2
 
 
 # ---------------------------------------------------------------------------- relation metric
@@ -107,7 +108,7 @@ def relation_error(
     est, r = est[ok], rel[ok]
     t_err = np.hypot(r[:, 2] - est[:, 0], r[:, 3] - est[:, 1])
     d_th = r[:, 4] - est[:, 2]
-    r_err = np.degrees(np.abs(np.arctan2(np.sin(d_th), np.cos(d_th))))
+    r_err = np.degrees(np.abs(wrap_atan2(d_th)))
     n = int(ok.sum())
 
     def stat(f, a):

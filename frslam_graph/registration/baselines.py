@@ -29,6 +29,7 @@ import numpy as np
 from frslam_graph.raster import RasterFrame, rasterise_polygons
 from frslam_graph.registration.paper import DIHEDRAL
 from frslam_graph.registration.result import Registration, matrix_from_params
+from frslam_graph.se2 import to_matrix
 
 __all__ = [
     "BASELINES",
@@ -92,8 +93,7 @@ def map_image(grid: Any, margin: int = 4) -> MapImage | None:
     ox, oy, *rest = (float(v) for v in grid.origin)
     yaw = rest[0] if rest else 0.0
     res = float(grid.resolution)
-    c, s = math.cos(yaw), math.sin(yaw)
-    world = np.array([[c, -s, ox], [s, c, oy], [0, 0, 1.0]])
+    world = to_matrix((ox, oy, yaw))
     px = np.array([[res, 0, res * (c0 + 0.5)], [0, res, res * (r0 + 0.5)], [0, 0, 1.0]])
     return MapImage(img, kn, world @ px, (int(fc[0]), int(fr[0]), int(fc[-1] + 1), int(fr[-1] + 1)))
 

@@ -23,6 +23,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from frslam_graph.se2 import to_matrix
+
 __all__ = ["PreprocessedMap", "grey_image", "preprocess_image", "preprocess_map"]
 
 FREE_GREY, UNKNOWN_GREY, OCCUPIED_GREY = 254, 205, 0
@@ -49,10 +51,8 @@ class PreprocessedMap:
     @property
     def pixel_to_map(self) -> np.ndarray:
         """3×3 affine: mask pixel coordinates (col, row), corner-based -> map metres."""
-        ox, oy, yaw = self.origin
-        c, s = np.cos(yaw), np.sin(yaw)
         res = self.resolution
-        rot = np.array([[c, -s, ox], [s, c, oy], [0.0, 0.0, 1.0]])
+        rot = to_matrix(self.origin)
         scale = np.array(
             [[res, 0.0, res * self.offset[0]], [0.0, res, res * self.offset[1]], [0.0, 0.0, 1.0]]
         )

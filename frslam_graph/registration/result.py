@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from frslam_graph.se2 import wrap_deg
+
 if TYPE_CHECKING:
     from frslam_graph.floorplan import FloorPlan
 
@@ -55,16 +57,6 @@ def params_from_matrix(matrix: np.ndarray) -> tuple[bool, float, float, float, f
     # R^T col1 = (shear, f * sy)
     sy = abs(-s * col1[0] + c * col1[1])
     return flipped, rotation, sx, float(sy), float(m[0, 2]), float(m[1, 2])
-
-
-def _wrap_deg(deg: float) -> float:
-    """Angle in degrees wrapped to (-180, 180]."""
-    w = math.fmod(deg, 360.0)
-    if w <= -180.0:
-        w += 360.0
-    elif w > 180.0:
-        w -= 360.0
-    return w
 
 
 @dataclass
@@ -104,7 +96,7 @@ class Registration:
             ok=kwargs.pop("ok", True),
             matrix=m,
             flipped=flipped,
-            rotation_deg=_wrap_deg(math.degrees(rot)),
+            rotation_deg=wrap_deg(math.degrees(rot)),
             scale=(sx, sy),
             translation=(tx, ty),
             **kwargs,

@@ -18,11 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup, rotation_matrix
+from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel
 from frslam_graph.registration.refine import RefineResult
 from frslam_graph.registration.subsets import SubsetGeometry, mask_matrix
+from frslam_graph.se2 import rot
 
 
 def _features(area, cx, cy, vxx, vxy, vyy, x0, y0, x1, y1) -> np.ndarray:
@@ -81,7 +82,7 @@ def _coarse_hypotheses_at(
     pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
 ) -> dict[str, np.ndarray]:
     angle = obs.angles[ai]
-    rm = rotation_matrix(-angle)
+    rm = rot(-angle)
     mc = rm @ obs.centroid
     mcov = rm @ obs.cov @ rm.T
     bx0, by0, bx1, by1 = obs.bboxes[ai]
@@ -121,8 +122,8 @@ def _coarse_hypotheses_at(
     cx = np.stack(cx_all, axis=1)[si, ji]
     cy = np.stack(cy_all, axis=1)[si, ji]
     gs = np.stack([dihedral(k, f) for k, f in DIHEDRAL])[ji]  # (H, 2, 2)
-    rp = rotation_matrix(-pm.angle)
-    rmap = rotation_matrix(angle)
+    rp = rot(-pm.angle)
+    rmap = rot(angle)
     lin = rmap[None] @ (np.stack([a, b], axis=1)[:, :, None] * gs) @ rp[None]
     t_al = np.column_stack([mc[0] - a * cx, mc[1] - b * cy])
     mats = np.zeros((len(flat), 3, 3))
@@ -244,8 +245,8 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
     for h in hyps:
         angle, bbox = obs.angles[h.angle_index], obs.bboxes[h.angle_index]
         rm = np.eye(3)
-        rm[:2, :2] = rotation_matrix(angle)
-        c = rotation_matrix(-angle) @ obs.centroid
+        rm[:2, :2] = rot(angle)
+        c = rot(-angle) @ obs.centroid
         ext = bbox[2:] - bbox[:2]
         for factors, shift in rounds:
             for axis in (0, 1):

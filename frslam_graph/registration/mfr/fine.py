@@ -16,11 +16,12 @@ import numpy as np
 
 from frslam_graph.raster import RasterFrame
 from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores
-from frslam_graph.registration.mfr.geometry import lookup, rotation_matrix
+from frslam_graph.registration.mfr.geometry import lookup
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
 from frslam_graph.registration.refine import RefineResult, refine
 from frslam_graph.registration.result import params_from_matrix
+from frslam_graph.se2 import rot
 
 
 def refine_from(
@@ -42,7 +43,7 @@ def refine_from(
     (zero for plans drawn axis-aligned); the result's matrix includes that turn.
     """
     pre = np.eye(3)
-    pre[:2, :2] = rotation_matrix(-pm.angle)
+    pre[:2, :2] = rot(-pm.angle)
     flipped, theta, sx, sy, tx, ty = params_from_matrix(matrix @ pre.T)
     base = pm.sample_step  # plan units between samples
     want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)

@@ -15,11 +15,6 @@ import numpy as np
 DIHEDRAL: tuple[tuple[int, bool], ...] = tuple((k, f) for f in (False, True) for k in range(4))
 
 
-def rotation_matrix(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
-
-
 def dihedral(k: int, flipped: bool) -> np.ndarray:
     """2×2 ``R(k·90°) · diag(1, -1 if flipped)`` with exact integer entries."""
     c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k % 4]

@@ -19,8 +19,9 @@ import cv2
 import numpy as np
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.mfr.geometry import dominant_angles, rotation_matrix
+from frslam_graph.registration.mfr.geometry import dominant_angles
 from frslam_graph.registration.refine import DistanceField
+from frslam_graph.se2 import rot
 
 
 @dataclass
@@ -140,7 +141,7 @@ def observe_map(
     half = 0.5 * res
     bboxes = []
     for angle in angles:
-        pa = pts @ rotation_matrix(-angle).T
+        pa = pts @ rot(-angle).T
         bboxes.append(
             np.array(
                 [pa[:, 0].min() - half, pa[:, 1].min() - half, pa[:, 0].max() + half, pa[:, 1].max() + half]

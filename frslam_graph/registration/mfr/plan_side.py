@@ -18,9 +18,10 @@ import numpy as np
 import shapely
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.mfr.geometry import dominant_angles, rotation_matrix
+from frslam_graph.registration.mfr.geometry import dominant_angles
 from frslam_graph.registration.refine import ring_edges, sample_boundaries
 from frslam_graph.registration.subsets import adjacency_masks, link_doors, rings_moments
+from frslam_graph.se2 import rot
 
 SHIFT = 8  # cv2.fillPoly fractional bits
 FIX = float(1 << SHIFT)
@@ -99,9 +100,9 @@ def prepare_plan(
     angle = dominant_angles(ends - starts, max_peaks=1)[0]
     if abs(angle) < math.radians(0.5):  # a plan drawn axis-aligned: its own axes, exactly
         angle = 0.0
-    rot = rotation_matrix(-angle)
-    moments = rings_moments(starts @ rot.T, ends @ rot.T, edge_room, n)
-    xy = starts @ rot.T
+    turn = rot(-angle)
+    moments = rings_moments(starts @ turn.T, ends @ turn.T, edge_room, n)
+    xy = starts @ turn.T
     bounds = np.full((n, 4), np.inf)
     bounds[:, 2:] = -np.inf
     np.minimum.at(bounds[:, 0], edge_room, xy[:, 0])

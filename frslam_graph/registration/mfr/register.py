@@ -43,11 +43,11 @@ import numpy as np
 
 from frslam_graph.registration.mfr import coarse, fine
 from frslam_graph.registration.mfr.coarse import Hypothesis
-from frslam_graph.registration.mfr.geometry import rotation_matrix
 from frslam_graph.registration.mfr.map_side import observe_map
 from frslam_graph.registration.mfr.plan_side import prepare_plan
-from frslam_graph.registration.result import Registration, _wrap_deg, params_from_matrix
+from frslam_graph.registration.result import Registration, params_from_matrix
 from frslam_graph.registration.subsets import MAX_ROOMS, connected_subsets, mask_ids
+from frslam_graph.se2 import rot, wrap_deg
 
 METHOD = "mfr"
 
@@ -148,7 +148,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     cov = r.covariance
     if cov is not None and grid.origin[2] != 0.0:
         rot3 = np.eye(3)
-        rot3[:2, :2] = rotation_matrix(grid.origin[2])
+        rot3[:2, :2] = rot(grid.origin[2])
         cov = rot3 @ cov @ rot3.T
     details = {
         "ambiguous": bool(ambiguity >= opts["ambiguous_at"]),
@@ -174,7 +174,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     candidates = [
         (
             float(h.quick),
-            *(lambda f, r: (bool(f), _wrap_deg(math.degrees(r))))(*params_from_matrix(h.refined.matrix)[:2]),
+            *(lambda f, r: (bool(f), wrap_deg(math.degrees(r))))(*params_from_matrix(h.refined.matrix)[:2]),
         )
         for h in chosen
     ]
