@@ -192,3 +192,20 @@ def test_binary_garbage_json(tmp_path):
     p.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(FloorPlanError, match=str(p)):
         FloorPlan.load(p)
+
+
+def test_load_can_be_told_the_reader(tmp_path):
+    """FloorPlan.load picks the reader from the suffix, or takes the one named (io.READERS)."""
+    import shutil
+    from pathlib import Path
+
+    src = Path(__file__).parent / "data" / "r2v" / "000209a30b61b563f93faf6a6466ffab_0001.txt"
+    odd = tmp_path / "plan.r2v"
+    shutil.copy(src, odd)
+    with pytest.raises(FloorPlanError, match="unknown floor-plan file type '.r2v'"):
+        FloorPlan.load(odd)
+    told = FloorPlan.load(odd, reader="r2v")
+    plain = FloorPlan.load(src)
+    assert [r.polygon.wkb for r in told.rooms] == [r.polygon.wkb for r in plain.rooms]
+    with pytest.raises(FloorPlanError, match="unknown floor-plan reader 'svg'"):
+        FloorPlan.load(src, reader="svg")

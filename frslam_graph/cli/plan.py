@@ -24,7 +24,7 @@ def _load(path: Path, yaml: Path | None, segmentation: str | None = None, door_w
     """(plan, note): the plan and a line about how it was built (R2V: labels found, strategy;
     plan image: door width, furniture removed)."""
     from frslam_graph.floorplan import FloorPlan
-    from frslam_graph.floorplan.model import IMAGE_SUFFIXES
+    from frslam_graph.floorplan.io import IMAGE_SUFFIXES
     from frslam_graph.floorplan.plan_image import load_image_plan_detailed
     from frslam_graph.floorplan.r2v import load_r2v_detailed
     from frslam_graph.floorplan.roomseg import load_room_segmentation, yaml_beside

@@ -13,16 +13,20 @@ Our JSON format (``format: frslam-floorplan``, ``version: 1``)::
      "rooms": [{"id": "r0", "type": "bedroom", "polygon": [[x, y], ...], "holes": [[[x, y], ...]]}],
      "doors": [{"id": "d0", "segment": [[x, y], [x, y]], "rooms": ["r0", "r1"]}],
      "walls": [[x1, y1, x2, y2], ...]}
+
+This module knows no other file format: the readers (:mod:`frslam_graph.floorplan.io` and the
+modules it dispatches to) build FloorPlans from files, and ``FloorPlan.load`` calls them through
+``FloorPlan.reader``, which the package installs on import.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import shapely
@@ -31,11 +35,9 @@ from shapely.validation import explain_validity
 
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.limits import short_repr
-from frslam_graph.textfile import read_json
 
 FORMAT_NAME = "frslam-floorplan"
 FORMAT_VERSION = 1
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm")  # plan images FloorPlan.load reads
 MAX_ABS_COORD = 1e7  # beyond this a coordinate is absurd in any unit we support (px, mm, m)
 
 ROOM_TYPES = (
@@ -469,43 +471,20 @@ class FloorPlan:
         write_text(path, json.dumps(self.to_dict(), indent=1))
         return path
 
+    # ------------------------------------------------------------------ files (frslam_graph.floorplan.io)
+    #: ``load(path, reader=None, **options) -> FloorPlan``: the file readers
+    #: (:func:`frslam_graph.floorplan.io.load`), installed when the package ``frslam_graph.floorplan``
+    #: is imported; the readers build FloorPlans, so this module does not import them
+    reader: ClassVar[Callable[..., FloorPlan] | None] = None
+
     @classmethod
     def load(cls, path: str | Path, **options: Any) -> FloorPlan:
-        """Load a plan, choosing the reader from the file: our ``.json`` (or HouseExpo JSON with
+        """Load a plan, the reader chosen from the file: our ``.json`` (or HouseExpo JSON with
         ``verts``), an R2V vector ``.txt``, a room-segmentation ``.png`` / ``.pgm`` (pixel value =
         room id; with ``yaml=`` the map_server YAML of its map, or one beside it: ``<stem>.yaml``,
         ``X.yaml`` for ``XRoomSeg.png``), or else a drawn plan image (``.png``, ``.jpg``, ``.pgm``:
-        :meth:`from_image`, options passed on)."""
-        path = Path(path)
-        if not path.exists():
-            raise _fail("file not found", str(path))
-        if path.is_dir():
-            raise _fail("expected a floor-plan file, got a directory", str(path))
-        suffix = path.suffix.lower()
-        if suffix == ".json":
-            data = read_json(path, FloorPlanError, "a JSON floor plan")
-            if isinstance(data, Mapping) and "verts" in data and "rooms" not in data:
-                from frslam_graph.floorplan.houseexpo import load_houseexpo
-
-                return load_houseexpo(data, source=path)
-            return cls.from_dict(data, source=path)
-        if suffix == ".txt":
-            from frslam_graph.floorplan.r2v import load_r2v
-
-            return load_r2v(path, **options)
-        if suffix in IMAGE_SUFFIXES:
-            from frslam_graph.floorplan.plan_image import load_image_plan
-            from frslam_graph.floorplan.roomseg import load_room_segmentation, yaml_beside
-
-            yaml_path = options.pop("yaml", None)
-            if yaml_path is not None or (suffix in (".png", ".pgm") and yaml_beside(path)[0] is not None):
-                return load_room_segmentation(path, yaml_path, **options)
-            return load_image_plan(path, **options)
-        raise _fail(
-            f"unknown floor-plan file type {suffix!r} (expected .json, .txt (R2V) or an image: "
-            f"{', '.join(IMAGE_SUFFIXES)})",
-            str(path),
-        )
+        :meth:`from_image`, options passed on). See :func:`frslam_graph.floorplan.io.load`."""
+        return _reader()(path, **options)
 
     @classmethod
     def from_image(
@@ -516,16 +495,18 @@ class FloorPlan:
         the free space, door gaps up to ``door_width`` px closed), an image path (one colour a
         room) or "auto" (``<stem>_gt_segmentation.png`` beside it). Options and method:
         :mod:`frslam_graph.floorplan.plan_image`."""
-        from frslam_graph.floorplan.plan_image import load_image_plan
-
-        return load_image_plan(path, segmentation=segmentation, **options)
+        return _reader()(path, reader="image", segmentation=segmentation, **options)
 
     @classmethod
     def from_room_segmentation(cls, png: str | Path, yaml: str | Path, **options: Any) -> FloorPlan:
         """Rooms from a room-segmentation image (pixel value = room id) and its map_server YAML."""
-        from frslam_graph.floorplan.roomseg import from_room_segmentation
+        return _reader()(png, reader="roomseg", yaml=yaml, **options)
 
-        return from_room_segmentation(png, yaml, **options)
+
+def _reader() -> Callable[..., FloorPlan]:
+    if FloorPlan.reader is None:  # the package installs it on import, before any plan exists
+        raise FloorPlanError("no floor-plan readers installed (import frslam_graph.floorplan)")
+    return FloorPlan.reader
 
 
 def _is_wall_list(value: Any) -> bool:
