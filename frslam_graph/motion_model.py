@@ -1,7 +1,7 @@
 """The paper's motion model x_t = g(u_t, x_{t-1}) + e_t in SE(2), and an EKF that fuses it with ICP.
 
-Poses are (x, y, theta) arrays: metres, radians, theta wrapped to [-pi, pi). ``compose(a, b)`` is
-a ⊕ b (b expressed in a's frame), ``between(a, b)`` = a⁻¹ ⊕ b. A wheel-odometry increment u_t is
+Poses are (x, y, theta) arrays: metres, radians, theta wrapped to [-pi, pi); their algebra
+(``compose(a, b)`` = a ⊕ b, ``between(a, b)`` = a⁻¹ ⊕ b, ...) is :mod:`frslam_graph.se2`. A wheel-odometry increment u_t is
 ``between(odom_{t-1}, odom_t)`` (base_link motion in the previous base_link frame).
 
 :class:`MotionEKF` (filterpy ``ExtendedKalmanFilter``) keeps the pose of the current ``base_link``
