@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from frslam_graph.factors.between import pose2
 from frslam_graph.graph import key
-from frslam_graph.se2 import between, between_many, wrap
+from frslam_graph.motion_model import between, between_many, wrap
 from frslam_graph.submap_matching import (
     ReferenceSubmap,
     rigid_points,

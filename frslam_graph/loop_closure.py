@@ -98,7 +98,7 @@ from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
 from frslam_graph.graph import key
-from frslam_graph.se2 import between, between_many, compose, wrap
+from frslam_graph.motion_model import between, between_many, compose, wrap
 from frslam_graph.steps import Steps, run_steps
 from frslam_graph.submap_matching import (
     ReferenceSubmap,

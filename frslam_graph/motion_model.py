@@ -16,7 +16,26 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from frslam_graph.se2 import Pose, between, compose, compose_jacobians, exp, log, tangent_cov, wrap
+# The pose algebra lives in frslam_graph.se2. between_many, compose_many, from_matrix, inverse,
+# to_matrix, to_matrix4 and vector_cov are only re-exported: the backend, odometry, loop-closure
+# and plan-update modules and their tests import them from here until they import frslam_graph.se2.
+from frslam_graph.se2 import (  # noqa: F401
+    Pose,
+    between,
+    between_many,
+    compose,
+    compose_jacobians,
+    compose_many,
+    exp,
+    from_matrix,
+    inverse,
+    log,
+    tangent_cov,
+    to_matrix,
+    to_matrix4,
+    vector_cov,
+    wrap,
+)
 
 
 def wheel_increment(odom_prev: Pose, odom_curr: Pose) -> np.ndarray:

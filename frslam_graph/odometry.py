@@ -39,12 +39,16 @@ from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import RecordingError
 from frslam_graph.motion_model import (
     MotionEKF,
+    between,
+    compose,
     constant_velocity,
     constant_velocity_noise,
+    from_matrix,
+    to_matrix4,
+    vector_cov,
     wheel_increment,
     wheel_noise,
 )
-from frslam_graph.se2 import between, compose, from_matrix, to_matrix4, vector_cov
 from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line, transform_points
 
 

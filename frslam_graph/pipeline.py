@@ -52,8 +52,8 @@ from frslam_graph import stream_input
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, FrslamError, RecordingError
 from frslam_graph.graph import PoseGraph, PriorHandle
+from frslam_graph.motion_model import compose, compose_many, inverse
 from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
-from frslam_graph.se2 import compose, compose_many, inverse
 
 
 @dataclass(frozen=True, slots=True)

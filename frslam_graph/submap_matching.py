@@ -22,7 +22,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frslam_graph.config import LoopClosureConfig
-from frslam_graph.se2 import wrap
 from frslam_graph.steps import Steps, run_steps
 
 T = TypeVar("T")
@@ -45,6 +44,10 @@ _MS_FINE = 2.3  # finer level of the correlative search (a few hundred poses)
 
 
 _EPS_EYE = 1e-9 * np.eye(3)  # regularises the ICP's normal equations
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -449,7 +452,7 @@ def _distinct_peaks(
         picked.append(int(order[j]))
         p = cand[j]
         near = (np.hypot(cand[:, 0] - p[0], cand[:, 1] - p[1]) < sep_xy) & (
-            np.abs(wrap(cand[:, 2] - p[2])) < sep_theta
+            np.abs(_wrap(cand[:, 2] - p[2])) < sep_theta
         )
         alive &= ~near
     return picked
@@ -489,7 +492,7 @@ def icp_point_to_line(
         except np.linalg.LinAlgError:
             return None
         x += delta
-        x[2] = float(wrap(x[2]))
+        x[2] = float(_wrap(x[2]))
         if np.hypot(delta[0], delta[1]) < 1e-4 and abs(delta[2]) < 1e-5:
             break
     if h is None:
@@ -599,7 +602,7 @@ def match_scan_steps(
     best = refined[0]
     second, second_pose = 0.0, None
     for inl, p, _, _ in refined[1:]:
-        if np.hypot(*(p[:2] - best[1][:2])) >= sep_xy or abs(wrap(p[2] - best[1][2])) >= sep_th:
+        if np.hypot(*(p[:2] - best[1][:2])) >= sep_xy or abs(_wrap(p[2] - best[1][2])) >= sep_th:
             second, second_pose = inl, p
             break
     amb = max(second / best[0], unrefined) if best[0] > 0 else 1.0

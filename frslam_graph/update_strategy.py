@@ -63,6 +63,7 @@ import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
+from frslam_graph.motion_model import compose, inverse, tangent_cov, to_matrix, vector_cov
 from frslam_graph.plan_checks import (
     fit_plan_scale,
     matrix_disagreement,
@@ -75,7 +76,6 @@ from frslam_graph.relocalisation import (
     RelocaliserParams,
     subsample,
 )
-from frslam_graph.se2 import compose, inverse, tangent_cov, to_matrix, vector_cov
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.pipeline import PriorRemoval

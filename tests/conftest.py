@@ -49,7 +49,7 @@ def five_room_sim():
     import numpy as np
     from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 
-    from frslam_graph.se2 import to_matrix
+    from frslam_graph.motion_model import to_matrix
 
     plan = five_room_plan()
     opts = SimulationOptions(length=12.0, beams=360, fov_deg=360.0, max_range=12.0, scan_rate=4.0)

@@ -7,7 +7,7 @@ import pytest
 
 from frslam_graph import final_alignment as fa
 from frslam_graph.final_alignment import candidate_pairs, dense_constraints, field_of_view
-from frslam_graph.se2 import between, compose
+from frslam_graph.motion_model import between, compose
 from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line
 from tests import synthetic_world as sw
 

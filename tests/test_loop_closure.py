@@ -14,8 +14,8 @@ from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError
 from frslam_graph.graph import key
 from frslam_graph.loop_closure import LoopCloser, LoopClosure
+from frslam_graph.motion_model import between, compose
 from frslam_graph.pipeline import FRSlam
-from frslam_graph.se2 import between, compose
 from frslam_graph.submap_matching import ReferenceSubmap, match_scan, transform_points
 
 CFG = {"odometry": {"max_range": 10.0}}

@@ -15,7 +15,7 @@ from frslam_graph.mapping import (
     occupancy_grid,
     scan_points_in_map,
 )
-from frslam_graph.se2 import compose
+from frslam_graph.motion_model import compose
 
 RES = 0.05
 

@@ -7,8 +7,20 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from frslam_graph.motion_model import MotionEKF, constant_velocity, g, wheel_increment, wheel_noise
-from frslam_graph.se2 import between, between_many, compose, compose_jacobians, inverse, tangent_cov, wrap
+from frslam_graph.motion_model import (
+    MotionEKF,
+    between,
+    between_many,
+    compose,
+    compose_jacobians,
+    constant_velocity,
+    g,
+    inverse,
+    tangent_cov,
+    wheel_increment,
+    wheel_noise,
+    wrap,
+)
 
 pose_st = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-np.pi, np.pi)).map(
     lambda t: np.array(t)

@@ -11,8 +11,8 @@ from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, sca
 
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
+from frslam_graph.motion_model import between, compose, inverse, wrap
 from frslam_graph.pipeline import FRSlam, KeyframeInfo
-from frslam_graph.se2 import between, compose, inverse, wrap
 
 CFG = {"odometry": {"max_range": 10.0}}
 if "loop_closure" in FRSlamConfig.model_fields:  # these tests are about odometry + graph + seams

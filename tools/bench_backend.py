@@ -69,8 +69,8 @@ from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, sca
 
 from frslam_graph import odometry_worker  # noqa: E402
 from frslam_graph.config import FRSlamConfig  # noqa: E402
+from frslam_graph.motion_model import between  # noqa: E402
 from frslam_graph.pipeline import FRSlam  # noqa: E402
-from frslam_graph.se2 import between  # noqa: E402
 
 R2V_DIR = REPO.parent / "shared" / "data" / "floorplans" / "r2v"
 WRONG_FRAC = 0.25
@@ -150,7 +150,7 @@ def accuracy(slam, truth):
     rel_o = between(odo[0, 1:], odo[-1, 1:])
     drift = float(np.hypot(*(rel_t[:2] - rel_o[:2]))) / path
     # align the start (the run without wheel odometry starts its odom frame at the origin)
-    from frslam_graph.se2 import compose, compose_many, inverse
+    from frslam_graph.motion_model import compose, compose_many, inverse
 
     align = compose(truth[0, 1:], inverse(traj[0, 1:]))
     est = compose_many(align, traj[:, 1:])
