@@ -106,7 +106,7 @@ def _coarse_hypotheses_at(
         ratio = b / a
         # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
         cost = np.sum((f - fmap) ** 2, axis=1) + 0.01 * np.log(ratio) ** 2
-        cost = cost - 0.01 * np.log(np.maximum(_door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
+        cost = cost - 0.01 * np.log(np.maximum(door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
         costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
         a_all.append(a)
         b_all.append(b)
@@ -138,7 +138,7 @@ def _coarse_hypotheses_at(
     }
 
 
-def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
+def door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
     """Plausibility (0..1] of a scale (metres per plan unit) from the plan's median door width:
     1 while the door is ``door_width_m`` = (lo, hi) metres wide, a log-normal fall-off outside."""
     scale = np.asarray(scale, dtype=np.float64)
@@ -228,7 +228,7 @@ def coarse_scores(
     tol_plan = slack / np.sqrt(det) + pf.resolution
     recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
     exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
-    key = iou * precision * recall * exits * _door_prior(pm, np.sqrt(det), door_width_m)
+    key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)
     return iou, key
 
 

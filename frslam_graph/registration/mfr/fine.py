@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores
+from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door_prior
 from frslam_graph.registration.mfr.geometry import lookup, rotation_matrix
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
@@ -234,7 +234,21 @@ def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: d
     )
     for h, q, b in zip(chosen, quick, bad, strict=True):
         h.quick = 0.0 if b or not np.isfinite(q) else float(q)
+        if h.quick > 0.0:  # ranked by what the gate measures, not by the coarse grid's key
+            h.quick = structure_key(pm, obs, h.refined, opts, tol)
     chosen.sort(key=lambda h: -h.quick)
+
+
+def structure_key(pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float) -> float:
+    """The acceptance gate's measure of a refined placement: IoU of the rooms it places on the
+    full-resolution footprint × wall precision × recall at its wall faces (``tol`` metres), times
+    the door-width plausibility of its scale. The coarse key (80-cell footprint, boundaries at
+    the wall centres) ranks a placement shifted by a wall or a room above the right one on maps
+    with partly seen rooms and thick walls."""
+    iou, _ = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
+    scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
+    return float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0])
 
 
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
