@@ -183,8 +183,8 @@ def coarse_scores(
     ``matched_cover`` scores the rooms placed on the footprint (at least that share of their
     area) instead of each hypothesis's subset. ``delta`` (H,) metres, each placement's fitted
     wall half-thickness (plan room boundary to the map's free-space edge): precision then tests
-    the wall faces (boundary samples moved that far into their room) and recall accepts map walls
-    up to that much farther from a plan boundary, as :func:`fine.wall_precision_recall` does.
+    the wall faces (boundary samples moved that far into their room) and recall tests map walls
+    at that distance from a plan boundary, as :func:`fine.wall_precision_recall` does.
     """
     n = len(pm.ids)
 
@@ -224,8 +224,9 @@ def coarse_scores(
     x, y = apply_affine(ainv, tinv, edges)
     pf = pm.plan_frame
     dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
-    slack = tol if delta is None else tol + np.abs(np.asarray(delta, dtype=np.float64))
-    tol_plan = slack / np.sqrt(det) + pf.resolution
+    tol_plan = tol / np.sqrt(det) + pf.resolution
+    if delta is not None:  # map walls at the wall faces, |delta| from the plan's boundaries
+        dp = np.abs(dp - (np.abs(np.asarray(delta, dtype=np.float64)) / np.sqrt(det))[:, None])
     recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
     exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
     key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)

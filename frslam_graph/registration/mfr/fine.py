@@ -147,7 +147,8 @@ def wall_precision_recall(
     okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
     dp = np.full(len(e), np.inf, np.float32)
     dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
-    recall = float(np.mean(dp < tol + abs(delta) + pf.resolution * math.sqrt(det)))
+    # a map wall cell lies |delta| from the plan's boundary (its wall face), within tol
+    recall = float(np.mean(np.abs(dp - abs(delta)) < tol + pf.resolution * math.sqrt(det)))
     return precision, recall
 
 
