@@ -106,3 +106,29 @@ def test_annotation_similarity_recovers_a_flip():
     assert params_from_matrix(m)[0] and np.allclose(m[:2, :2], truth[:2, :2], atol=0.01)
     assert np.allclose(m[:2, 2], truth[:2, 2], atol=0.5)
     assert 0.1 < res < 0.4
+
+
+def test_halmstad_apartment_sensor_map_registers_within_the_annotation_residual(test_data):
+    # a real Tango map against the apartment's layout drawing (excerpts, a few kB): the layout's
+    # door gaps are drawn wider than the default door width, so without widening it the plan
+    # reads as one room and registration is impossible
+    from conftest import load_tool
+
+    from frslam_graph.floorplan import FloorPlan
+
+    bench = load_tool("bench_real")
+    folder = test_data / "halmstad"
+    plan = FloorPlan.load(folder / "HIH_layout_crop.png")
+    assert len(plan.rooms) >= 3
+    res = 0.05
+    grid = OccupancyGrid.from_image(folder / "HIH_03_crop.png", res)
+    pts = np.loadtxt(folder / "HIH_03_to_layout_crop.csv", delimiter=",", comments="#", skiprows=5, ndmin=2)
+    map_pts = np.column_stack([pts[:, 0] + 0.5, pts[:, 1]]) * res
+    plan_pts = np.column_stack([pts[:, 2] + 0.5, pts[:, 3]])
+    truth, residual = bench.fit_similarity(plan_pts, map_pts)
+    reg = register(plan, grid)
+    assert reg.ok, reg.reason
+    row = bench.point_rows(reg, truth, plan_pts, map_pts, residual)
+    assert row["flip_ok"] and row["rot_err_deg"] < 2.0
+    assert abs(row["scale_err"]) < 0.02
+    assert row["err_ratio"] < 2.0
