@@ -408,6 +408,53 @@ def style_rows(
     return rows
 
 
+def other_building_rows(
+    data: Path,
+    n_plans: int = 12,
+    seed: int = 0,
+    completeness: tuple[int, ...] = (50, 100),
+    method: str = "mfr",
+) -> list[dict[str, Any]]:
+    """Negative cases: R2V plan i against a map of plan i + 1 (simulator, ``thick`` and ``tango``
+    maps, 90-degree rotations); any accepted registration is wrong."""
+    from bench_registration import select_plans
+    from frslam_graph.datasets.simulator import Distortion, House, partial_map
+
+    from frslam_graph.floorplan import FloorPlan
+
+    plans = [FloorPlan.load(p) for p in select_plans(data, n_plans, seed)[0]]
+    rows = []
+    for i, plan in enumerate(plans):
+        other = plans[(i + 1) % len(plans)]
+        dist = Distortion.random(
+            np.random.default_rng([seed, i, 5]), rotation="step90", plan_bounds=other.bounds
+        )
+        house = House.from_plan(other, dist)
+        for style in ("simulator", *STYLES):
+            for comp in completeness:
+                rng = np.random.default_rng([seed, i, comp, len(style)])
+                if style == "simulator":
+                    grid, _ = partial_map(house, comp / 100.0, rng)
+                else:
+                    grid, _, _ = styled_map(house, style, comp / 100.0, rng)
+                reg, secs, cpu = _register(plan, grid, method)
+                flagged = bool(reg.details.get("ambiguous", False)) if reg.ok else False
+                rows.append(
+                    {
+                        "set": "other",
+                        "style": style,
+                        "case": f"{i}",
+                        "completeness": comp,
+                        "ok": bool(reg.ok),
+                        "ambiguous": flagged,
+                        "quality": float(reg.details.get("quality", 0.0)),
+                        "time_s": secs,
+                        "cpu_s": cpu,
+                    }
+                )
+    return rows
+
+
 # ----------------------------------------------------------------------------- report
 def _pct(x: float) -> str:
     return f"{100.0 * x:.1f}"
@@ -523,6 +570,21 @@ def report_real(rows: list[dict[str, Any]], cmd: str) -> str:
     sty = [r for r in rows if r.get("set") == "style" and "setup_error" not in r]
     if sty:
         lines += _style_table(sty)
+    other = [r for r in rows if r.get("set") == "other"]
+    if other:
+        lines += [
+            "#### Another building: plan i against a map of plan i + 1 (every accepted match is wrong)",
+            "",
+            "| map style | n | accepted (%) | accepted, not flagged ambiguous (%) |",
+            "|---|---:|---:|---:|",
+        ]
+        for style in sorted({r["style"] for r in other}):
+            g = [r for r in other if r["style"] == style]
+            lines.append(
+                f"| {style} | {len(g)} | {_pct(np.mean([r['ok'] for r in g]))} "
+                f"| {_pct(np.mean([r['ok'] and not r['ambiguous'] for r in g]))} |"
+            )
+        lines.append("")
     errs = [r for r in rows if "setup_error" in r]
     if errs:
         lines += [f"Maps that could not be drawn: {len(errs)} (first: {errs[0]['setup_error']})", ""]
@@ -537,7 +599,7 @@ def run_real(
     seed: int = 0,
     completeness: tuple[int, ...] = (50, 75, 100),
     rotsets: tuple[str, ...] = ("step90", "any"),
-    parts: tuple[str, ...] = ("halmstad", "ipa", "prbonn", "styles"),
+    parts: tuple[str, ...] = ("halmstad", "ipa", "prbonn", "styles", "other"),
 ) -> list[dict[str, Any]]:
     """All rows of the real benchmark (sequential: tens of registrations, a few minutes)."""
     rows: list[dict[str, Any]] = []
@@ -549,4 +611,6 @@ def run_real(
         rows.append(prbonn_identity_row(data))
     if "styles" in parts and n_plans > 0:
         rows += style_rows(data, n_plans, seed, completeness, rotsets)
+    if "other" in parts:
+        rows += other_building_rows(data, seed=seed)
     return rows

@@ -695,7 +695,9 @@ def _add_real_options(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--real", action="store_true", help="Halmstad, IPA, PRBonn identity and map-style rows")
     g.add_argument("--resolution", type=float, default=0.05, help="metres per pixel of the Halmstad maps")
     g.add_argument(
-        "--parts", default="halmstad,ipa,prbonn,styles", help="comma list of halmstad,ipa,prbonn,styles"
+        "--parts",
+        default="halmstad,ipa,prbonn,styles,other",
+        help="comma list of halmstad,ipa,prbonn,styles,other",
     )
     g.add_argument("--style-plans", type=int, default=20, help="R2V plans per map style (--real)")
 
