@@ -60,8 +60,31 @@ def test_a_jpeg_plan_reads_like_the_png(tmp_path):
 
 def test_a_gap_wider_than_the_door_width_joins_the_rooms(tmp_path):
     path = write(tmp_path, "wide.png", two_rooms(door=60))
-    assert len(FloorPlan.from_image(path).rooms) == 1
+    assert len(FloorPlan.from_image(path, door_width=30).rooms) == 1
     assert len(FloorPlan.from_image(path, door_width=70).rooms) == 2
+
+
+def layout_row_of_rooms(gap: int = 34) -> np.ndarray:
+    """A layout drawn as the Halmstad ones are: 2 px lines, a corridor under four offices, every
+    office door a ``gap`` px opening (wider than the 30 px default door width)."""
+    img = np.full((300, 520), GREY, np.uint8)
+    cv2.rectangle(img, (20, 20), (500, 280), WHITE, -1)
+    cv2.rectangle(img, (20, 20), (500, 280), BLACK, 2)
+    for k in range(1, 4):
+        cv2.line(img, (20 + 120 * k, 20), (20 + 120 * k, 160), BLACK, 2)
+    cv2.line(img, (20, 160), (500, 160), BLACK, 2)
+    for k in range(4):
+        img[158:163, 60 + 120 * k : 60 + 120 * k + gap] = WHITE
+    return img
+
+
+def test_door_gaps_wider_than_the_default_still_split_rooms(tmp_path):
+    # without the widening the default 30 px closes no gap and the whole layout is one room
+    result = load_image_plan_detailed(write(tmp_path, "layout.png", layout_row_of_rooms()))
+    assert len(result.plan.rooms) == 5 and len(result.plan.doors) == 4
+    assert 34 <= result.door_width <= 60
+    # a plan the default splits keeps the default
+    assert load_image_plan_detailed(write(tmp_path, "two.png", two_rooms())).door_width == 30.0
 
 
 def test_furniture_blobs_are_not_rooms_nor_walls(tmp_path):

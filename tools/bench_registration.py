@@ -496,7 +496,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--report", type=Path, default=None, help="re-render DIR/results.csv + DIR/meta.json, no run"
     )
+    _add_real_options(ap)
     args = ap.parse_args(argv)
+    if args.real:
+        return main_real(args, argv)
     if args.report:
         meta = json.loads((args.report / "meta.json").read_text())
         return report(_read_csv(args.report / "results.csv"), meta, args.out)
@@ -680,6 +683,54 @@ def report(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path | None) -
             f"\nwrote {out / 'table.md'}, {out / 'fig5.png'}, {out / 'results.csv'}",
             file=sys.stderr,
         )
+    return 0
+
+
+# ------------------------------------------------------------------------------------ real maps
+
+
+def _add_real_options(ap: argparse.ArgumentParser) -> None:
+    """Options of ``--real`` (issue 21): the rows of :mod:`bench_real`."""
+    g = ap.add_argument_group("real maps (--real)")
+    g.add_argument("--real", action="store_true", help="Halmstad, IPA, PRBonn identity and map-style rows")
+    g.add_argument("--resolution", type=float, default=0.05, help="metres per pixel of the Halmstad maps")
+    g.add_argument(
+        "--parts",
+        default="halmstad,ipa,prbonn,styles,other",
+        help="comma list of halmstad,ipa,prbonn,styles,other",
+    )
+    g.add_argument("--style-plans", type=int, default=20, help="R2V plans per map style (--real)")
+
+
+def main_real(args: argparse.Namespace, argv: list[str] | None) -> int:
+    """``--real``: print the Markdown tables; with ``--out`` also ``real.md`` and ``real.csv``."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_real import report_real, run_real
+
+    if not args.data.is_dir():
+        print(f"error: shared data not found at {args.data}", file=sys.stderr)
+        return 2
+    comps = tuple(int(c) for c in args.completeness.split(",") if int(c) >= 50) or (50, 75, 100)
+    rows = run_real(
+        args.data,
+        resolution=args.resolution,
+        n_plans=args.style_plans,
+        seed=args.seed,
+        completeness=comps,
+        rotsets=tuple(r.strip() for r in args.rotations.split(",") if r.strip()),
+        parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
+    )
+    cmd = "python tools/bench_registration.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = report_real(rows, cmd)
+    print(text)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "real.md").write_text(text + "\n")
+        keys = list(dict.fromkeys(k for r in rows for k in r))
+        with open(args.out / "real.csv", "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=keys)
+            w.writeheader()
+            w.writerows(rows)
     return 0
 
 

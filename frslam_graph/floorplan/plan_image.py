@@ -23,7 +23,9 @@ between (grey outside, hatched or filled areas) is neither. Then:
 
 Default ``door_width``: max(30 px, 4 × the wall thickness), the thickness being the median
 width of the dark strokes; 30 px is about 1.5 m at the 5 cm per pixel of room-segmentation plans
-and ROS maps, at least as wide as the door gaps of the IPA plans.
+and ROS maps, at least as wide as the door gaps of the IPA plans. When that width leaves the free
+space as one room (door gaps drawn wider, as on the Halmstad layouts, about 33 px), the smallest
+width up to 3 × the default that splits it into the most rooms (:func:`widest_split`).
 """
 
 from __future__ import annotations
@@ -109,6 +111,8 @@ def load_image_plan_detailed(
     thickness = wall_thickness(dark)
     dw = float(door_width) if door_width is not None else max(MIN_DOOR_WIDTH_PX, DOOR_PER_WALL * thickness)
     free, dark, n_furniture = _remove_furniture(free, dark, furniture_size or 0.6 * dw)
+    if door_width is None and segmentation is None:
+        dw = widest_split(free, dw)
     min_area = float(min_room_area) if min_room_area is not None else dw * dw
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
@@ -144,6 +148,32 @@ def load_image_plan_detailed(
         source=src,
     )
     return ImagePlanResult(plan, dw, thickness, n_furniture, seg_path)
+
+
+def _core_count(dt: np.ndarray, door_width: float) -> int:
+    """Room cores (at least (door_width / 2)² px, the outside not counted) left in free space
+    whose distance transform (padded with free space) is ``dt`` after a door-wide erosion."""
+    r = int(math.ceil(door_width / 2.0))
+    n, cores, stats, _ = cv2.connectedComponentsWithStats((dt > r).astype(np.uint8), connectivity=4)
+    big = stats[:, cv2.CC_STAT_AREA] >= r * r
+    big[0] = False
+    big[int(cores[0, 0])] = False  # the outside (the padding ring)
+    return int(big.sum())
+
+
+def widest_split(free: np.ndarray, door_width: float, steps: int = 8, factor: float = 1.15) -> float:
+    """The door width to split rooms with: ``door_width`` when it leaves at least two rooms,
+    else (door gaps drawn wider than the default, as on layouts at a finer scale) the smallest
+    of ``door_width`` × ``factor``^k (k <= ``steps``) that splits the free space into the most
+    rooms; ``door_width`` when none splits it."""
+    pad = np.pad(free, 2, constant_values=True).astype(np.uint8)
+    dt = cv2.distanceTransform(pad, cv2.DIST_L2, 5)
+    if _core_count(dt, door_width) >= 2:
+        return door_width
+    widths = door_width * factor ** np.arange(1, steps + 1)
+    counts = [_core_count(dt, w) for w in widths]
+    best = int(np.argmax(counts))
+    return float(widths[best]) if counts[best] >= 2 else door_width
 
 
 def wall_thickness(dark: np.ndarray) -> float:

@@ -107,7 +107,7 @@ def _coarse_hypotheses_at(
         ratio = b / a
         # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
         cost = np.sum((f - fmap) ** 2, axis=1) + 0.01 * np.log(ratio) ** 2
-        cost = cost - 0.01 * np.log(np.maximum(_door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
+        cost = cost - 0.01 * np.log(np.maximum(door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
         costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
         a_all.append(a)
         b_all.append(b)
@@ -139,7 +139,7 @@ def _coarse_hypotheses_at(
     }
 
 
-def _door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
+def door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
     """Plausibility (0..1] of a scale (metres per plan unit) from the plan's median door width:
     1 while the door is ``door_width_m`` = (lo, hi) metres wide, a log-normal fall-off outside."""
     scale = np.asarray(scale, dtype=np.float64)
@@ -173,6 +173,7 @@ def coarse_scores(
     points: int | None = None,
     tol: float | None = None,
     matched_cover: float | None = None,
+    delta: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
@@ -181,7 +182,10 @@ def coarse_scores(
     cells landing near a plan boundary (all at tolerance 1.5 coarse cells). ``points`` caps the
     points of each kind (a cheaper first pass); ``tol`` overrides the tolerance (metres);
     ``matched_cover`` scores the rooms placed on the footprint (at least that share of their
-    area) instead of each hypothesis's subset.
+    area) instead of each hypothesis's subset. ``delta`` (H,) metres, each placement's fitted
+    wall half-thickness (plan room boundary to the map's free-space edge): precision then tests
+    the wall faces (boundary samples moved that far into their room) and recall tests map walls
+    at that distance from a plan boundary, as :func:`fine.wall_precision_recall` does.
     """
     n = len(pm.ids)
 
@@ -206,21 +210,27 @@ def coarse_scores(
     # precision: plan walls that land on the observed area must be walls of the map
     samples = sub(pm.coarse_samples)
     x, y = apply_affine(a, t, samples)
+    ainv = np.linalg.inv(a)
+    if delta is not None:  # the wall faces: normals map by A^-T (perpendicular, still inward)
+        nx, ny = apply_affine(np.transpose(ainv, (0, 2, 1)), np.zeros((len(a), 2)), sub(pm.coarse_normals))
+        step = np.asarray(delta, dtype=np.float32)[:, None] / np.maximum(np.hypot(nx, ny), 1e-12)
+        x, y = x + step * nx, y + step * ny
     res = obs.frame.resolution
     inside = lookup(obs.footprint_u8, x, y, res, (0.0, 0.0), 0) > 0
     near = (lookup(obs.edge_dt, x, y, res, (0.0, 0.0), 1e9) < tol) & inside
     precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
     # recall
-    ainv = np.linalg.inv(a)
     tinv = -np.einsum("hij,hj->hi", ainv, t)
     edges = sub(obs.edge_points)
     x, y = apply_affine(ainv, tinv, edges)
     pf = pm.plan_frame
     dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
     tol_plan = tol / np.sqrt(det) + pf.resolution
+    if delta is not None:  # map walls at the wall faces, |delta| from the plan's boundaries
+        dp = np.abs(dp - (np.abs(np.asarray(delta, dtype=np.float64)) / np.sqrt(det))[:, None])
     recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
     exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
-    key = iou * precision * recall * exits * _door_prior(pm, np.sqrt(det), door_width_m)
+    key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)
     return iou, key
 
 

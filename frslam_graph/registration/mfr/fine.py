@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores
+from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door_prior
 from frslam_graph.registration.mfr.geometry import lookup
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
@@ -110,8 +110,12 @@ def wall_precision_recall(
     matrix: np.ndarray,
     tol: float,
     max_points: int = 300,
+    delta: float = 0.0,
 ) -> tuple[float, float]:
-    """(precision, recall) of the room structure under a placement, within ``tol`` metres.
+    """(precision, recall) of the room structure under a placement, within ``tol`` metres of the
+    wall faces: the plan's room boundaries moved into their rooms by ``delta`` metres (the wall
+    half-thickness the refinement fitted; a plan draws room boundaries at wall centres, a map
+    sees wall faces, 0.06 m apart in the simulator but up to 0.2 m on thick real walls).
 
     precision: share of the plan's wall samples landing on the observed footprint that land near
     a wall-side free cell of the map (unobserved rooms' walls off the footprint do not count); recall: share of the map's wall-side free cells that land
@@ -122,9 +126,13 @@ def wall_precision_recall(
     pts = pm.samples
     if len(pts) == 0 or len(obs.edge_points) == 0:
         return 0.0, 0.0
-    pts = pts[:: max(1, len(pts) // max_points)]
+    stride = max(1, len(pts) // max_points)
+    pts = pts[::stride]
     a, t = matrix[:2, :2], matrix[:2, 2]
     q = pts @ a.T + t
+    if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
+        nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
+        q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
     inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
     d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)
     precision = float(np.sum((d < tol) & inside) / max(int(inside.sum()), 1))
@@ -140,7 +148,8 @@ def wall_precision_recall(
     okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
     dp = np.full(len(e), np.inf, np.float32)
     dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
-    recall = float(np.mean(dp < tol + pf.resolution * math.sqrt(det)))
+    # a map wall cell lies |delta| from the plan's boundary (its wall face), within tol
+    recall = float(np.mean(np.abs(dp - abs(delta)) < tol + pf.resolution * math.sqrt(det)))
     return precision, recall
 
 
@@ -221,10 +230,27 @@ def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: d
         opts["door_width_m"],
         tol=tol,
         matched_cover=opts["min_cover"],
+        # each at its own fitted wall offset: thick walls put the plan's boundaries (wall
+        # centres) beyond the map's wall faces, and a right placement would score as a wrong one
+        delta=np.array([0.0 if b else h.refined.delta for h, b in zip(chosen, bad, strict=True)]),
     )
     for h, q, b in zip(chosen, quick, bad, strict=True):
         h.quick = 0.0 if b or not np.isfinite(q) else float(q)
+        if h.quick > 0.0:  # ranked by what the gate measures, not by the coarse grid's key
+            h.quick = structure_key(pm, obs, h.refined, opts, tol)
     chosen.sort(key=lambda h: -h.quick)
+
+
+def structure_key(pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float) -> float:
+    """The acceptance gate's measure of a refined placement: IoU of the rooms it places on the
+    full-resolution footprint × wall precision × recall at its wall faces (``tol`` metres), times
+    the door-width plausibility of its scale. The coarse key (80-cell footprint, boundaries at
+    the wall centres) ranks a placement shifted by a wall or a room above the right one on maps
+    with partly seen rooms and thick walls."""
+    iou, _ = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
+    scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
+    return float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0])
 
 
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:

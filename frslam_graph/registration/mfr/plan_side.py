@@ -68,6 +68,7 @@ class PlanModel:
     door_width: float  # median door width (plan units), 0 without doors
     coarse_samples: np.ndarray  # (M', 2) a subsample of ``samples``
     coarse_onehot: np.ndarray  # (M', n) their room
+    coarse_normals: np.ndarray  # (M', 2) their unit inward normals
 
 
 def prepare_plan(
@@ -210,6 +211,7 @@ def prepare_plan(
         else 0.0,
         coarse_samples=pts[::cstride],
         coarse_onehot=eye[owner_room[::cstride]].astype(np.float32),
+        coarse_normals=nrm[::cstride],
     )
 
 

@@ -138,7 +138,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     if not fine.plausible(r, opts):
         return fail("degenerate fit (scales collapsed or exploded)")
     best.score, best.rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
-    prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000)
+    prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
     ambiguity = _ambiguity(chosen, hyps, covered, r0.matrix, obs)
     alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
