@@ -24,6 +24,7 @@ from a file), so a remote worker needs frslam, not this folder. Dask's worker pr
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -65,14 +66,21 @@ class Sweep:
         from dask.distributed import Client, LocalCluster
 
         if self.scheduler is None:
-            self._cluster = LocalCluster(
-                n_workers=self.workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                memory_limit=0,
-            )
-            self.client = Client(self._cluster)
+            with warnings.catch_warnings():  # its HTTP server moves off a port another cluster holds
+                warnings.filterwarnings("ignore", message="Port .* is already in use")
+                self._cluster = LocalCluster(
+                    n_workers=self.workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    memory_limit=0,
+                )
+            try:
+                self.client = Client(self._cluster)
+                self.client.wait_for_workers(self.workers)  # so ``slots`` counts them all from the start
+            except BaseException:
+                self.__exit__()
+                raise
             return self
         try:
             self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
