@@ -34,7 +34,10 @@ def test_local_cluster_gives_the_sequential_rows(bench, shared_data):
     assert strip == [{k: v for k, v in r.items() if k not in TIMING} for r in par]
 
 
-def test_unreachable_scheduler_is_one_line_and_exit_2(bench, tmp_path, capsys):
+def test_unreachable_scheduler_is_one_line_and_exit_2(bench, tmp_path, capsys, monkeypatch):
+    import _sweep  # the module bench_registration imported (tools/ is on sys.path now)
+
+    monkeypatch.setattr(_sweep, "CONNECT_TIMEOUT_S", 1.0)
     args = ["--data", str(tmp_path), "--plans", "1", "--prbonn", "0", "--completeness", "50"]
     code = bench.main(
         [*args, "--methods", "paper", "--rotations", "step90", "--scheduler", "tcp://127.0.0.1:9"]

@@ -33,6 +33,9 @@ __all__ = ["Sweep", "SweepError"]
 
 Progress = Callable[[int, int], None]
 
+#: seconds to wait for a ``--scheduler`` to answer (when ``Sweep`` is given no timeout of its own)
+CONNECT_TIMEOUT_S = 10.0
+
 
 class SweepError(RuntimeError):
     """The sweep cannot run (a scheduler address that does not answer, a bad worker count)."""
@@ -43,7 +46,7 @@ class Sweep:
     that closes the client, and the cluster it started, on the way out (also on an error)."""
 
     def __init__(
-        self, workers: int = 1, scheduler: str | None = None, connect_timeout_s: float = 10.0
+        self, workers: int = 1, scheduler: str | None = None, connect_timeout_s: float | None = None
     ) -> None:
         if scheduler is None and workers < 1:
             raise SweepError(f"--workers {workers}: expected 1 or more")
@@ -83,7 +86,8 @@ class Sweep:
                 raise
             return self
         try:
-            self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
+            timeout = CONNECT_TIMEOUT_S if self.connect_timeout_s is None else self.connect_timeout_s
+            self.client = Client(self.scheduler, timeout=f"{timeout}s")
         except (OSError, TimeoutError, ValueError, TypeError) as exc:
             why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise SweepError(
