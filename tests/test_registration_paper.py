@@ -292,3 +292,13 @@ def test_cli_register_paper_says_doubtful_on_one_line_and_writes_no_plan(tmp_pat
     assert main([*args, "--out", str(out)]) == 0
     assert (out / "registered_plan.json").is_file()
     assert "doubtful" not in capsys.readouterr().out
+
+
+def test_paper_doubts_its_stretched_match_of_prbonn_on_its_own_segmentation(shared_data):
+    # issue 21: GMapRoomSeg.png is the plan of GMap.yaml (the truth is the identity); the paper
+    # mode's placement is 2.19 m off with a 16 % stretch, and used to be accepted silently
+    data = shared_data / "prbonn"
+    plan = FloorPlan.from_room_segmentation(data / "GMapRoomSeg.png", data / "GMap.yaml")
+    reg = register_paper(plan, OccupancyGrid.load(data / "GMap.yaml"))
+    assert reg.ok and abs(reg.translation[0]) > 2.0 and reg.scale[0] > 1.1  # the wrong placement
+    assert reg.verdict == "doubtful" and reg.doubt.startswith("IoU 0.67 < 0.96")
