@@ -112,10 +112,10 @@ def _run_method(name: str, plan: Any, grid: Any) -> tuple[Any, float, float, str
 
 
 def _is_ambiguous(reg: Any) -> bool:
-    """Flagged: the method doubts the match (``reg.doubt``: the paper mode), or says it is ambiguous
-    (``details["ambiguous"]``: our MFR), else its ambiguity is above the backend's threshold."""
-    if getattr(reg, "doubt", ""):
-        return True
+    """Flagged: the paper mode's own verdict (``reg.doubt``), our MFR's (``details["ambiguous"]``),
+    else (the baselines) an ambiguity above the backend's threshold."""
+    if reg.method == "paper":
+        return bool(reg.doubt)
     flag = reg.details.get("ambiguous") if isinstance(reg.details, dict) else None
     if flag is not None:
         return bool(flag)
