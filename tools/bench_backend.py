@@ -418,9 +418,10 @@ def run_houses(
             "modes": modes,
             "overrides": overrides,
             "wrong_seeds": wrong_seeds,
-            # one house at a time: each run may use the odometry worker (the library's offline
-            # default) on the second core
-            "odometry_worker": workers == 1,
+            # one house at a time here: each run may use the odometry worker (the library's offline
+            # default) on the second core (not in a Dask worker: its processes are daemons, which
+            # cannot start one)
+            "odometry_worker": workers == 1 and scheduler is None,
         }
 
     limit = min(n, len(cands))
