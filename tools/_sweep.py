@@ -24,6 +24,7 @@ from a file), so a remote worker needs frslam, not this folder. Dask's worker pr
 
 from __future__ import annotations
 
+import logging
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -77,6 +78,7 @@ class Sweep:
                     processes=True,
                     dashboard_address=None,
                     memory_limit=0,
+                    silence_logs=logging.ERROR,  # not "worker still alive after 4 s, killing" at close
                 )
             try:
                 self.client = Client(self._cluster)
