@@ -22,7 +22,8 @@ geometry, which corrects the drift accumulated along the way.
   ``register_refine_distance`` metres after one is accepted (at most ``register_refine_max``
   times: the priors have corrected the map since), and when progress is obstructed (no
   progress for ``obstruction_time_s``, or :meth:`FloorPlanUpdater.notify_obstructed`);
-- a registration is **accepted** when ok, its score and ambiguity pass, the registered plan's
+- a registration is **accepted** when ok and not doubted by its method (``doubt``: the
+  paper-faithful MFR flags its doubtful matches), its score and ambiguity pass, the registered plan's
   walls explain ``min_map_fit`` of the map's occupied cells, and the current scan relocalises
   against it consistently with the current estimate. A later registration that agrees with the
   accepted one refines it when it explains the data as well or better (``refine_by``: the map,
@@ -619,6 +620,8 @@ class FloorPlanUpdater:
 
         if not reg.ok:
             return reject(f"registration failed: {reg.reason or 'no match'}")
+        if reg.doubt:  # the method's own verdict (the paper-faithful MFR's): never a prior
+            return reject(f"doubtful match: {reg.doubt}")
         if reg.score < cfg.min_score:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
         relocaliser = None  # the disambiguation's, when it picked a placement: built once

@@ -85,3 +85,34 @@ def test_latency_rows_summarise_each_runs_per_scan_latency(bench):
     assert "| per-scan latency ms, median of the runs' p99 | 20.0 | 18.0 | — | — |" in text
     assert "| per-scan latency ms, worst run's max | 90.0 | 700.0 | — | — |" in text
     assert "| scans over 20 ms, median of the runs | 21.0 | 12.0 | — | — |" in text
+
+
+def fake_house(task):
+    """A house that is skipped when its plan says so; one row naming the plan and its seed."""
+    name = str(task["plan"])
+    skip = "not routable" if name.startswith("bad") else None
+    return {"plan": name, "skip": skip, "rows": [] if skip else [{"house": name, "seed": task["seed"]}]}
+
+
+@pytest.fixture
+def fake_houses(bench, monkeypatch):
+    monkeypatch.setattr(bench, "house_task", fake_house)  # pickled by value with run_houses' globals
+    monkeypatch.setattr(bench, "candidate_plans", lambda: ["h0", "bad1", "h2", "h3", "bad4", "h5", "h6"])
+
+
+@pytest.mark.slow
+def test_houses_through_dask_are_the_plain_loops(bench, fake_houses):
+    # 4 houses wanted: the 2 skipped plans are replaced by the next ones in the order
+    loop = bench.run_houses(4, 1, ["A"], 200.0, 1.0, ["none"])
+    dask = bench.run_houses(4, 2, ["A"], 200.0, 1.0, ["none"])
+    rows, skipped, cut = loop
+    assert [r["house"] for r in rows] == ["h0", "h2", "h3", "h5"] and cut == 0
+    assert skipped == [("bad1", "not routable"), ("bad4", "not routable")]
+    key = lambda r: r["house"]  # noqa: E731
+    assert sorted(dask[0], key=key) == sorted(rows, key=key)  # finishing order may differ
+    assert sorted(dask[1]) == skipped and dask[2] == 0
+
+
+def test_time_budget_starts_no_more_houses(bench, fake_houses):
+    rows, skipped, cut = bench.run_houses(4, 1, ["A"], 200.0, 1.0, ["none"], budget_s=0.0)
+    assert [r["house"] for r in rows] == ["h0"] and skipped == [] and cut == 3

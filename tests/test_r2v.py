@@ -261,3 +261,28 @@ def test_random_rows_give_a_valid_plan_or_a_floorplan_error(tmp_path, rows, boxe
     assert all(lab.room is None or lab.room in ids for lab in res.labels)
     assert all(r.polygon.is_valid and r.area > 0 for r in res.plan.rooms)
     assert _overlap_fraction(res.plan) < 0.02
+
+
+def test_door_rooms_do_not_depend_on_the_hash_seed(shared_data):
+    # a door whose side samples tie between two rooms: the vote took the first of a set, so the
+    # loaded plan (and every sweep over it) changed with PYTHONHASHSEED from process to process
+    import os
+    import subprocess
+    import sys
+
+    path = shared_data / "floorplans" / "r2v" / "0590284d0d4b410f04f3d4054146b649_0001.txt"
+    code = (
+        "import sys; from frslam_graph.floorplan import FloorPlan; "
+        "p = FloorPlan.load(sys.argv[1]); print([(d.id, d.rooms) for d in p.doors], [r.type for r in p.rooms])"
+    )
+    outs = {
+        subprocess.run(
+            [sys.executable, "-c", code, str(path)],
+            env={**os.environ, "PYTHONHASHSEED": seed},
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        for seed in ("1", "2", "3")
+    }
+    assert len(outs) == 1, outs

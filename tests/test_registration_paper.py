@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -16,7 +17,10 @@ from frslam_graph.registration.baselines import BASELINES, register_ecc, registe
 from frslam_graph.registration.evaluation import iou_a, room_iou, room_ious, transform_polygons
 from frslam_graph.registration.paper import (
     DIHEDRAL,
+    DOUBT_AMBIGUITY,
+    DOUBT_SCORE,
     dihedral_image,
+    paper_doubt,
     paper_subsets,
     register_paper,
     shoelace_area,
@@ -154,6 +158,7 @@ def test_paper_recovers_dihedral_and_bbox_scale(flipped, rot):
     assert reg.score > 0.95 and 0.0 <= reg.ambiguity < 1.0
     assert iou_a(plan, reg.matrix, truth) > 0.95
     assert reg.method == "paper" and set(reg.rooms) == set(plan.room_ids)
+    assert reg.verdict == "registered" and reg.doubt == ""
 
 
 def test_paper_matches_partial_map_to_alg1_subset():
@@ -174,6 +179,40 @@ def test_paper_fails_cleanly():
     one = FloorPlan(rooms=[plan.rooms[0]])
     reg = register_paper(one, grid_from_plan(plan, np.diag([0.02, 0.02, 1.0])))
     assert not reg.ok and "room" in reg.reason
+
+
+def test_paper_doubt_names_each_failed_criterion():
+    assert paper_doubt(0.99, 0.5) == ""
+    assert paper_doubt(DOUBT_SCORE, DOUBT_AMBIGUITY) == ""  # the bounds themselves pass
+    assert paper_doubt(0.36, 0.5) == f"IoU 0.36 < {DOUBT_SCORE:.2f}"
+    both = paper_doubt(0.67, 0.994)
+    assert both.startswith("IoU 0.67 < 0.96; ambiguity 0.994 > 0.99")
+    assert paper_doubt(0.67, 0.994, doubt_score=0.5, doubt_ambiguity=1.0) == ""
+
+
+def test_paper_flags_a_wrong_match_by_its_low_score():
+    # kitchen and bathroom with the living room: in no Alg. 1 subset, so the best image is a
+    # wrong flip; its ambiguity (0.95) would pass, its IoU (0.75) does not
+    plan = asym_plan()
+    truth = matrix_from_params(True, math.pi / 2, 0.02, 0.02, 1.0, -4.0)
+    reg = register_paper(plan, grid_from_plan(plan, truth, rooms={"r0", "r3", "r4"}))
+    assert reg.ok and iou_a(plan, reg.matrix, truth) < 0.5  # a placement, and a wrong one
+    assert reg.ambiguity <= DOUBT_AMBIGUITY and reg.score < DOUBT_SCORE
+    assert reg.verdict == "doubtful" and reg.doubt.startswith("IoU 0.75 < 0.96")
+    d = reg.to_dict()
+    assert d["ok"] is True and d["verdict"] == "doubtful" and d["doubt"] == reg.doubt
+
+
+def test_paper_flags_a_tie_between_transformations():
+    # the living room alone is a rectangle: flips and 180° rotations give the same IoU
+    plan = asym_plan()
+    truth = matrix_from_params(True, math.pi / 2, 0.02, 0.02, 1.0, -4.0)
+    reg = register_paper(plan, grid_from_plan(plan, truth, rooms={"r0"}))
+    assert reg.ok and reg.score > DOUBT_SCORE and reg.ambiguity > DOUBT_AMBIGUITY
+    assert reg.verdict == "doubtful" and "another flip/rotation fits almost as well" in reg.doubt
+    # the caller can loosen the rule
+    loose = register_paper(plan, grid_from_plan(plan, truth, rooms={"r0"}), doubt_ambiguity=1.0)
+    assert loose.verdict == "registered"
 
 
 def test_shoelace_area_of_mask_with_hole():
@@ -231,3 +270,35 @@ def test_paper_invariant_to_map_resolution_and_origin():
 
 def _grid_corner_frame(grid):  # map frame of ``grid`` -> frame with its origin at cell (0, 0)
     return np.array([[1, 0, -grid.origin[0]], [0, 1, -grid.origin[1]], [0, 0, 1.0]])
+
+
+def test_cli_register_paper_says_doubtful_on_one_line_and_writes_no_plan(tmp_path, capsys):
+    from frslam_graph.cli import main
+
+    plan = asym_plan()
+    plan.save(tmp_path / "plan.json")
+    truth = matrix_from_params(True, math.pi / 2, 0.02, 0.02, 1.0, -4.0)
+    grid_from_plan(plan, truth, rooms={"r0", "r3", "r4"}).save(tmp_path / "map.yaml")
+    out = tmp_path / "out"
+    args = ["register", str(tmp_path / "plan.json"), str(tmp_path / "map.yaml"), "--method", "paper"]
+    assert main([*args, "--out", str(out)]) == 1
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "doubtful" in ln]
+    assert len(lines) == 1 and lines[0].startswith("doubtful match, not accepted: IoU 0.75 < 0.96")
+    assert (out / "overlay.png").is_file() and not (out / "registered_plan.json").exists()
+    report = json.loads((out / "report.json").read_text())["registration"]
+    assert report["ok"] is True and report["verdict"] == "doubtful"
+    # the whole map: registered, as before
+    grid_from_plan(plan, truth).save(tmp_path / "map.yaml")
+    assert main([*args, "--out", str(out)]) == 0
+    assert (out / "registered_plan.json").is_file()
+    assert "doubtful" not in capsys.readouterr().out
+
+
+def test_paper_doubts_its_stretched_match_of_prbonn_on_its_own_segmentation(shared_data):
+    # issue 21: GMapRoomSeg.png is the plan of GMap.yaml (the truth is the identity); the paper
+    # mode's placement is 2.19 m off with a 16 % stretch, and used to be accepted silently
+    data = shared_data / "prbonn"
+    plan = FloorPlan.from_room_segmentation(data / "GMapRoomSeg.png", data / "GMap.yaml")
+    reg = register_paper(plan, OccupancyGrid.load(data / "GMap.yaml"))
+    assert reg.ok and abs(reg.translation[0]) > 2.0 and reg.scale[0] > 1.1  # the wrong placement
+    assert reg.verdict == "doubtful" and reg.doubt.startswith("IoU 0.67 < 0.96")

@@ -157,6 +157,23 @@ def test_wrong_registrations_are_rejected(sim, baseline, wrong):
         assert np.allclose(res.trajectory, baseline[1].trajectory)
 
 
+def test_doubtful_registration_gives_no_priors(sim, baseline):
+    # the right placement, with a good score and ambiguity, but doubted by its method (the paper
+    # mode's verdict): never accepted, no prior, the run is the run without a plan
+    plan, run, m = sim
+
+    def doubted(p, g):
+        return Registration.from_matrix(m, score=0.9, ambiguity=0.2, method="paper", doubt="IoU 0.90 < 0.96")
+
+    upd = FloorPlanUpdater(plan, CFG.updates, register_fn=doubted)
+    slam, res = run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind == "register"]
+    assert reg and not any(e.accepted for e in reg)
+    assert all("doubtful match: IoU 0.90 < 0.96" in e.reason for e in reg)
+    assert upd.registered_plan is None and not slam.graph.priors()
+    assert np.allclose(res.trajectory, baseline[1].trajectory)
+
+
 def _other_building(run):
     """A two-room plan of another building, placed at the house's corner (plan, matrix)."""
     other = FloorPlan(

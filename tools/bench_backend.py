@@ -29,7 +29,8 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    LiDAR odometry drifts and the priors have work to do (the paper's setting);
    C) the issue's literal "2 % odometry drift": the front end is the wheel odometry alone
    (``odometry.scan_matching=False``), no loop closure; the default sensor maps and relocalises.
-   Houses run in parallel (``--workers``, ProcessPoolExecutor), each run on one core; with
+   Houses run in parallel through Dask distributed (``--workers N``: a LocalCluster of N
+   single-threaded processes; ``--scheduler ADDRESS``: an existing cluster), each run on one core; with
    ``--workers 1`` one house at a time, each run with the odometry worker on the second core
    (``FRSlam.process``'s offline default), so its × real time is the library's offline figure.
    Each run also gives the per-scan latency a robot stack's ``add_scan`` would see on these
@@ -55,7 +56,6 @@ import statistics
 import sys
 import time
 from collections import Counter
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +64,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
+from _sweep import Sweep, SweepError  # noqa: E402
 from frslam_graph.datasets import Scan  # noqa: E402
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along  # noqa: E402
 
@@ -387,10 +388,15 @@ def run_houses(
     budget_s: float | None = None,
     overrides: dict | None = None,
     wrong_seeds: int = 1,
+    scheduler: str | None = None,
 ):
     """Run ``n`` routable houses (skipping and counting the others); returns (rows, skipped, cut).
 
-    With ``budget_s``, houses not yet started when the budget is spent are cancelled (``cut``).
+    ``workers`` 1 (no ``scheduler``): one house at a time in this process; else through Dask
+    distributed (``tools/_sweep.py``: a LocalCluster of ``workers`` processes, or the cluster at
+    ``scheduler``), no more houses submitted than the cluster runs at once. With ``budget_s``, no
+    house is started after the budget is spent (``cut``: the requested houses not run). Raises
+    ``SweepError`` for an unreachable scheduler.
     """
     t0 = time.perf_counter()
     cut = 0
@@ -412,39 +418,40 @@ def run_houses(
             "modes": modes,
             "overrides": overrides,
             "wrong_seeds": wrong_seeds,
-            # one house at a time: each run may use the odometry worker (the library's offline
-            # default) on the second core
-            "odometry_worker": workers == 1,
+            # one house at a time here: each run may use the odometry worker (the library's offline
+            # default) on the second core (not in a Dask worker: its processes are daemons, which
+            # cannot start one)
+            "odometry_worker": workers == 1 and scheduler is None,
         }
 
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        pending = set()
-        while nxt < min(n, len(cands)):
-            pending.add(pool.submit(house_task, make(nxt)))
-            nxt += 1
-        while pending:
-            finished, pending = wait(pending, timeout=10.0, return_when=FIRST_COMPLETED)
-            if budget_s is not None and time.perf_counter() - t0 > budget_s and not spent:
-                spent = True
-                cancelled = {f for f in pending if f.cancel()}
-                cut = len(cancelled) + max(0, min(n, len(cands)) - nxt)
-                nxt = len(cands)  # submit nothing more
-                pending -= cancelled
-                print(f"  time budget spent: {cut} houses cancelled", file=sys.stderr, flush=True)
-            for fut in finished:
-                res = fut.result()
-                if res["skip"] is not None:
-                    skipped.append((res["plan"], res["skip"]))
-                    if (
-                        nxt < len(cands) and not spent
-                    ):  # replace the skipped plan by the next one in the order
-                        pending.add(pool.submit(house_task, make(nxt)))
-                        nxt += 1
-                    print(f"  skipped {res['plan']}: {res['skip']}", file=sys.stderr, flush=True)
-                    continue
+    limit = min(n, len(cands))
+    with Sweep(workers, scheduler) as sweep:
+        in_flight = 0
+
+        def refill() -> None:  # no more in flight than can run: a house is started or not yet submitted
+            nonlocal nxt, in_flight
+            while nxt < limit and in_flight < sweep.slots:
+                sweep.submit(house_task, make(nxt))
+                nxt += 1
+                in_flight += 1
+
+        refill()
+        for res in sweep.as_completed():
+            in_flight -= 1
+            if res["skip"] is not None:
+                skipped.append((res["plan"], res["skip"]))
+                limit = min(limit + 1, len(cands))  # replace the skipped plan by the next one in the order
+                print(f"  skipped {res['plan']}: {res['skip']}", file=sys.stderr, flush=True)
+            else:
                 done_houses += 1
                 rows.extend(res["rows"])
                 print(f"  house {done_houses}/{n} done: {res['plan']}", file=sys.stderr, flush=True)
+            if budget_s is not None and time.perf_counter() - t0 > budget_s and not spent:
+                spent = True
+                cut = max(0, n - done_houses - in_flight)
+                print(f"  time budget spent: {cut} houses not started", file=sys.stderr, flush=True)
+            if not spent:
+                refill()
     return rows, skipped, cut
 
 
@@ -609,7 +616,11 @@ def main() -> None:
         "--workers",
         type=int,
         default=2,
-        help="section 2: houses at a time (1: each run with the odometry worker, the offline default)",
+        help="section 2: houses at a time, a Dask LocalCluster (1: a plain loop, each run with the "
+        "odometry worker, the offline default)",
+    )
+    ap.add_argument(
+        "--scheduler", default=None, help="section 2: address of an existing Dask scheduler instead"
     )
     ap.add_argument(
         "--set",
@@ -654,17 +665,22 @@ def main() -> None:
         parts.append(text)
         csv_rows += [["latency", "", "", name, f"{v:.6g}"] for name, v in med]
     if "priors" not in args.skip:
-        rows, skipped, cut = run_houses(
-            args.houses,
-            args.workers,
-            args.regimes,
-            args.length,
-            args.speed,
-            modes,
-            args.time_budget,
-            args.set,
-            args.wrong_seeds,
-        )
+        try:
+            rows, skipped, cut = run_houses(
+                args.houses,
+                args.workers,
+                args.regimes,
+                args.length,
+                args.speed,
+                modes,
+                args.time_budget,
+                args.set,
+                args.wrong_seeds,
+                args.scheduler,
+            )
+        except SweepError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
         text = priors_section(rows, skipped, args, cut)
         print(text, flush=True)
         parts.append(text)

@@ -21,8 +21,14 @@ rotation or IoU_a < 0.5) flagged ambiguous.
 
 Output: Markdown to stdout and ``OUT/table.md``, ``OUT/fig5.png``, ``OUT/results.csv``.
 
+Execution: the (plan, rotation set) tasks run through Dask distributed (``tools/_sweep.py``): a
+``LocalCluster`` of ``--workers`` single-threaded processes here (default 2), or the existing
+cluster at ``--scheduler ADDRESS``; ``--workers 1`` is a plain loop in this process. The rows are
+the same either way, in task order (tested).
+
     python tools/bench_registration.py --quick --out /tmp/bench_quick
     python tools/bench_registration.py --plans 200 --workers 2 --out results/registration
+    python tools/bench_registration.py --plans 2000 --scheduler tcp://HOST:8786 --out results/big
 """
 
 from __future__ import annotations
@@ -31,17 +37,19 @@ import argparse
 import csv
 import json
 import math
-import multiprocessing
 import os
 import sys
 import time
 import traceback
 from collections import defaultdict
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_sweep.py, also when loaded by a test
+from _sweep import Sweep, SweepError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -104,6 +112,10 @@ def _run_method(name: str, plan: Any, grid: Any) -> tuple[Any, float, float, str
 
 
 def _is_ambiguous(reg: Any) -> bool:
+    """Flagged: the paper mode's own verdict (``reg.doubt``), our MFR's (``details["ambiguous"]``),
+    else (the baselines) an ambiguity above the backend's threshold."""
+    if reg.method == "paper":
+        return bool(reg.doubt)
     flag = reg.details.get("ambiguous") if isinstance(reg.details, dict) else None
     if flag is not None:
         return bool(flag)
@@ -259,12 +271,43 @@ def prbonn_cases(task: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def _dispatch(task: dict[str, Any]) -> list[dict[str, Any]]:
+    """One task's rows, in the worker (or the plain loop) that runs it."""
+    _init_worker()
     try:
         return prbonn_cases(task) if task["kind"] == "prbonn" else r2v_cases(task)
     except Exception as exc:  # a case that cannot be built (simulator / loader): reported, not fatal
         return [
             {"set": task["kind"], "case": str(task.get("path", task.get("index"))), "setup_error": repr(exc)}
         ]
+
+
+def run_tasks(
+    tasks: list[dict[str, Any]],
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Run the tasks (``workers`` 1 and no scheduler: a plain loop here; else through Dask
+    distributed, see ``tools/_sweep.py``); (rows, setup errors) in task order either way.
+
+    Raises ``SweepError`` when ``scheduler`` does not answer.
+    """
+    rows: list[dict[str, Any]] = []
+    setup_errors: list[dict[str, Any]] = []
+    with Sweep(workers, scheduler) as sweep:
+        results = sweep.map(_dispatch, tasks, progress)
+    for task_rows in results:
+        for r in task_rows:
+            (setup_errors if "setup_error" in r else rows).append(r)
+    return rows, setup_errors
+
+
+def _progress(t_start: float) -> Callable[[int, int], None]:
+    def show(done: int, total: int) -> None:
+        if done % 10 == 0 or done == total:
+            print(f"  {done}/{total} tasks, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
+
+    return show
 
 
 # ------------------------------------------------------------------------------------ selection
@@ -486,7 +529,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="shared data folder")
     ap.add_argument("--plans", type=int, default=200, help="number of R2V plans (>= 2 rooms)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 20 plans, 3 PRBonn distortions")
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="Dask LocalCluster of this many single-threaded worker processes (1: a plain loop here)",
+    )
+    ap.add_argument(
+        "--scheduler", default=None, help="address of an existing Dask scheduler (tcp://host:8786) instead"
+    )
     ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma list of " + ",".join(ALL_METHODS))
     ap.add_argument("--completeness", default="25,50,75,100", help="comma list of percentages")
     ap.add_argument("--rotations", default="step90,any", help="comma list of step90,any")
@@ -546,24 +597,11 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(n_prb)
         for rs in rotsets
     ]
-    rows: list[dict[str, Any]] = []
-    setup_errors: list[dict[str, Any]] = []
-    done = 0
-    # spawn, not fork: the parent has used OpenCV's thread pool (plan loading), and a forked child
-    # deadlocks in it
-    ctx = multiprocessing.get_context("spawn")
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one thread per worker
-        os.environ.setdefault(var, "1")
-    with ProcessPoolExecutor(
-        max_workers=max(1, args.workers), mp_context=ctx, initializer=_init_worker
-    ) as pool:
-        futures = [pool.submit(_dispatch, t) for t in tasks]
-        for fut in as_completed(futures):
-            for r in fut.result():
-                (setup_errors if "setup_error" in r else rows).append(r)
-            done += 1
-            if done % 10 == 0 or done == len(tasks):
-                print(f"  {done}/{len(tasks)} tasks, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
+    try:
+        rows, setup_errors = run_tasks(tasks, args.workers, args.scheduler, _progress(t_start))
+    except SweepError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     wall = time.perf_counter() - t_start
     meta = {
         "cmd": "python tools/bench_registration.py " + " ".join(argv if argv is not None else sys.argv[1:]),
@@ -573,7 +611,7 @@ def main(argv: list[str] | None = None) -> int:
         "rotsets": rotsets,
         "seed": args.seed,
         "n_prbonn": n_prb,
-        "workers": args.workers,
+        "workers": args.workers if args.scheduler is None else f"scheduler {args.scheduler}",
         "wall_s": wall,
         "setup_errors": [r["setup_error"] for r in setup_errors],
         "methods": methods,
@@ -603,6 +641,8 @@ def _read_csv(path: Path) -> list[dict[str, Any]]:
 
 def report(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path | None) -> int:
     """Markdown tables (stdout and ``out/table.md``), ``out/fig5.png``, ``out/results.csv``."""
+    from frslam_graph.registration.paper import DOUBT_AMBIGUITY, DOUBT_SCORE
+
     methods = [m for m in meta["methods"] if any(r["method"] == m for r in rows)]
     comps, rotsets = meta["completeness"], meta["rotsets"]
     r2v = [r for r in rows if r["set"] == "r2v"]
@@ -617,7 +657,8 @@ def report(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path | None) -
         f"{meta['workers']}, wall time {meta['wall_s']:.0f} s. "
         f"Rotation correct within {ROT_TOL_DEG:.0f}°; a failed registration counts as wrong flip/rotation "
         f"and IoU_a 0. Wrong match = ok but wrong flip or rotation or IoU_a < {WRONG_IOU}; flagged ambiguous = "
-        f"the method's details['ambiguous'] where it gives one (our MFR: ambiguity >= 0.9), else ambiguity > "
+        f"the method's own verdict where it gives one (the paper mode: doubtful, IoU < {DOUBT_SCORE} or ambiguity > {DOUBT_AMBIGUITY}; "
+        f"our MFR: details['ambiguous'], ambiguity >= 0.9), else ambiguity > "
         f"{AMBIGUOUS_AT:.2f} (the backend's UpdatesConfig.max_ambiguity).",
         "",
     ]

@@ -63,6 +63,9 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_sweep.py, also when loaded by a test
+from _sweep import Sweep, SweepError  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 # name -> (recording, relations) under DATA
@@ -249,24 +252,10 @@ def make_tasks(logs: dict[str, tuple[Path, Path | None]], out: Path, baseline: b
 
 
 def run_tasks(tasks: list[dict], workers: int = 1, scheduler: str | None = None) -> list[dict]:
-    """Run the tasks one after another (``workers`` 1, no scheduler) or through Dask distributed."""
-    if workers <= 1 and scheduler is None:
-        return [run_task(t) for t in tasks]
-    from dask.distributed import Client, LocalCluster
-
-    cluster = None
-    if scheduler is None:
-        cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
-        )
-    client = Client(scheduler or cluster)
-    try:
-        futures = [client.submit(run_task, t, pure=False) for t in tasks]
-        return client.gather(futures)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    """Run the tasks one after another (``workers`` 1, no scheduler) or through Dask distributed
+    (``tools/_sweep.py``); results in task order. Raises ``SweepError`` for an unreachable scheduler."""
+    with Sweep(workers, scheduler) as sweep:
+        return sweep.map(run_task, tasks)
 
 
 # ---------------------------------------------------------------- tables
@@ -423,7 +412,9 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--logs", nargs="+", default=list(LOGS), choices=list(LOGS))
     ap.add_argument("--workers", type=int, default=1, help="concurrent tasks through Dask (1: a plain loop)")
-    ap.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    ap.add_argument(
+        "--scheduler", default=None, help="address of an existing Dask scheduler (tcp://host:8786) instead"
+    )
     ap.add_argument("--out", type=Path, default=None, help="keep each run's outputs here")
     ap.add_argument("--csv", type=Path, default=None, help="also write every figure as CSV")
     ap.add_argument("--no-baseline", action="store_true", help="skip the KISS-ICP / wheel-odometry runs")
@@ -467,7 +458,11 @@ def main(argv: list[str] | None = None) -> None:
             },
         )
     t0 = time.perf_counter()
-    results = collect(run_tasks(tasks, args.workers, args.scheduler))
+    try:
+        results = collect(run_tasks(tasks, args.workers, args.scheduler))
+    except SweepError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
     print(tables(results))
     print(f"\n{len(tasks)} tasks, {args.workers} worker(s), {time.perf_counter() - t0:.0f} s in all.")
     if args.csv is not None:

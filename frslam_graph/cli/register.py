@@ -9,7 +9,10 @@ Writes into DIR: ``registered_plan.json`` (the plan in map metres, our JSON form
 covariance, matched rooms, timing). A failed match still writes the report (``ok: false`` and the
 reason) and the overlay, with the refused placement's rooms dashed when there was one (MFR's "no
 match": a plan drawn differently from the building can be right and still refused), and exits
-with code 1; bad input files exit with code 2 and a one-line message. The
+with code 1. A doubtful match (the registration's ``verdict`` is ``"doubtful"``: the paper mode's
+low score or near-tie of two flips/rotations) is handled the same way: one line says why, the
+overlay dashes its placement, ``registered_plan.json`` is not written, exit code 1. Bad input
+files exit with code 2 and a one-line message. The
 report is written last and lists the outputs; they replace a previous registration's as a whole.
 """
 
@@ -40,7 +43,7 @@ def refused_placement(reg) -> bool:
 
 def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     """Map (free white, occupied black, unknown grey) with the registered rooms on top (a refused
-    placement: dashed outlines, no fill)."""
+    or doubtful placement: dashed outlines, no fill)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -65,15 +68,16 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
         xy = grid.cell_to_world(np.column_stack([cc.ravel() + 0.5, rr.ravel() + 0.5]))
         ax.scatter(xy[:, 0], xy[:, 1], c=img.ravel(), cmap="gray", vmin=0, vmax=1, s=1, marker="s")
     cmap = plt.get_cmap("tab20")
+    accepted = reg.verdict == "registered"
     matched = set(reg.rooms)
     for i, room in enumerate(plan_m.rooms if plan_m is not None else []):
         xy = np.asarray(room.polygon.exterior.coords)
         colour = cmap(i % 20)
-        if not reg.ok:
+        if not accepted:
             ax.add_patch(MplPolygon(xy, closed=True, fill=False, edgecolor=colour, lw=1.4, ls="--"))
         else:
             ax.add_patch(MplPolygon(xy, closed=True, facecolor=(*colour[:3], 0.3), edgecolor=colour, lw=1.0))
-        if reg.ok and room.id in matched:
+        if accepted and room.id in matched:
             ax.plot(xy[:, 0], xy[:, 1], "-", color=colour, lw=2.2)
         cx, cy = room.polygon.representative_point().coords[0]
         ax.text(cx, cy, f"{room.id}\n{room.type}", fontsize=6, ha="center", va="center")
@@ -150,17 +154,21 @@ def register_cmd(
             f"score {reg.score:.3f}, ambiguity {reg.ambiguity:.2f}, flip {reg.flipped}, "
             f"rot {reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.4g}/{reg.scale[1]:.4g} m/unit"
         )
-        title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + (
-            placement
-            if reg.ok
-            else f"FAILED: {reg.reason}" + (f"\nrefused placement (dashed): {placement}" if refused else "")
-        )
+        if reg.verdict == "registered":
+            status = placement
+        elif reg.verdict == "doubtful":
+            status = "DOUBTFUL: " + reg.doubt.replace("; ", "\n") + f"\nplacement (dashed): {placement}"
+        else:
+            status = f"FAILED: {reg.reason}" + (
+                f"\nrefused placement (dashed): {placement}" if refused else ""
+            )
+        title = f"{plan_path.name} -> {map_yaml.name} [{reg.method}] " + status
         with folder:
-            if reg.ok:
+            if reg.verdict == "registered":
                 folder.write("registered_plan.json", plan_m.save)
             folder.write("overlay.png", lambda p: _overlay(grid, plan_m, reg, p, title))
             folder.commit(report)
-    if reg.ok:
+    if reg.verdict == "registered":
         console.print(
             f"registered {len(reg.rooms)}/{len(plan.rooms)} rooms: flip {reg.flipped}, rotation "
             f"{reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.5g} x {reg.scale[1]:.5g} m/unit, translation "
@@ -170,6 +178,16 @@ def register_cmd(
             soft_wrap=True,
         )
         print_written(outputs.files(), out, "floor plan: [bold green]registered[/] to the map")
+    elif reg.verdict == "doubtful":
+        print_written(outputs.files(), out)
+        console.print(
+            f"[bold yellow]doubtful match, not accepted:[/] {escape(reg.doubt)} (placement: flip {reg.flipped}, "
+            f"rotation {reg.rotation_deg:.2f} deg, scale {reg.scale[0]:.5g} x {reg.scale[1]:.5g} m/unit, translation "
+            f"({reg.translation[0]:.3f}, {reg.translation[1]:.3f}) m; dashed in overlay.png)",
+            highlight=False,
+            soft_wrap=True,
+        )
+        raise typer.Exit(1)
     else:
         print_written(outputs.files(), out)
         console.print(f"[bold red]no registration:[/] {escape(reg.reason)}", highlight=False, soft_wrap=True)

@@ -597,7 +597,7 @@ def _centre_seeds(mask: np.ndarray, centres: np.ndarray) -> np.ndarray:
 
 
 def _merge_types(types: list[str]) -> str:
-    return max(set(types), key=types.count)
+    return max(dict.fromkeys(types), key=types.count)  # a tie: the first seen (not hash order)
 
 
 def _absorb_walls(room: np.ndarray) -> np.ndarray:
@@ -812,7 +812,7 @@ def _doors(
             vals = full[px[:, 1], px[:, 0]].tolist()
             rids = [room_of[v] for v in vals if v in room_of]
             if rids:
-                votes.append(max(set(rids), key=rids.count))
+                votes.append(max(dict.fromkeys(rids), key=rids.count))  # a tie: the first seen
         rooms = tuple(dict.fromkeys(votes))
         doors.append(
             Door(

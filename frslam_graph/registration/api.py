@@ -30,7 +30,8 @@ def register(plan: FloorPlan, grid: OccupancyGrid, *, method: str = "mfr", **opt
     """Register ``plan`` to ``grid``; ``options`` go to the method (see its docstring).
 
     Raises :class:`~frslam_graph.errors.ConfigError` for an unknown method name; a failed match is
-    a ``Registration`` with ``ok == False`` and a ``reason``.
+    a ``Registration`` with ``ok == False`` and a ``reason``; a match its method doubts (the paper
+    mode's low IoU or near-tie) is ``ok`` with a ``doubt`` (``verdict == "doubtful"``).
     """
     if method not in METHODS:
         raise ConfigError(

@@ -31,6 +31,17 @@ Reading of the paper used here (stated because the text is loose):
   bounding box on the map's bounding box (min corners coincide), which is what its overlay does.
 
 ``score`` = best IoU; ``ambiguity`` = best IoU of any *other* flip/rotation / best IoU.
+
+**Doubt.** Alg. 2 always returns its best placement, however poor. A match whose score is below
+``doubt_score`` (:data:`DOUBT_SCORE`) or whose ambiguity is above ``doubt_ambiguity``
+(:data:`DOUBT_AMBIGUITY`) is returned ``ok`` with a ``doubt`` (:func:`paper_doubt`): its
+``verdict`` is ``"doubtful"``, ``frslam register`` says so and exits 1, and the SLAM pipeline
+does not use it. The thresholds are the rule that keeps the most right matches while leaving at
+most 1 % of all cases wrong and unflagged on the registration benchmark (``tools/README.md``,
+"Paper mode: doubtful matches", with the distributions and the commands). The paper's IoU of a
+whole footprint is high under most of the 8 transformations, so on its own the ambiguity
+separates right from wrong poorly (median 0.96 for right matches, 0.99 for wrong ones); the
+score carries most of the rule, and the ambiguity test catches near-ties (symmetric layouts).
 """
 
 from __future__ import annotations
@@ -47,7 +58,21 @@ from frslam_graph.raster import RasterFrame, rasterise_polygons
 from frslam_graph.registration.preprocess import PreprocessedMap, preprocess_map
 from frslam_graph.registration.result import Registration, matrix_from_params
 
-__all__ = ["DIHEDRAL", "dihedral_image", "paper_subsets", "register_paper", "shoelace_area"]
+__all__ = [
+    "DIHEDRAL",
+    "DOUBT_AMBIGUITY",
+    "DOUBT_SCORE",
+    "dihedral_image",
+    "paper_doubt",
+    "paper_subsets",
+    "register_paper",
+    "shoelace_area",
+]
+
+#: below this best IoU a paper-mode match is doubtful (tools/README.md: "Paper mode: doubtful matches")
+DOUBT_SCORE = 0.96
+#: above this ambiguity (runner-up flip/rotation IoU / best IoU) a paper-mode match is doubtful
+DOUBT_AMBIGUITY = 0.99
 
 # the 8 morphological transformations: (flipped, k) with matrix R(k·90°) · diag(1, -1 if flipped)
 DIHEDRAL: tuple[tuple[bool, int], ...] = tuple((f, k) for f in (False, True) for k in range(4))
@@ -97,6 +122,30 @@ def shoelace_area(mask: np.ndarray) -> float:
     return max(total, 0.0)
 
 
+def paper_doubt(
+    score: float, ambiguity: float, doubt_score: float = DOUBT_SCORE, doubt_ambiguity: float = DOUBT_AMBIGUITY
+) -> str:
+    """Why a paper-mode match is doubtful, or ``""`` when it is not.
+
+    Args:
+        score: best IoU of the match (0..1).
+        ambiguity: best IoU of any other flip/rotation divided by ``score`` (0..1).
+        doubt_score: a score below this is doubtful.
+        doubt_ambiguity: an ambiguity above this is doubtful.
+
+    Returns:
+        ``""``, or every failed criterion with its numbers, joined by ``"; "``.
+    """
+    why = []
+    if score < doubt_score:
+        why.append(f"IoU {score:.2f} < {doubt_score:.2f}")
+    if ambiguity > doubt_ambiguity:
+        why.append(
+            f"ambiguity {ambiguity:.3f} > {doubt_ambiguity:.2f}: another flip/rotation fits almost as well"
+        )
+    return "; ".join(why)
+
+
 def _resize_binary(mask: np.ndarray, size: int) -> np.ndarray:
     small = cv2.resize(mask.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
     return (small >= 0.5).astype(np.uint8)
@@ -124,6 +173,8 @@ def register_paper(
     plan_pixels: int = 400,
     max_bedrooms: int = 10,
     min_score: float = 0.0,
+    doubt_score: float = DOUBT_SCORE,
+    doubt_ambiguity: float = DOUBT_AMBIGUITY,
     **_: Any,
 ) -> Registration:
     """Register ``plan`` to ``grid`` as the paper does (see the module docstring for the reading).
@@ -131,9 +182,11 @@ def register_paper(
     theta, alpha, epsilon: LiDAR preprocessing (grey threshold, min component area in m²,
     polygon-fit tolerance in m); size: side of the resized images (200 in the paper); area:
     ``"pixels"`` or ``"shoelace"`` (eq. 5); plan_pixels: raster size of the plan's longer side
-    before resizing; min_score: below this IoU the match is reported as failed.
-    Returns a :class:`Registration` (``ok`` False with a ``reason`` on failure; never raises
-    on a valid plan and grid).
+    before resizing; min_score: below this IoU the match is reported as failed; doubt_score,
+    doubt_ambiguity: an ``ok`` match below / above these is flagged (``doubt``, see
+    :func:`paper_doubt`).
+    Returns a :class:`Registration` (``ok`` False with a ``reason`` on failure; ``verdict``
+    ``"doubtful"`` for a doubtful match; never raises on a valid plan and grid).
     """
     t0 = time.perf_counter()
 
@@ -197,10 +250,12 @@ def register_paper(
     hpx, wpx = lidar.shape
     to_px = np.array([[wpx / h1, 0.0, -x0 * wpx / h1], [0.0, hpx / v1, -y0 * hpx / v1], [0.0, 0.0, 1.0]])
     matrix = lidar.pixel_to_map @ to_px @ g_mat
+    ambiguity = float(second / score) if score > 0 else 1.0
     return Registration.from_matrix(
         matrix,
         score=float(score),
-        ambiguity=float(second / score) if score > 0 else 1.0,
+        ambiguity=ambiguity,
+        doubt=paper_doubt(float(score), ambiguity, doubt_score, doubt_ambiguity),
         rooms=tuple(subset),
         method="paper",
         time_s=time.perf_counter() - t0,

@@ -68,7 +68,10 @@ class Registration:
     best score of a *different* hypothesis divided by ``score`` (in [0, 1]; near 1 = ambiguous),
     ``covariance`` the 3×3 covariance of the pose part (x, y in metres, theta in radians) or None:
     x, y are the matrix's translation (where the plan's origin lands in the map), theta its
-    rotation; the scales are marginalised.
+    rotation; the scales are marginalised. ``doubt`` is the method's own reason to doubt an ``ok``
+    match (empty: none; the paper-faithful method sets it from its score and ambiguity): a
+    doubtful registration still carries its placement for a user to judge, but ``verdict`` is
+    ``"doubtful"`` and the SLAM pipeline does not turn it into priors.
     """
 
     ok: bool
@@ -86,6 +89,14 @@ class Registration:
     time_s: float = 0.0
     candidates: list[tuple[float, bool, float]] = field(default_factory=list)
     details: dict[str, Any] = field(default_factory=dict)
+    doubt: str = ""
+
+    @property
+    def verdict(self) -> str:
+        """``"registered"`` (ok, not doubted), ``"doubtful"`` (ok, with a ``doubt``) or ``"failed"``."""
+        if not self.ok:
+            return "failed"
+        return "doubtful" if self.doubt else "registered"
 
     @classmethod
     def from_matrix(cls, matrix: np.ndarray, **kwargs: Any) -> Registration:
@@ -120,7 +131,9 @@ class Registration:
         """JSON-serialisable dictionary (numpy arrays as nested lists)."""
         return {
             "ok": bool(self.ok),
+            "verdict": self.verdict,
             "reason": self.reason,
+            "doubt": self.doubt,
             "method": self.method,
             "matrix": np.asarray(self.matrix, dtype=float).tolist(),
             "flipped": bool(self.flipped),
