@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import pickle
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -38,6 +40,10 @@ from frslam_graph.submap_matching import (
     rigid_points,
     voxel_downsample,
 )
+
+if TYPE_CHECKING:  # pragma: no cover
+    from frslam_graph.backend.context import BackendContext
+    from frslam_graph.config import LoopClosureConfig
 
 QUERY_SPAN = 1  # keyframes each side of the query keyframe in its submap
 REFERENCE_SPAN = 4  # ... and of the reference keyframe in its submap
@@ -453,3 +459,35 @@ def dense_constraints(
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
     return align_pairs(poses, points, pairs, max_range, processes)
+
+
+def align_passes(ctx: BackendContext, config: LoopClosureConfig, processes: int = 1) -> None:
+    """Dense constraints between passes at the converged estimate, re-optimised (LM batch),
+    ``config.final_alignment_rounds`` times; each round's constraints replace the previous
+    round's. Logged as ``final_alignment`` per round."""
+    graph = ctx.graph
+    odom = ctx.store.odometry()
+    factors: list = []
+    for round_ in range(config.final_alignment_rounds):
+        t0 = time.perf_counter()
+        cons = dense_constraints(
+            graph.estimates(),
+            odom,
+            ctx.store.points,
+            config.final_alignment_radius,
+            config.max_point_range,
+            processes=processes,
+        )
+        new = [constraint_factor(c) for c in cons]
+        graph.replace_factors([i for i in graph.factor_indices(factors) if i >= 0], new)
+        factors = new
+        before = graph.error()
+        graph.optimize_batch(incremental=False)
+        ctx.log.record(
+            "final_alignment",
+            f"round {round_ + 1}: {len(cons)} constraints between passes",
+            constraints=len(cons),
+            error_before=before,
+            error_after=graph.error(),
+            seconds=time.perf_counter() - t0,
+        )

@@ -55,7 +55,7 @@ match that agrees with a pending closure confirms it with a lower inlier fractio
 rejected.
 
 Closures already in the graph are re-checked after every addition and at the end
-(:meth:`LoopCloser.flush`): at the converged estimate (an LM batch first), a closure whose residual
+(:meth:`LoopCloser.on_finish`): at the converged estimate (an LM batch first), a closure whose residual
 is far outside its covariance (``prune_chi2``, and ``prune_xy`` / ``prune_theta_deg``) is removed,
 worst first: the odometry and the other closures disagree with it (on ACES, an aliased corridor
 match confirmed by an unrelated closure of similar correction). Counted in ``stats.pruned``,
@@ -74,10 +74,10 @@ and each relinearising iteration after a closure, an LM batch) is a chain of ste
 its cost from the sizes involved (a fixed cost model: look-ups, grid cells, points, keyframes),
 never from a clock, so the run is deterministic and the same on any machine; a step estimated
 above the budget runs alone. ``wall_budget_ms`` optionally caps each call by the clock as well
-(then the spread depends on the load). ``FRSlam.finish()`` runs what is left (:meth:`flush`).
+(then the spread depends on the load). ``FRSlam.finish()`` runs what is left (:meth:`on_finish`).
 With an unbounded budget the result is exactly that of doing everything in the keyframe's call.
 
-Decisions go to ``slam.log`` as ``loop_closure`` / ``loop_pending`` / ``loop_rejected`` (with the
+Decisions go to ``ctx.log`` as ``loop_closure`` / ``loop_pending`` / ``loop_rejected`` (with the
 reason: ``no_overlap``, ``low_score``, ``low_inliers``, ``ambiguous``, ``free_space``).
 """
 
@@ -109,7 +109,8 @@ from frslam_graph.submap_matching import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from frslam_graph.pipeline import FRSlam, KeyframeInfo
+    from frslam_graph.backend.context import BackendContext
+    from frslam_graph.backend.keyframes import KeyframeInfo
 
 T = TypeVar("T")
 
@@ -151,9 +152,9 @@ class _Job:
     closures: int = 0  # closures accepted when it was planned
 
 
-def _gather_cost(slam: FRSlam, lo: int, hi: int) -> float:
+def _gather_cost(ctx: BackendContext, lo: int, hi: int) -> float:
     """Estimated cost (ms) of gathering the points of keyframes lo..hi into a submap."""
-    pts, _ = slam.keyframe_scans()
+    pts, _ = ctx.keyframe_scans()
     n = sum(len(pts[k]) for k in range(max(lo, 0), min(hi, len(pts) - 1) + 1))
     return _MS_GATHER + _MS_PER_POINT_GATHER * n
 
@@ -181,7 +182,7 @@ class LoopClosureStats:
 
 
 class LoopCloser:
-    """Keyframe hook adding verified loop-closure factors to ``slam.graph`` (see module docs)."""
+    """Keyframe hook adding verified loop-closure factors to ``ctx.graph`` (see module docs)."""
 
     def __init__(
         self, config: LoopClosureConfig | None = None, clock: Callable[[], float] = time.perf_counter
@@ -215,7 +216,7 @@ class LoopCloser:
         # (set by each plan)
         self._redundant_travel = self.config.redundant_travel
         self._next_cost = 0.0  # estimated cost (ms) of the current task's next step
-        # steps run by the latest on_keyframe / on_scan / flush and their estimated cost (ms)
+        # steps run by the latest on_keyframe / on_scan / on_finish and their estimated cost (ms)
         self.steps_last_call, self.cost_last_call = 0, 0.0
 
     # ------------------------------------------------------------------ motion bookkeeping
@@ -230,24 +231,26 @@ class LoopCloser:
             self._turn.append(0.0)
         self._odom.append(p)
 
-    def _sync(self, slam: FRSlam, index: int) -> None:
+    def _sync(self, ctx: BackendContext, index: int) -> None:
         if len(self._odom) == index:
             return
         self._travel, self._turn, self._odom = [], [], []
         self._dist = None
         self._local = []
-        for kf in slam.keyframes()[:index]:
+        for kf in ctx.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
     # ------------------------------------------------------------------ hooks
-    def on_keyframe(self, slam: FRSlam, keyframe: KeyframeInfo, work: bool = True) -> list[LoopClosure]:
+    def on_keyframe(
+        self, ctx: BackendContext, keyframe: KeyframeInfo, work: bool = True
+    ) -> list[LoopClosure]:
         """A new keyframe: every ``attempt_every`` keyframes queue its candidates (a pending
         closure's check ahead of the older ones), then work on the queue within the per-scan
         budget (not with ``work`` False: this scan's budget is spent elsewhere; the queue goes
         on at the next scan). Returns the closures that entered the graph during this call (of
         this or an earlier keyframe)."""
         i = keyframe.index
-        self._sync(slam, i)
+        self._sync(ctx, i)
         self._append_motion(keyframe.pose_odom)
         self.stats.keyframes += 1
         cfg = self.config
@@ -256,16 +259,16 @@ class LoopCloser:
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             if i >= cfg.min_keyframe_gap and i % cfg.attempt_every == 0:
-                self._plan(slam, i)
+                self._plan(ctx, i)
             if not work:
                 self.steps_last_call, self.cost_last_call = 0, 0.0
                 return []
-            return self._work(slam, min(cfg.keyframe_budget_ms, cfg.budget_ms), cfg.wall_budget_ms)
+            return self._work(ctx, min(cfg.keyframe_budget_ms, cfg.budget_ms), cfg.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
 
-    def on_scan(self, slam: FRSlam, budget_ms: float | None = None) -> list[LoopClosure]:
+    def on_scan(self, ctx: BackendContext, budget_ms: float | None = None) -> list[LoopClosure]:
         """A scan that is not a keyframe: continue the queued work within the per-scan budget.
         ``budget_ms``: what is left of it after other work on this scan (a deferred step); then
         only steps that fit run (none may)."""
@@ -278,18 +281,18 @@ class LoopCloser:
                 wall = self.config.wall_budget_ms
                 if wall is not None:
                     wall *= min(budget_ms / self.config.budget_ms, 1.0)
-                return self._work(slam, min(budget_ms, self.config.budget_ms), wall, first_free=False)
-            return self._work(slam, self.config.budget_ms, self.config.wall_budget_ms)
+                return self._work(ctx, min(budget_ms, self.config.budget_ms), wall, first_free=False)
+            return self._work(ctx, self.config.budget_ms, self.config.wall_budget_ms)
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
 
-    def flush(self, slam: FRSlam) -> list[LoopClosure]:
+    def on_finish(self, ctx: BackendContext) -> list[LoopClosure]:
         """Finish all queued work now (offline, before the final batch)."""
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            added = self._work(slam, None, None)
-            run_steps(self._prune(slam))
+            added = self._work(ctx, None, None)
+            run_steps(self._prune(ctx))
             return added
         finally:
             self.stats.seconds += time.perf_counter() - t0
@@ -302,7 +305,7 @@ class LoopCloser:
 
     def _work(
         self,
-        slam: FRSlam,
+        ctx: BackendContext,
         budget: float | None,
         wall_budget_ms: float | None,
         first_free: bool = True,
@@ -323,7 +326,7 @@ class LoopCloser:
             if bounded and wall_budget_ms is not None and 1e3 * (self.clock() - start) >= wall_budget_ms:
                 break
             if self._task is None:
-                self._task = self._job(slam, self._jobs.popleft())
+                self._task = self._job(ctx, self._jobs.popleft())
             try:
                 self._next_cost = float(next(self._task))
             except StopIteration as stop:
@@ -476,11 +479,11 @@ class LoopCloser:
         return out
 
     def _submap(
-        self, slam: FRSlam, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
+        self, ctx: BackendContext, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
     ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
         """Points of keyframes lo..hi (within ± travel of ``centre``) in ``centre``'s frame, and
         per keyframe (sensor origin, end points in beam order) in that frame."""
-        pts_all, origins = slam.keyframe_scans()
+        pts_all, origins = ctx.keyframe_scans()
         trav = self._travel
         ks = [
             k
@@ -515,7 +518,7 @@ class LoopCloser:
             p = cache[k] = q if ok.all() else q[ok]
         return p
 
-    def _reference(self, slam: FRSlam, c: int, i: int) -> Steps[ReferenceSubmap]:
+    def _reference(self, ctx: BackendContext, c: int, i: int) -> Steps[ReferenceSubmap]:
         """Reference submap of keyframe c (cached), two steps when built: points, field."""
         sub = self._submaps.get(c)
         if sub is not None:
@@ -523,8 +526,8 @@ class LoopCloser:
             return sub
         cfg = self.config
         lo, hi = c - cfg.submap_keyframes, min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
-        yield _gather_cost(slam, lo, hi)
-        pts, scans = self._submap(slam, slam.graph.estimates(), c, lo, hi, cfg.submap_travel)
+        yield _gather_cost(ctx, lo, hi)
+        pts, scans = self._submap(ctx, ctx.graph.estimates(), c, lo, hi, cfg.submap_travel)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
             yield ReferenceSubmap.build_cost(pts, cfg.resolution, cfg.likelihood_sigma, margin)
@@ -534,12 +537,12 @@ class LoopCloser:
             self._submaps.popitem(last=False)
         return sub
 
-    def _reject(self, slam: FRSlam, i: int, c: int, reason: str, **data: Any) -> None:
+    def _reject(self, ctx: BackendContext, i: int, c: int, reason: str, **data: Any) -> None:
         self.stats.rejected += 1
         self.stats.reasons[reason] = self.stats.reasons.get(reason, 0) + 1
-        slam.log_event("loop_rejected", f"keyframe {i} vs {c}: {reason}", keyframe=i, reference=c, **data)
+        ctx.log.record("loop_rejected", f"keyframe {i} vs {c}: {reason}", keyframe=i, reference=c, **data)
 
-    def _plan(self, slam: FRSlam, i: int) -> None:
+    def _plan(self, ctx: BackendContext, i: int) -> None:
         """Queue the candidates of keyframe i: first where a pending closure predicts the robot
         to be, then up to ``max_candidates`` in all (``max_candidates_idle`` when nothing is
         queued: the work keeps up with the budget)."""
@@ -549,9 +552,9 @@ class LoopCloser:
         self._pending = [p for p in self._pending if self._last_plan - p.query <= cfg.pending_keyframes]
         self._last_plan = i
         self._redundant_travel = (
-            cfg.redundant_travel_with_plan if slam.graph.has_priors() else cfg.redundant_travel
+            cfg.redundant_travel_with_plan if ctx.graph.has_priors() else cfg.redundant_travel
         )
-        est = slam.graph.estimates()
+        est = ctx.graph.estimates()
         cands: list[tuple[int, float, float, np.ndarray | None]] = [
             (c, r, w, None) for c, r, w in self._candidates(est, i, limit)
         ]
@@ -568,17 +571,17 @@ class LoopCloser:
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
             self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n))
 
-    def _query_points(self, slam: FRSlam, i: int) -> np.ndarray:
+    def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
         if self._query is not None and self._query[0] == i:
             return self._query[1]
         cfg = self.config
-        est = slam.graph.estimates()
-        query, _ = self._submap(slam, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
+        est = ctx.graph.estimates()
+        query, _ = self._submap(ctx, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
         self._query = (i, query)
         return query
 
-    def _job(self, slam: FRSlam, job: _Job) -> Steps[list[LoopClosure]]:
+    def _job(self, ctx: BackendContext, job: _Job) -> Steps[list[LoopClosure]]:
         """Match one candidate and act on the result (a step generator): query submap, reference
         submap, correlative search + ICP (:func:`match_scan_steps`), verification, graph update
         (:meth:`_add`)."""
@@ -590,10 +593,10 @@ class LoopCloser:
             self.stats.redundant += 1
             return []
         if self._query is None or self._query[0] != i:
-            yield _gather_cost(slam, i - cfg.submap_keyframes, i)
-        query = self._query_points(slam, i)
-        ref = yield from self._reference(slam, c, i)
-        est = slam.graph.estimates()
+            yield _gather_cost(ctx, i - cfg.submap_keyframes, i)
+        query = self._query_points(ctx, i)
+        ref = yield from self._reference(ctx, c, i)
+        est = ctx.graph.estimates()
         self.stats.attempts += 1
         guess = between(est[c], est[i])
         radius = job.radius
@@ -605,7 +608,7 @@ class LoopCloser:
             centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
         m = yield from match_scan_steps(ref, query, centre, win, job.window_theta, cfg, self._rng)
         if m is None:
-            self._reject(slam, i, c, "no_overlap")
+            self._reject(ctx, i, c, "no_overlap")
             return []
         data = {
             "inliers": round(m.inlier_fraction, 3),
@@ -614,17 +617,17 @@ class LoopCloser:
             "coarse": round(m.coarse_score, 3),
         }
         if m.coarse_score < cfg.min_coarse_score:
-            self._reject(slam, i, c, "low_score", **data)
+            self._reject(ctx, i, c, "low_score", **data)
             return []
         weak = m.inlier_fraction < cfg.min_inlier_fraction  # only confirms a pending closure
         if m.inlier_fraction < min(cfg.min_inlier_fraction, cfg.confirm_min_inlier_fraction):
-            self._reject(slam, i, c, "low_inliers", **data)
+            self._reject(ctx, i, c, "low_inliers", **data)
             return []
         if m.ambiguity > cfg.max_ambiguity:
-            self._reject(slam, i, c, "ambiguous", **data)
+            self._reject(ctx, i, c, "ambiguous", **data)
             return []
         if m.free_violation > cfg.max_free_violation:
-            self._reject(slam, i, c, "free_space", free=round(m.free_violation, 3), **data)
+            self._reject(ctx, i, c, "free_space", free=round(m.free_violation, 3), **data)
             return []
         cov = regularise_covariance(
             m.covariance * cfg.covariance_inflation,
@@ -636,17 +639,17 @@ class LoopCloser:
         small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
             cfg.confirm_theta_deg
         )
-        partner = None if small else self._consistent_pending(lc, slam.graph.estimates())
+        partner = None if small else self._consistent_pending(lc, ctx.graph.estimates())
         if weak and partner is None:
-            self._reject(slam, i, c, "low_inliers", **data)
+            self._reject(ctx, i, c, "low_inliers", **data)
             return []
         if small:
-            yield from self._add(slam, [lc], settle=False)
+            yield from self._add(ctx, [lc], settle=False)
             return [lc]
         if partner is None:
             self._pending.append(lc)
             self.stats.pending += 1
-            slam.log_event(
+            ctx.log.record(
                 "loop_pending",
                 f"keyframe {i} vs {c}: large correction, waiting for a consistent second closure",
                 keyframe=i,
@@ -654,13 +657,13 @@ class LoopCloser:
                 correction=corr.tolist(),
                 **data,
             )
-            self._verify_back(slam, lc)
+            self._verify_back(ctx, lc)
             return []
         self._pending = [q for q in self._pending if q is not partner]
-        yield from self._add(slam, [partner, lc], settle=True)
+        yield from self._add(ctx, [partner, lc], settle=True)
         return [partner, lc]
 
-    def _verify_back(self, slam: FRSlam, lc: LoopClosure) -> None:
+    def _verify_back(self, ctx: BackendContext, lc: LoopClosure) -> None:
         """Queue (first) a check of the pending ``lc`` from the keyframe ``verify_back_travel``
         metres before its query: matched against the old keyframe nearest to where ``lc`` puts it.
         Its query submap shares no points with ``lc``'s, so an agreeing match is a second piece of
@@ -677,7 +680,7 @@ class LoopCloser:
         ok = self._eligible(j)
         if not ok.any():
             return
-        est = slam.graph.estimates()
+        est = ctx.graph.estimates()
         pred = compose(compose(est[lc.reference], lc.relative), between(est[i], est[j]))
         d = np.hypot(*(est[: len(ok), :2] - pred[:2]).T)
         d[~ok] = np.inf
@@ -709,7 +712,7 @@ class LoopCloser:
         noise = gauss if est is None else gtsam.noiseModel.Robust.Create(est, gauss)
         return gtsam.BetweenFactorPose2(key(lc.reference), key(lc.query), pose2(lc.relative), noise)
 
-    def _add(self, slam: FRSlam, closures: list[LoopClosure], settle: bool) -> Steps[None]:
+    def _add(self, ctx: BackendContext, closures: list[LoopClosure], settle: bool) -> Steps[None]:
         """Add closures to the graph (a step generator). A single closure with a small correction
         enters under the robust kernel. A confirmed pair (``settle``: two closures from different
         keyframes that agree) enters as plain Gaussians: a bounded-influence kernel cannot pull
@@ -717,7 +720,7 @@ class LoopCloser:
         chain's stress exceeds the kernel's maximal pull and the graph slides back); an LM batch
         runs when the correction moved the graph far. The relinearising iSAM2 iterations after
         the factor (:meth:`PoseGraph.settle`) run one per step."""
-        graph = slam.graph
+        graph = ctx.graph
         yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
         # with floor-plan priors in the graph, absolute corrections come from the plan: a
@@ -741,7 +744,7 @@ class LoopCloser:
             self.closures.append(lc)
             self.stats.accepted += 1
             self._last_closure = max(self._last_closure, lc.query)
-            slam.log_event(
+            ctx.log.record(
                 "loop_closure",
                 f"keyframe {lc.query} closes on {lc.reference}",
                 keyframe=lc.query,
@@ -756,7 +759,7 @@ class LoopCloser:
             )
         if settle:  # neighbouring keyframes may have moved relative to each other
             self._submaps.clear()
-        yield from self._prune(slam, closures if settle else None)
+        yield from self._prune(ctx, closures if settle else None)
 
     def _residual_chi2(self, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (K, 3: x, y, theta of prediction⁻¹ ⊕ measurement) of the accepted closures at
@@ -772,7 +775,7 @@ class LoopCloser:
         chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(cov, r[:, :, None])[:, :, 0])
         return r, chi2
 
-    def _prune(self, slam: FRSlam, suspects: list[LoopClosure] | None = None) -> Steps[None]:
+    def _prune(self, ctx: BackendContext, suspects: list[LoopClosure] | None = None) -> Steps[None]:
         """Remove accepted closures the rest of the graph disagrees with (a step generator): while
         the worst residual exceeds ``prune_chi2`` and ``prune_xy`` / ``prune_theta_deg`` at the
         converged estimate (an LM batch first), remove that closure and settle again.
@@ -785,7 +788,7 @@ class LoopCloser:
         cfg = self.config
         if cfg.prune_chi2 <= 0.0:
             return
-        graph = slam.graph
+        graph = ctx.graph
         converged = False
         suspects = list(suspects or [])
         while self.closures:
@@ -812,15 +815,15 @@ class LoopCloser:
                 worst = np.array([k])
                 why = f"the graph disagrees (chi2 {chi2[k]:.0f})"
             suspects = []
-            yield from self._remove(slam, worst.tolist(), r, chi2_all, why)
+            yield from self._remove(ctx, worst.tolist(), r, chi2_all, why)
 
     def _remove(
-        self, slam: FRSlam, which: list[int], r: np.ndarray, chi2: np.ndarray, why: str
+        self, ctx: BackendContext, which: list[int], r: np.ndarray, chi2: np.ndarray, why: str
     ) -> Steps[None]:
         """Remove the accepted closures at positions ``which`` of ``self.closures`` (residuals
         ``r`` / ``chi2`` as judged) in one iSAM2 update, then settle (a step generator)."""
         cfg = self.config
-        graph = slam.graph
+        graph = ctx.graph
         yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
         removed = [self.closures[k] for k in which]
@@ -844,7 +847,7 @@ class LoopCloser:
         self._last_closure = max((c.query for c in self.closures), default=-1)
         for k, lc in zip(which, removed, strict=True):
             self.stats.pruned += 1
-            slam.log_event(
+            ctx.log.record(
                 "loop_removed",
                 f"keyframe {lc.query} on {lc.reference}: {why}",
                 keyframe=lc.query,

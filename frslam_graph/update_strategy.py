@@ -7,7 +7,7 @@ the SLAM map frame*; the first accepted registration fixes that plan -> map tran
 graph is never re-expressed. Relocalisation priors then pull the trajectory onto the plan's
 geometry, which corrects the drift accumulated along the way.
 
-:class:`FloorPlanUpdater` is called after every keyframe (``on_keyframe(slam, keyframe)``):
+:class:`FloorPlanUpdater` is called after every keyframe (``on_keyframe(ctx, keyframe)``):
 
 - it keeps a coarse coverage of the mapped area (cells seen by the keyframe beams);
 - it **registers** the plan (``register_fn(plan, grid)``, MFR by default) when the mapped area
@@ -49,14 +49,14 @@ geometry, which corrects the drift accumulated along the way.
 - an ambiguous registration before any is accepted is judged with MFR's runner-up placements on
   the keyframe scans (``disambiguate_margin``).
 
-Every decision is an :class:`UpdateEvent` in ``updater.log`` (also mirrored into ``slam.log``);
-nothing is printed.
+Every decision is one event of the run's decision log (``ctx.log``; the updater's are
+``updater.log``, :data:`UPDATE_KINDS`); nothing is printed.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -79,7 +79,8 @@ from frslam_graph.relocalisation import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from frslam_graph.pipeline import PriorRemoval
+    from frslam_graph.backend.context import BackendContext
+    from frslam_graph.backend.decisions import DecisionEvent, PriorRemoval
 
 _COVER_CELL = 0.25  # m, coverage cells for the mapped-area estimate
 # Cost model of the deferred steps (ms on one core; sizes, never a clock, so the schedule stays
@@ -124,24 +125,25 @@ class _CoverageCells:
             self.count += int(np.count_nonzero(tile)) - before
 
 
-@dataclass(frozen=True)
-class UpdateEvent:
-    """One decision of the update strategy.
-
-    ``kind``: "register" (a registration was attempted; ``reason`` says accepted / why not),
-    "registration_replaced", "relocalise", "prior_added", "prior_rejected", "prior_removed",
-    "prior_conflict" (many priors contradicted at once: none removed), "registration_retracted"
-    (the grown map contradicts the accepted registration: its priors are removed), "obstructed",
-    "plan_refined" (the accepted plan's scale fitted to keyframe scans, or the plan moved to fit
-    the first scan at the anchor; ``accepted`` says whether it replaced the accepted matrix).
-    """
-
-    stamp: float
-    kind: str
-    reason: str
-    keyframe: int | None = None
-    numbers: dict[str, float] = field(default_factory=dict)
-    accepted: bool | None = None
+#: the kinds of decision the updater records (``register``: a registration was attempted, its
+#: message says accepted / why not; ``prior_conflict``: many priors contradicted at once, none
+#: removed; ``registration_retracted``: the grown map contradicts the accepted registration;
+#: ``plan_refined``: the plan's scale fitted or the plan moved to the start, ``accepted`` says
+#: whether it replaced the accepted matrix)
+UPDATE_KINDS = frozenset(
+    {
+        "register",
+        "registration_replaced",
+        "registration_retracted",
+        "relocalise",
+        "prior_added",
+        "prior_rejected",
+        "prior_removed",
+        "prior_conflict",
+        "obstructed",
+        "plan_refined",
+    }
+)
 
 
 @dataclass
@@ -177,15 +179,13 @@ class FloorPlanUpdater:
         plan,
         config: UpdatesConfig | None = None,
         register_fn: Callable[[Any, Any], Any] | None = None,
-        mirror_log: bool = True,
     ) -> None:
         self.plan = plan
         self.config = cfg = config or UpdatesConfig()
         if register_fn is None:
             from frslam_graph.registration import register as register_fn  # noqa: PLC0415
         self.register_fn = register_fn
-        self.mirror_log = mirror_log
-        self.log: list[UpdateEvent] = []
+        self._decisions: Sequence[DecisionEvent] = ()  # the run's decision log (the context's)
         self.accepted: _Accepted | None = None
         self.params = RelocaliserParams(
             resolution=cfg.reloc_resolution,
@@ -249,45 +249,52 @@ class FloorPlanUpdater:
         the next keyframe."""
         self._obstructed = True
 
-    def events(self, kind: str | None = None) -> list[UpdateEvent]:
+    @property
+    def log(self) -> list[DecisionEvent]:
+        """The updater's decisions (:data:`UPDATE_KINDS`) in the run's decision log."""
+        return [e for e in self._decisions if e.kind in UPDATE_KINDS]
+
+    def events(self, kind: str | None = None) -> list[DecisionEvent]:
         return [e for e in self.log if kind is None or e.kind == kind]
 
-    def on_finish(self, slam) -> None:
+    def on_finish(self, ctx: BackendContext) -> None:
         """The end of an offline run (:meth:`FRSlam.finish`, before the final batch): with a
         registration accepted and ``final_refine`` on, one more registration on the complete map
         (it refines the accepted one when it agrees and explains the data as well or better, as
         any later one) and the scale refinement, whenever the schedule last ran them. The plan the
         run ends with then depends less on when its refinements happened (a rejected wrong draw
         or an attempt on a small map no longer leaves an unrefined plan behind)."""
+        self._decisions = ctx.log
         cfg = self.config
         if not cfg.enabled or self.plan is None or self.accepted is None or not cfg.final_refine:
             return  # (a registration accepted: the graph has keyframes)
-        self._finish_steps(slam)
-        last = slam.keyframe(len(slam.graph) - 1)
+        self._finish_steps(ctx)
+        last = ctx.keyframe(len(ctx.graph) - 1)
         # the registration, the scale and the move to the start may each change the plan: its
         # priors are relocalised once, on the plan the run ends with (each re-anchoring
         # relocalises every prior: ~7 s on a 200 m run)
         self._held_reanchor = _HeldReanchor()
         try:
-            self._register(slam, last, "end of the run: final refinement")
-            self._finish_steps(slam)
+            self._register(ctx, last, "end of the run: final refinement")
+            self._finish_steps(ctx)
             if self.accepted is not None and cfg.scale_refine_distance > 0.0:
                 # the run's last word on the scale: any gain on the keyframe scans of the whole
                 # run (the margin keeps a run's plan from changing back and forth; no later)
-                self._refine_scale(slam, last, final=True)
+                self._refine_scale(ctx, last, final=True)
                 if cfg.align_to_start:
-                    self._align_to_start(slam, last)
+                    self._align_to_start(ctx, last)
         finally:
             held, self._held_reanchor = self._held_reanchor, None
         if held.reasons and self.accepted is not None:
             # the accepted registration's own priors too: those placed while holding (the
             # registration's first prior, the pending relocalisations) are on an earlier plan
             held.note([self.accepted])
-            self._reanchor(slam, held.previous, "; ".join(held.reasons))
-        self._finish_steps(slam)
+            self._reanchor(ctx, held.previous, "; ".join(held.reasons))
+        self._finish_steps(ctx)
 
-    def on_keyframe(self, slam, keyframe) -> None:
+    def on_keyframe(self, ctx: BackendContext, keyframe) -> None:
         """Called by FRSlam after each keyframe is in the graph."""
+        self._decisions = ctx.log
         cfg = self.config
         if not cfg.enabled or self.plan is None:
             return
@@ -299,10 +306,10 @@ class FloorPlanUpdater:
             self._turn += abs(float((dth + np.pi) % (2 * np.pi) - np.pi))
         self._last_odom = np.asarray(keyframe.pose_odom, float).copy()
         self._kf_dist.append(self._dist)
-        points = slam.keyframe_scans()[0][i]
+        points = ctx.keyframe_scans()[0][i]
         self._update_coverage(keyframe.pose_map, points)
         self.timings["coverage"] += time.perf_counter() - t0
-        obstructed = self._check_obstruction(slam, keyframe)
+        obstructed = self._check_obstruction(ctx, keyframe)
 
         area = self.mapped_area
         reason, local, quick = None, False, False
@@ -353,17 +360,17 @@ class FloorPlanUpdater:
                     )
                     self._inconsistent_run = 0
         if reason is not None:
-            self._finish_steps(slam)
-            self._register(slam, keyframe, reason, local, quick)
+            self._finish_steps(ctx)
+            self._register(ctx, keyframe, reason, local, quick)
         elif self.accepted is not None:
             if cfg.scale_refine_distance > 0.0 and self._dist - self._dist_at_scale >= max(
                 self._scale_interval, cfg.scale_refine_distance
             ):
-                self._finish_steps(slam)
+                self._finish_steps(ctx)
                 self._dist_at_scale = self._dist
-                changed = self._refine_scale(slam, keyframe)
+                changed = self._refine_scale(ctx, keyframe)
                 if cfg.align_to_start:
-                    changed = self._align_to_start(slam, keyframe) or changed
+                    changed = self._align_to_start(ctx, keyframe) or changed
                 # nothing to change: look again later (the map grows, rooms are added)
                 self._scale_interval = (
                     cfg.scale_refine_distance
@@ -371,13 +378,13 @@ class FloorPlanUpdater:
                     else 2.0 * max(self._scale_interval, cfg.scale_refine_distance)
                 )
             elif obstructed:
-                self._relocalise_current(slam, keyframe, "obstructed")
+                self._relocalise_current(ctx, keyframe, "obstructed")
             elif self._dist - self._dist_at_reloc >= cfg.relocation_distance_D:
-                self._relocalise_current(slam, keyframe, "relocation distance")
+                self._relocalise_current(ctx, keyframe, "relocation distance")
             elif self._turn - self._turn_at_reloc >= np.deg2rad(cfg.relocation_angle_deg):
-                self._relocalise_current(slam, keyframe, "relocation angle")
-        if self.accepted is not None and self._backfill and not getattr(slam, "deferred_jobs", 0):
-            self._run_backfill(slam, cfg.backfill_per_keyframe)  # as fast as the steps get done
+                self._relocalise_current(ctx, keyframe, "relocation angle")
+        if self.accepted is not None and self._backfill and not ctx.deferred.pending:
+            self._run_backfill(ctx, cfg.backfill_per_keyframe)  # as fast as the steps get done
 
     def _retry_distance(self) -> float:
         """Metres after an attempt before a retry while none is accepted (see
@@ -389,24 +396,18 @@ class FloorPlanUpdater:
     # ------------------------------------------------------------------ events
     def _event(
         self,
-        slam,
+        ctx: BackendContext,
         stamp: float,
         kind: str,
         reason: str,
         keyframe: int | None = None,
         accepted: bool | None = None,
-        mirror: bool = True,
         **numbers: float,
-    ) -> UpdateEvent:
-        nums = {k: _num(v) for k, v in numbers.items()}
-        ev = UpdateEvent(float(stamp), kind, reason, keyframe, nums, accepted)
-        self.log.append(ev)
-        if self.mirror_log and mirror and hasattr(slam, "log_event"):
-            data: dict[str, Any] = dict(nums)
-            if accepted is not None:
-                data["accepted"] = accepted
-            slam.log_event(kind, reason, stamp=stamp, keyframe=keyframe, **data)
-        return ev
+    ) -> DecisionEvent:
+        data: dict[str, Any] = {k: _num(v) for k, v in numbers.items()}
+        if accepted is not None:
+            data["accepted"] = accepted
+        return ctx.log.record(kind, reason, stamp=stamp, keyframe=keyframe, **data)
 
     # ------------------------------------------------------------------ coverage / triggers
     def _update_coverage(self, pose: np.ndarray, points: np.ndarray) -> None:
@@ -424,7 +425,7 @@ class FloorPlanUpdater:
         ky = np.floor(wy / _COVER_CELL).astype(np.int64)
         self._cover.add(kx, ky)
 
-    def _check_obstruction(self, slam, keyframe) -> bool:
+    def _check_obstruction(self, ctx, keyframe) -> bool:
         cfg = self.config
         stamp = float(keyframe.stamp)
         self._history.append((stamp, self._dist))
@@ -441,14 +442,14 @@ class FloorPlanUpdater:
                 obstructed = True
             self._history = self._history[len(old) - 1 :]
         if obstructed and not self._obstruction_reported:
-            self._finish_steps(slam)  # what it triggers drains them anyway: their events first
-            self._event(slam, stamp, "obstructed", "no progress: register and relocalise", keyframe.index)
+            self._finish_steps(ctx)  # what it triggers drains them anyway: their events first
+            self._event(ctx, stamp, "obstructed", "no progress: register and relocalise", keyframe.index)
         self._obstruction_reported = obstructed
         self._obstructed = False
         return obstructed
 
     # ------------------------------------------------------------------ registration
-    def _register(self, slam, keyframe, reason: str, local: bool = False, quick: bool = False) -> None:
+    def _register(self, ctx, keyframe, reason: str, local: bool = False, quick: bool = False) -> None:
         """Register the plan on the map and act on the verdict. ``quick``: this attempt is a
         quick recheck (``register_recheck_distance``): it counts towards ``register_recheck_max``
         in a row; any other trigger (the map grew, a retry, a refinement) starts a new run."""
@@ -462,20 +463,20 @@ class FloorPlanUpdater:
         self._dist_at_attempt = self._dist
         stamp, i = float(keyframe.stamp), keyframe.index
         if local:
-            grid = self._local_grid(slam)
+            grid = self._local_grid(ctx)
             reason += f"; on the map of the last {cfg.local_map_distance:.0f} m"
         else:
-            grid = slam.occupancy_grid(cfg.map_resolution, free_space=True)
+            grid = ctx.occupancy_grid(cfg.map_resolution, free_space=True)
         if self.accepted is not None:
-            self._recheck_accepted(slam, keyframe, grid)
+            self._recheck_accepted(ctx, keyframe, grid)
         try:
             reg = self.register_fn(self.plan, grid)
         except FrslamError as exc:
-            self._event(slam, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
+            self._event(ctx, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
             self.timings["register"] += time.perf_counter() - t0
             return
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
-        verdict = self._judge(slam, keyframe, reg, grid, nums, reason)
+        verdict = self._judge(ctx, keyframe, reg, grid, nums, reason)
         self.timings["register"] += time.perf_counter() - t0
         if verdict is None:
             # a match the checks rejected (wrong, or right on a map that drifted) gets a quick
@@ -490,19 +491,19 @@ class FloorPlanUpdater:
         msg, kind = f"{reason}; accepted", "register"
         if self.accepted is not None:
             msg, kind = f"{reason}; replaces registration {self.accepted.id}", "registration_replaced"
-        self._event(slam, stamp, kind, msg, i, True, **nums)
+        self._event(ctx, stamp, kind, msg, i, True, **nums)
         previous = self.accepted
         self.accepted = accepted
         self._dist_at_scale = self._dist
         self._scale_interval = 0.0
         if previous is not None:
-            self._reanchor(slam, previous)
-        self._try_prior(slam, keyframe, reloc, "registration accepted")
+            self._reanchor(ctx, previous)
+        self._try_prior(ctx, keyframe, reloc, "registration accepted")
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
-        self._queue_backfill(slam, i)
+        self._queue_backfill(ctx, i)
 
-    def _recheck_accepted(self, slam, keyframe, grid) -> None:
+    def _recheck_accepted(self, ctx, keyframe, grid) -> None:
         """Retract the accepted registration when the grown map contradicts it (its walls cross
         space the robot has seen free): its priors are removed and the next registration is
         judged as a first one."""
@@ -516,7 +517,7 @@ class FloorPlanUpdater:
             f"cross free space > {cfg.retract_walls_in_free_space:.0%}"
         )
         self._event(
-            slam,
+            ctx,
             keyframe.stamp,
             "registration_retracted",
             why,
@@ -525,11 +526,11 @@ class FloorPlanUpdater:
             walls_in_free_space=crossing,
         )
         self.accepted = None
-        self._remove_priors_of(slam, acc, why, "wrong")
+        self._remove_priors_of(ctx, acc, why, "wrong")
         self._dist_at_prior = 0.0  # the trajectory is back on odometry: gate loosely
 
     # ------------------------------------------------------------------ backfill
-    def _queue_backfill(self, slam, i: int) -> None:
+    def _queue_backfill(self, ctx, i: int) -> None:
         """Queue the keyframes before ``i`` (newest first, one per ``relocation_distance_D``
         metres) that have no prior of the accepted registration: relocalised on the plan a few
         per keyframe, each prior pulling its older neighbours closer before their turn, so the
@@ -539,7 +540,7 @@ class FloorPlanUpdater:
             self._backfill = []
             return
         tag = f"reloc:reg{self.accepted.id}"
-        have = {h.keyframe for h in slam.graph.priors() if h.source == tag}
+        have = {h.keyframe for h in ctx.graph.priors() if h.source == tag}
         d = self._kf_dist
         here = d[i] if i < len(d) else self._dist
         queue, last = [], here
@@ -550,32 +551,32 @@ class FloorPlanUpdater:
         self._backfill = queue
         self._backfill_anchor = here
 
-    def _run_backfill(self, slam, n: int) -> None:
+    def _run_backfill(self, ctx, n: int) -> None:
         """Relocalise the next ``n`` queued keyframes and add their priors (as steps)."""
         for _ in range(min(n, len(self._backfill))):
-            self._later(slam, self._backfill_steps(slam, self._backfill.pop(0)))
+            self._later(ctx, self._backfill_steps(ctx, self._backfill.pop(0)))
 
-    def _backfill_steps(self, slam, k: int) -> Iterator[None]:
-        kf = slam.keyframe(k)  # its estimate when the step runs
+    def _backfill_steps(self, ctx, k: int) -> Iterator[None]:
+        kf = ctx.keyframe(k)  # its estimate when the step runs
         t0 = time.perf_counter()
-        reloc = self.accepted.relocaliser.relocalise(slam.keyframe_scans()[0][k], kf.pose_map)
+        reloc = self.accepted.relocaliser.relocalise(ctx.keyframe_scans()[0][k], kf.pose_map)
         self.timings["relocalise"] += time.perf_counter() - t0
         yield _MS_RELOCALISE
         drift = max(self._backfill_anchor - self._kf_dist[k], 0.0)
-        added, cost = yield from self._prior_steps(slam, kf, reloc, "backfill", drift=drift, backfill=True)
+        added, cost = yield from self._prior_steps(ctx, kf, reloc, "backfill", drift=drift, backfill=True)
         if added:
             self._backfill_anchor = self._kf_dist[k]
         yield cost
 
-    def _local_grid(self, slam):
+    def _local_grid(self, ctx):
         """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
         travelled: less drift accumulated inside it than in the whole map."""
         from frslam_graph.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
 
         d = np.asarray(self._kf_dist)
         keep = np.nonzero(d >= self._dist - self.config.local_map_distance)[0]
-        pts, origins = slam.keyframe_scans()
-        est = slam.graph.estimates()
+        pts, origins = ctx.keyframe_scans()
+        est = ctx.graph.estimates()
         return occupancy_grid(
             est[keep],
             [pts[k] for k in keep],
@@ -593,30 +594,19 @@ class FloorPlanUpdater:
         margin = min(cfg.free_space_margin + grow, max(cfg.free_space_margin_max, cfg.free_space_margin))
         return fit, margin
 
-    def _remove_priors_of(self, slam, acc: _Accepted, why: str, cause: PriorRemoval) -> list:
+    def _remove_priors_of(self, ctx, acc: _Accepted, why: str, cause: PriorRemoval) -> list:
         tag = f"reloc:reg{acc.id}"
-        handles = [h for h in slam.graph.priors() if h.source == tag]
-        slam.remove_priors(handles, reason=why, cause=cause)  # one graph update for all of them
-        for h in handles:
-            self._event(
-                slam,
-                slam.keyframe(h.keyframe).stamp,
-                "prior_removed",
-                why,
-                h.keyframe,
-                False,
-                mirror=False,
-                prior=h.id,
-            )
+        handles = [h for h in ctx.graph.priors() if h.source == tag]
+        ctx.remove_priors(handles, reason=why, cause=cause)  # one graph update for all of them
         return handles
 
-    def _judge(self, slam, keyframe, reg, grid, nums: dict[str, float], trigger: str = ""):
+    def _judge(self, ctx, keyframe, reg, grid, nums: dict[str, float], trigger: str = ""):
         """Accept / reject a registration; returns (accepted, relocaliser, relocalisation) or None."""
         cfg = self.config
         stamp, i = float(keyframe.stamp), keyframe.index
 
         def reject(why: str) -> None:
-            self._event(slam, stamp, "register", f"{trigger}; {why}" if trigger else why, i, False, **nums)
+            self._event(ctx, stamp, "register", f"{trigger}; {why}" if trigger else why, i, False, **nums)
 
         if not reg.ok:
             return reject(f"registration failed: {reg.reason or 'no match'}")
@@ -626,7 +616,7 @@ class FloorPlanUpdater:
             return reject(f"score {reg.score:.2f} < {cfg.min_score:.2f}")
         relocaliser = None  # the disambiguation's, when it picked a placement: built once
         if reg.ambiguity > cfg.max_ambiguity:
-            picked = self._disambiguate(slam, reg, grid, nums)
+            picked = self._disambiguate(ctx, reg, grid, nums)
             if picked is None:
                 why = f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}"
                 if "placements_map_fit" in nums:
@@ -654,8 +644,8 @@ class FloorPlanUpdater:
                 # the map was drawn at estimates the accepted plan's priors pulled onto it (its
                 # fit is biased towards that plan): compare the two on the keyframe scans, each
                 # relocalised on its own
-                q_new = self._scan_fit(slam, relocaliser)
-                q_old = self._scan_fit(slam, acc.relocaliser)
+                q_new = self._scan_fit(ctx, relocaliser)
+                q_old = self._scan_fit(ctx, acc.relocaliser)
                 nums.update(scan_fit=q_new, accepted_scan_fit=q_old)
                 if q_new > q_old + cfg.refine_scan_margin:
                     better = f"the keyframe scans better ({q_new:.1%} vs {q_old:.1%})"
@@ -677,7 +667,7 @@ class FloorPlanUpdater:
                         f"keyframe scans worse ({q_new:.1%} vs {q_old:.1%}); kept"
                     )
                 return self._refine(
-                    slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better
+                    ctx, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better
                 )
         if fit < cfg.min_map_fit:
             return reject(f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}")
@@ -695,7 +685,7 @@ class FloorPlanUpdater:
             if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
                 if cfg.refine_on_agreement and fit >= old_fit:
                     return self._refine(
-                        slam,
+                        ctx,
                         stamp,
                         i,
                         reg,
@@ -713,7 +703,7 @@ class FloorPlanUpdater:
                     f"disagrees with registration {acc.id} (RMS {disp:.2f} m) and explains "
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})"
                 )
-        points = slam.keyframe_scans()[0][i]
+        points = ctx.keyframe_scans()[0][i]
         reloc = relocaliser.relocalise(points, keyframe.pose_map)
         nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
         if not reloc.ok or reloc.score < cfg.reloc_min_score:
@@ -722,14 +712,14 @@ class FloorPlanUpdater:
             # the keyframe scans of the whole run, each relocalised on its own: the plan of another
             # building (or a wrong placement) that the map checks let through by a small margin
             # explains them poorly
-            q = nums["scan_fit"] if "scan_fit" in nums else self._scan_fit(slam, relocaliser)
+            q = nums["scan_fit"] if "scan_fit" in nums else self._scan_fit(ctx, relocaliser)
             nums["scan_fit"] = q
             if q < cfg.min_scan_fit:
                 return reject(
                     f"the keyframe scans do not fit the registered plan ({q:.1%} < {cfg.min_scan_fit:.0%})"
                 )
         if self.accepted is None:
-            chi2 = self._gate_chi2(slam, keyframe, reloc)
+            chi2 = self._gate_chi2(ctx, keyframe, reloc)
             nums["chi2"] = chi2
             if chi2 > cfg.inconsistent_chi2:
                 return reject(
@@ -757,7 +747,7 @@ class FloorPlanUpdater:
         self._next_id += 1
         return acc, relocaliser, reloc
 
-    def _disambiguate(self, slam, reg, grid, nums: dict[str, float]):
+    def _disambiguate(self, ctx, reg, grid, nums: dict[str, float]):
         """An ambiguous registration: its placement and the registration's runner-up placements
         (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
         its own (which a drifted map cannot bias). Returns the registration of the placement that
@@ -785,7 +775,7 @@ class FloorPlanUpdater:
         if best_map_fit < cfg.min_map_fit:
             nums["placements_map_fit"] = best_map_fit
             return None
-        fits = [self._scan_fit(slam, r) if r is not None else 0.0 for r in relocalisers]
+        fits = [self._scan_fit(ctx, r) if r is not None else 0.0 for r in relocalisers]
         order = np.argsort(fits)[::-1]
         best, second = float(fits[order[0]]), float(fits[order[1]])
         nums.update(ambiguous_scan_fit=best, runner_up_scan_fit=second, placement=int(order[0]))
@@ -801,13 +791,13 @@ class FloorPlanUpdater:
         )
         return picked, relocalisers[order[0]]
 
-    def _refine(self, slam, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better) -> None:
+    def _refine(self, ctx, stamp, i, reg, plan_map, relocaliser, fit, nums, trigger, disp, better) -> None:
         """An agreeing registration explains the data as well or better: the same placement fitted
         to more data; later relocalisations use it (earlier priors stay: they agree within
         agree_tol)."""
         acc = self.accepted
         self._event(
-            slam,
+            ctx,
             stamp,
             "register",
             f"{trigger}; agrees with registration {acc.id} (RMS {disp:.2f} m) and explains {better}; refined",
@@ -824,7 +814,7 @@ class FloorPlanUpdater:
             np.linspace(0, n - 1, min(n, self.config.refine_scan_samples)).round().astype(np.intp)
         )
 
-    def _refine_scale(self, slam, keyframe, final: bool = False) -> bool:
+    def _refine_scale(self, ctx, keyframe, final: bool = False) -> bool:
         """Refine the accepted plan's scale along its two axes on keyframe scans.
 
         The keyframe scans (spread over the run) are relocalised on the accepted plan; then their
@@ -845,10 +835,10 @@ class FloorPlanUpdater:
         t0 = time.perf_counter()
         rel = acc.relocaliser
         p = rel.params
-        scans = slam.keyframe_scans()[0]
+        scans = ctx.keyframe_scans()[0]
         pts, poses, soft = [], [], []
         for k in self._scan_sample():
-            r = rel.relocalise(scans[k], slam.keyframe(int(k)).pose_map)
+            r = rel.relocalise(scans[k], ctx.keyframe(int(k)).pose_map)
             soft.append(r.soft_score)
             if r.ok and r.score >= cfg.reloc_min_score:
                 pts.append(subsample(np.asarray(scans[k], float).reshape(-1, 2), p.voxel, p.max_points))
@@ -857,7 +847,7 @@ class FloorPlanUpdater:
 
         def kept(why: str, **data) -> bool:
             self.timings["relocalise"] += time.perf_counter() - t0
-            self._event(slam, stamp, "plan_refined", why, i, False, **data)
+            self._event(ctx, stamp, "plan_refined", why, i, False, **data)
             return False
 
         if len(poses) < 3:
@@ -887,7 +877,7 @@ class FloorPlanUpdater:
         except (FrslamError, ValueError) as exc:
             return kept(f"scale: refined plan unusable: {exc}", **nums)
         t_fit = time.perf_counter()
-        q_new, q_old = self._scan_fit(slam, relocaliser), float(np.mean(soft))
+        q_new, q_old = self._scan_fit(ctx, relocaliser), float(np.mean(soft))
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
         t0 += time.perf_counter() - t_fit  # _scan_fit counted its own time
         if q_new <= q_old + (0.0 if final else cfg.scale_refine_margin):
@@ -898,7 +888,7 @@ class FloorPlanUpdater:
             )
         self.timings["relocalise"] += time.perf_counter() - t0
         self._event(
-            slam,
+            ctx,
             stamp,
             "plan_refined",
             f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans better ({q_new:.1%} vs {q_old:.1%}); refined",
@@ -910,13 +900,13 @@ class FloorPlanUpdater:
         # the priors placed on the old scale are as far off as the change moves their keyframes:
         # relocalise those keyframes on the refined plan
         tag = f"reloc:reg{acc.id}"
-        xy = np.asarray([h.pose[:2] for h in slam.graph.priors() if h.source == tag]).reshape(-1, 2)
+        xy = np.asarray([h.pose[:2] for h in ctx.graph.priors() if h.source == tag]).reshape(-1, 2)
         moved = (xy - t) @ lin_inv.T @ (m @ fix)[:2, :2].T + (m @ fix)[:2, 2] - xy
         if len(xy) and (final or float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy):
-            self._reanchor(slam, acc, f"registration {acc.id} rescaled")
+            self._reanchor(ctx, acc, f"registration {acc.id} rescaled")
         return True
 
-    def _align_to_start(self, slam, keyframe) -> bool:
+    def _align_to_start(self, ctx, keyframe) -> bool:
         """Move the accepted plan rigidly so that the first keyframe's scan fits it at the first
         keyframe's pose (the graph's anchor: ``map`` is the odom frame of the first pose). A
         registration made on a drifted map is placed consistently with the drifted map, not with
@@ -928,10 +918,10 @@ class FloorPlanUpdater:
         # the anchor prior's pose, not keyframe 0's estimate: the plan's priors pull that
         # estimate, so fitting the plan to it would chase its own pull (the plan moving back
         # and forth at every check, each time re-anchoring all its priors)
-        anchor = slam.graph.anchor
-        start = anchor.pose if anchor is not None and anchor.active else slam.keyframe(0).pose_map
+        anchor = ctx.graph.anchor
+        start = anchor.pose if anchor is not None and anchor.active else ctx.keyframe(0).pose_map
         r = acc.relocaliser.relocalise(
-            slam.keyframe_scans()[0][0],
+            ctx.keyframe_scans()[0][0],
             start,
             cfg.reloc_window_max_xy,
             np.deg2rad(cfg.reloc_window_max_theta_deg),
@@ -941,7 +931,7 @@ class FloorPlanUpdater:
         moved = float(np.hypot(*(compose(d, r.pose)[:2] - r.pose[:2])))
 
         def kept(why: str) -> bool:
-            self._event(slam, stamp, "plan_refined", f"start: {why}", i, False, **nums)
+            self._event(ctx, stamp, "plan_refined", f"start: {why}", i, False, **nums)
             return False
 
         if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
@@ -950,7 +940,7 @@ class FloorPlanUpdater:
         # move by its rotation and by how far the scan's pose moves; and move only when the fit
         # at the anchor gets clearly better (a centimetre of matching noise must not flip the
         # plan back and forth at every check)
-        gain = r.soft_score - acc.relocaliser.evaluate(slam.keyframe_scans()[0][0], start)[1]
+        gain = r.soft_score - acc.relocaliser.evaluate(ctx.keyframe_scans()[0][0], start)[1]
         nums["gain"] = gain
         small = abs(d[2]) < np.deg2rad(cfg.align_min_theta_deg) and moved < cfg.align_min_xy
         if small or gain < cfg.align_min_gain:
@@ -969,7 +959,7 @@ class FloorPlanUpdater:
         except (FrslamError, ValueError) as exc:
             return kept(f"moved plan unusable: {exc}")
         self._event(
-            slam,
+            ctx,
             stamp,
             "plan_refined",
             f"start: plan moved by {np.hypot(d[0], d[1]):.2f} m / {np.rad2deg(d[2]):.2f} deg so that the first "
@@ -979,23 +969,23 @@ class FloorPlanUpdater:
             **nums,
         )
         self.accepted = _Accepted(acc.id, new, plan_map, relocaliser, acc.map_fit)
-        self._reanchor(slam, acc, f"registration {acc.id} moved to the start")
+        self._reanchor(ctx, acc, f"registration {acc.id} moved to the start")
         return True
 
-    def _scan_fit(self, slam, relocaliser: Relocaliser) -> float:
+    def _scan_fit(self, ctx, relocaliser: Relocaliser) -> float:
         """Mean soft score of keyframe scans, each relocalised on its own against the plan (in a
         window around its estimate): how well the plan explains the scans, unlike the map fit not
         biased towards the plan whose priors shaped the map."""
         if not self._kf_dist:
             return 0.0
         ks = self._scan_sample()
-        scans = slam.keyframe_scans()[0]
+        scans = ctx.keyframe_scans()[0]
         t0 = time.perf_counter()
-        soft = [relocaliser.relocalise(scans[k], slam.keyframe(int(k)).pose_map).soft_score for k in ks]
+        soft = [relocaliser.relocalise(scans[k], ctx.keyframe(int(k)).pose_map).soft_score for k in ks]
         self.timings["relocalise"] += time.perf_counter() - t0
         return float(np.mean(soft))
 
-    def _reanchor(self, slam, previous: _Accepted | list[_Accepted], why: str | None = None) -> None:
+    def _reanchor(self, ctx, previous: _Accepted | list[_Accepted], why: str | None = None) -> None:
         """Remove the replaced registration's priors (or those of several); relocalise those
         keyframes on the accepted plan. While on_finish holds re-anchoring, only note it."""
         prev = previous if isinstance(previous, list) else [previous]
@@ -1003,40 +993,37 @@ class FloorPlanUpdater:
         if self._held_reanchor is not None:  # on_finish: once, at the end, for all involved
             self._held_reanchor.note(prev, why)
             return
-        handles = [h for p in prev for h in self._remove_priors_of(slam, p, why, "re-anchored")]
-        scans = slam.keyframe_scans()[0]
+        handles = [h for p in prev for h in self._remove_priors_of(ctx, p, why, "re-anchored")]
+        scans = ctx.keyframe_scans()[0]
         added = False
         for h in handles:
-            kf = slam.keyframe(h.keyframe)
+            kf = ctx.keyframe(h.keyframe)
             reloc = self.accepted.relocaliser.relocalise(scans[h.keyframe], kf.pose_map)
             added |= self._try_prior(
-                slam, kf, reloc, "re-anchored on the new registration", drift=self._dist, settle=False
+                ctx, kf, reloc, "re-anchored on the new registration", drift=self._dist, settle=False
             )
         if added:  # one settle for all of them, not one per prior
-            slam.graph.settle()
+            ctx.graph.settle()
 
     # ------------------------------------------------------------------ relocalisation
     @staticmethod
-    def _finish_steps(slam) -> None:
+    def _finish_steps(ctx: BackendContext) -> None:
         """Run the steps still pending (before work that changes the plan or needs them done)."""
-        run = getattr(slam, "run_deferred", None)
-        if run is not None:
-            run()
+        ctx.deferred.run_all()
 
-    def _later(self, slam, steps: Iterator[Any]) -> None:
-        """Run a step generator: one step per following scan (``slam.defer``) with
+    def _later(self, ctx, steps: Iterator[Any]) -> None:
+        """Run a step generator: one step per following scan (``ctx.defer``) with
         ``spread_over_scans``, else all of it now."""
-        defer = getattr(slam, "defer", None) if self.config.spread_over_scans else None
-        if defer is None:
+        if self.config.spread_over_scans:
+            ctx.deferred.defer(steps)
+        else:
             for _ in steps:
                 pass
-        else:
-            defer(steps)
 
-    def _relocalise_current(self, slam, keyframe, why: str) -> None:
+    def _relocalise_current(self, ctx, keyframe, why: str) -> None:
         """Relocalise the keyframe's scan (its pose and points as they are now), then gate and
         add its prior, settle the graph and check the priors, as steps (:meth:`_later`)."""
-        points = slam.keyframe_scans()[0][keyframe.index]
+        points = ctx.keyframe_scans()[0][keyframe.index]
         cfg = self.config
         # the search window covers the drift since the last accepted prior (3 sigma of the gate's
         # drift model), so a run of rejected relocalisations does not lose the plan for good
@@ -1048,40 +1035,40 @@ class FloorPlanUpdater:
         )
         self._dist_at_reloc = self._dist
         self._turn_at_reloc = self._turn
-        self._finish_steps(slam)  # the previous relocalisation's, if any: a bounded backlog
+        self._finish_steps(ctx)  # the previous relocalisation's, if any: a bounded backlog
         steps = self._relocalise_steps(
-            slam, keyframe, points, wxy, np.deg2rad(wth), why, self.accepted.relocaliser
+            ctx, keyframe, points, wxy, np.deg2rad(wth), why, self.accepted.relocaliser
         )
-        self._later(slam, steps)
+        self._later(ctx, steps)
 
     def _relocalise_steps(
-        self, slam, keyframe, points, wxy: float, wth: float, why: str, relocaliser: Relocaliser
+        self, ctx, keyframe, points, wxy: float, wth: float, why: str, relocaliser: Relocaliser
     ) -> Iterator[None]:
         t0 = time.perf_counter()
         reloc = relocaliser.relocalise(points, keyframe.pose_map, wxy, wth)
         self.timings["relocalise"] += time.perf_counter() - t0
         yield _MS_RELOCALISE
-        _, cost = yield from self._prior_steps(slam, keyframe, reloc, why)
+        _, cost = yield from self._prior_steps(ctx, keyframe, reloc, why)
         yield cost
-        self._check_priors(slam, keyframe.stamp)
+        self._check_priors(ctx, keyframe.stamp)
         yield _MS_CHECK_PRIORS
 
     def _prior_steps(
-        self, slam, keyframe, reloc, why: str, drift: float | None = None, backfill: bool = False
+        self, ctx, keyframe, reloc, why: str, drift: float | None = None, backfill: bool = False
     ) -> Generator[float, None, tuple[bool, float]]:
         """:meth:`_try_prior`, then the graph's relinearising iterations one per step (each
         yield ends one, giving its estimated ms); returns whether the prior was added and the
         estimated cost of the step still open (the caller yields it)."""
-        n = slam.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
-        added = self._try_prior(slam, keyframe, reloc, why, drift, backfill, settle=False)
+        n = ctx.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
+        added = self._try_prior(ctx, keyframe, reloc, why, drift, backfill, settle=False)
         cost = _MS_PRIOR
         if added:
-            for _ in slam.graph.settle_steps(n):
+            for _ in ctx.graph.settle_steps(n):
                 yield cost
-                cost = _MS_PER_KEYFRAME_SETTLE * len(slam.graph)
+                cost = _MS_PER_KEYFRAME_SETTLE * len(ctx.graph)
         return added, cost
 
-    def _gate_chi2(self, slam, keyframe, reloc: Relocalisation, drift: float | None = None) -> float:
+    def _gate_chi2(self, ctx, keyframe, reloc: Relocalisation, drift: float | None = None) -> float:
         """chi² of (relocalised - estimated) pose under reloc + marginal + drift covariances."""
         cfg = self.config
         est = np.asarray(keyframe.pose_map, float)
@@ -1092,14 +1079,14 @@ class FloorPlanUpdater:
         sth = np.deg2rad(cfg.gate_sigma_theta_deg + cfg.gate_drift_deg_per_m * travelled)
         s = reloc.covariance + np.diag([sxy**2, sxy**2, sth**2])
         try:
-            s = s + vector_cov(est, slam.graph.marginal_covariance(keyframe.index))
+            s = s + vector_cov(est, ctx.graph.marginal_covariance(keyframe.index))
         except Exception:  # noqa: BLE001 - a marginal may be unavailable right after a removal
             pass
         return float(d @ np.linalg.solve(s, d))
 
     def _try_prior(
         self,
-        slam,
+        ctx,
         keyframe,
         reloc: Relocalisation,
         why: str,
@@ -1125,7 +1112,7 @@ class FloorPlanUpdater:
             "sigma_theta": reloc.std[2],
             "time_s": reloc.time_s,
         }
-        self._event(slam, stamp, "relocalise", why, i, reloc.ok, **nums)
+        self._event(ctx, stamp, "relocalise", why, i, reloc.ok, **nums)
         rej = None
         if not reloc.ok:
             rej = f"relocalisation failed: {reloc.reason}"
@@ -1134,19 +1121,19 @@ class FloorPlanUpdater:
         elif reloc.ambiguity > cfg.reloc_max_ambiguity:
             rej = f"ambiguous: {reloc.ambiguity:.2f} > {cfg.reloc_max_ambiguity:.2f}"
         else:
-            chi2 = self._gate_chi2(slam, keyframe, reloc, drift)
+            chi2 = self._gate_chi2(ctx, keyframe, reloc, drift)
             nums["chi2"] = chi2
             if chi2 > cfg.inconsistent_chi2:
                 rej = f"inconsistent with the estimate: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
                 if not backfill:
                     self._inconsistent_run += 1
         if rej is not None:
-            self._event(slam, stamp, "prior_rejected", rej, i, False, **nums)
+            self._event(ctx, stamp, "prior_rejected", rej, i, False, **nums)
             return False
         if not backfill:
             self._inconsistent_run = 0
         cov = tangent_cov(reloc.pose, reloc.covariance)
-        handle = slam.add_floorplan_prior(
+        ctx.add_prior(
             int(i),
             reloc.pose,
             cov,
@@ -1154,13 +1141,15 @@ class FloorPlanUpdater:
             kind=cfg.prior_kind,
             info={"score": reloc.score, "ambiguity": reloc.ambiguity},
             extra_iterations=None if settle else 0,
+            why=why,
+            **{k: _num(v) for k, v in nums.items()},
+            accepted=True,
         )
         if not backfill:
             self._dist_at_prior = self._dist
-        self._event(slam, stamp, "prior_added", why, i, True, mirror=False, prior=handle.id, **nums)
         return True
 
-    def _check_priors(self, slam, stamp: float) -> None:
+    def _check_priors(self, ctx, stamp: float) -> None:
         """Remove priors whose residual after optimisation is far beyond their covariance.
 
         A prior is proven wrong when the rest of the graph (odometry and the other priors)
@@ -1169,14 +1158,14 @@ class FloorPlanUpdater:
         removed and a "prior_conflict" event is logged instead.
         """
         cfg = self.config
-        handles = [h for h in slam.graph.priors() if h.source.startswith("reloc:")]
+        handles = [h for h in ctx.graph.priors() if h.source.startswith("reloc:")]
         if not handles:
             return
         self._checks += 1
         if self._checks % 10 and len(handles) > 30:  # every time the recent ones, now and then all
             handles = handles[-30:]
         bad = []
-        for h, res in zip(handles, slam.graph.prior_residuals(handles), strict=True):
+        for h, res in zip(handles, ctx.graph.prior_residuals(handles), strict=True):
             e = np.asarray(res.error, float)
             far = (len(e) >= 2 and float(np.hypot(e[0], e[1])) > cfg.remove_min_xy) or (
                 len(e) != 2 and abs(float(e[-1])) > np.deg2rad(cfg.remove_min_theta_deg)
@@ -1187,7 +1176,7 @@ class FloorPlanUpdater:
             return
         if len(bad) > max(1, cfg.remove_max_share * len(handles)):
             self._event(
-                slam,
+                ctx,
                 stamp,
                 "prior_conflict",
                 f"{len(bad)} of {len(handles)} priors contradicted at once: the trajectory, not the "
@@ -1203,19 +1192,7 @@ class FloorPlanUpdater:
                 f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f}, "
                 f"error {np.round(e, 3).tolist()} (weight {res.weight:.2f})"
             )
-            slam.remove_prior(h, reason=why, cause="wrong")
-            self._event(
-                slam,
-                stamp,
-                "prior_removed",
-                why,
-                h.keyframe,
-                False,
-                mirror=False,
-                prior=h.id,
-                chi2=res.chi2,
-                weight=res.weight,
-            )
+            ctx.remove_priors([h], reason=why, cause="wrong", chi2=_num(res.chi2), weight=_num(res.weight))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -1226,4 +1203,4 @@ def _num(v: Any) -> float:
         return float("nan")
 
 
-__all__ = ["FloorPlanUpdater", "UpdateEvent"]
+__all__ = ["UPDATE_KINDS", "FloorPlanUpdater"]

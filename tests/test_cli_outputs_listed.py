@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from frslam_graph.backend.decisions import DecisionEvent
 from frslam_graph.cli import main
 from frslam_graph.cli.summary import plan_status
 from frslam_graph.offline import plan_acceptance
-from frslam_graph.pipeline import DecisionEvent
 from tests.test_outputs_atomic import SIM_ARGS
 from tests.test_registration import EXPLORED, ring_map, synthetic_plan, truth_matrix
 

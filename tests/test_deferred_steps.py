@@ -8,7 +8,9 @@ import pytest
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
 from frslam_graph import odometry_worker
+from frslam_graph.backend.deferred import DeferredSteps
 from frslam_graph.config import FRSlamConfig
+from frslam_graph.offline import process
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
 from frslam_graph.update_strategy import FloorPlanUpdater
@@ -29,15 +31,18 @@ class StepHook:
     def __init__(self):
         self.done: list[tuple[int, int, int]] = []
 
-    def job(self, slam, k):
+    def job(self, ctx, k):
         for step in range(3):
-            self.done.append((k, step, len(slam)))
+            self.done.append((k, step, len(ctx.store.scans)))
             if step < 2:
                 yield
 
-    def on_keyframe(self, slam, kf):
+    def on_keyframe(self, ctx, kf):
         if kf.index in (3, 4):
-            slam.defer(self.job(slam, kf.index))
+            ctx.deferred.defer(self.job(ctx, kf.index))
+
+    def on_finish(self, ctx):
+        pass
 
 
 def feed(slam, room, n):
@@ -51,9 +56,9 @@ def test_one_deferred_step_per_scan_in_order_without_loop_closure_work(room):
     slam = FRSlam({**ROOM_CFG, "loop_closure": {"enabled": True}}, update_strategy=hook)
     lc_scans = []
     on_scan = slam.loop_closer.on_scan
-    slam.loop_closer.on_scan = lambda s: lc_scans.append(len(s)) or on_scan(s)
+    slam.loop_closer.on_scan = lambda s: lc_scans.append(len(s.store.scans)) or on_scan(s)
     feed(slam, room, 150)
-    assert len(hook.done) == 6 and slam.deferred_jobs == 0
+    assert len(hook.done) == 6 and slam.context.deferred.pending == 0
     assert [(k, s) for k, s, _ in hook.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
     scans = [n for _, _, n in hook.done]
     # each step on its own scan, after the keyframe that deferred it; job 4 after job 3
@@ -73,9 +78,9 @@ def test_pending_steps_run_in_finish_process_and_on_request(room):
     hook2 = StepHook()
     slam2 = FRSlam(ROOM_CFG, update_strategy=hook2)
     feed(slam2, room, slam.keyframe(4).scan_index + 1)
-    assert slam2.deferred_jobs >= 1
-    slam2.run_deferred()
-    assert slam2.deferred_jobs == 0 and len(hook2.done) == 6
+    assert slam2.context.deferred.pending >= 1
+    slam2.context.deferred.run_all()
+    assert slam2.context.deferred.pending == 0 and len(hook2.done) == 6
     hook3 = StepHook()
     slam3 = FRSlam(ROOM_CFG, update_strategy=hook3)
     feed(slam3, room, slam.keyframe(4).scan_index + 1)
@@ -89,7 +94,7 @@ def test_pending_steps_run_in_finish_process_and_on_request(room):
         for i in range(slam.keyframe(4).scan_index + 1)
     ]
     hook4 = StepHook()
-    FRSlam(ROOM_CFG, update_strategy=hook4).process(scans, batch=False, parallel=False)
+    process(FRSlam(ROOM_CFG, update_strategy=hook4), scans, batch=False, parallel=False)
     assert [(k, s) for k, s, _ in hook4.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
 
 
@@ -109,11 +114,11 @@ def run_plan(house, spread: bool, parallel: bool = False):
     )
     slam = FRSlam(cfg, update_strategy=upd)
     added = []  # (keyframe's scan index, scan count when the prior went in)
-    add = slam.add_floorplan_prior
-    slam.add_floorplan_prior = lambda kf, *a, **k: (
+    add = slam.context.add_prior
+    slam.context.add_prior = lambda kf, *a, **k: (
         added.append((slam.keyframe(kf).scan_index, len(slam), k.get("extra_iterations"))) or add(kf, *a, **k)
     )
-    res = slam.process(run.scans, parallel=parallel)
+    res = process(slam, run.scans, parallel=parallel)
     return upd, slam, res, added
 
 
@@ -135,7 +140,7 @@ def test_relocalisation_priors_go_in_on_later_scans_with_the_same_decisions(hous
     assert sum(regular) >= 0.7 * len(regular), regular
     # the same decisions on the same keyframes (nothing else changed the graph in between here)
     assert [(e.kind, e.keyframe) for e in upd.log] == [(e.kind, e.keyframe) for e in upd_now.log]
-    assert slam.deferred_jobs == 0
+    assert slam.context.deferred.pending == 0
     # the trajectory barely differs (settled a few scans later)
     err = np.abs(res.trajectory[:, 1:3] - res_now.trajectory[:, 1:3]).max()
     assert err < 0.02, err
@@ -163,9 +168,9 @@ def test_defer_takes_a_generator_not_a_function(room):
         yield
 
     with pytest.raises(TypeError, match="generator"):
-        slam.defer(job)  # the function, not its generator
-    slam.defer(job())
-    assert slam.deferred_jobs == 1
+        slam.context.deferred.defer(job)  # the function, not its generator
+    slam.context.deferred.defer(job())
+    assert slam.context.deferred.pending == 1
 
 
 class CostedHook:
@@ -176,14 +181,17 @@ class CostedHook:
     def __init__(self):
         self.done: list[tuple[int, int, int]] = []
 
-    def job(self, slam, k):
+    def job(self, ctx, k):
         for step, cost in enumerate(self.COSTS):
-            self.done.append((k, step, len(slam)))
+            self.done.append((k, step, len(ctx.store.scans)))
             yield cost
 
-    def on_keyframe(self, slam, kf):
+    def on_keyframe(self, ctx, kf):
         if kf.index in (3, 4):
-            slam.defer(self.job(slam, kf.index))
+            ctx.deferred.defer(self.job(ctx, kf.index))
+
+    def on_finish(self, ctx):
+        pass
 
 
 def test_loop_closure_gets_the_rest_of_the_budget_a_costed_step_leaves(room):
@@ -191,7 +199,7 @@ def test_loop_closure_gets_the_rest_of_the_budget_a_costed_step_leaves(room):
     slam = FRSlam({**ROOM_CFG, "loop_closure": {"enabled": True, "budget_ms": 8.0}}, update_strategy=hook)
     budgets: dict[int, float | None] = {}  # scan count -> budget given to the loop closer
     on_scan = slam.loop_closer.on_scan
-    slam.loop_closer.on_scan = lambda s, b=None: budgets.__setitem__(len(s), b) or on_scan(s, b)
+    slam.loop_closer.on_scan = lambda s, b=None: budgets.__setitem__(len(s.store.scans), b) or on_scan(s, b)
     feed(slam, room, 150)
     assert [(k, s) for k, s, _ in hook.done] == [(3, 0), (3, 1), (3, 2), (4, 0), (4, 1), (4, 2)]
     scans = [n for _, _, n in hook.done]
@@ -205,7 +213,7 @@ def test_relocalisation_steps_announce_their_costs(house, monkeypatch):
     # every step of the updater's deferred work gives a finite estimate, so the loop closer keeps
     # the rest of those scans' budgets instead of starving while the plan is worked on
     spent: list[float] = []
-    step = FRSlam._step_deferred
+    step = DeferredSteps.step
 
     def record(self):
         out = step(self)
@@ -213,7 +221,7 @@ def test_relocalisation_steps_announce_their_costs(house, monkeypatch):
             spent.append(out)
         return out
 
-    monkeypatch.setattr(FRSlam, "_step_deferred", record)
+    monkeypatch.setattr(DeferredSteps, "step", record)
     _, slam, _, added = run_plan(house, spread=True)
     assert len(added) >= 5 and len(spent) >= 3 * len(added)
     assert all(0.0 < s < FRSlamConfig().loop_closure.budget_ms for s in spent), sorted(set(spent))

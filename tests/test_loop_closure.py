@@ -566,7 +566,7 @@ def test_keyframe_where_the_update_strategy_touched_the_graph_gets_no_closure_wo
 
     def hook(slam, kf):  # a prior on every third keyframe
         if kf.index % 3 == 0:
-            slam.add_floorplan_prior(kf.index, kf.pose_map, np.diag([1e-2, 1e-2, 1e-3]), source="test")
+            slam.add_prior(kf.index, kf.pose_map, np.diag([1e-2, 1e-2, 1e-3]), source="test")
 
     slam = FRSlam(dict(CFG, loop_closure={"enabled": True}), update_strategy=hook)
     on_keyframe = slam.loop_closer.on_keyframe

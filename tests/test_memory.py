@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from synthetic_world import ROOM_LOOP, cast, room_world, route
 
+from frslam_graph.offline import process
 from frslam_graph.pipeline import FRSlam
 
 #: retained bytes per scan that is not a keyframe: stamp, keyframe index, pose relative to the
@@ -55,7 +56,7 @@ def _traced_during(slam: FRSlam, scans, marks: tuple[int, ...]) -> dict[int, tup
 
     tracemalloc.start()
     try:
-        slam.process(feed(), batch=False, parallel=False)
+        process(slam, feed(), batch=False, parallel=False)
     finally:
         tracemalloc.stop()
     return out
@@ -104,9 +105,9 @@ def test_moving_retains_per_keyframe_its_points_and_little_else():
 
 @pytest.mark.parametrize("width", [None, 3])
 def test_growable_rows_keep_every_row_in_order(width):
-    from frslam_graph.pipeline import _Rows
+    from frslam_graph.backend.keyframes import Rows
 
-    rows = _Rows(width, capacity=2)
+    rows = Rows(width, capacity=2)
     want = [np.full(width or (), float(i)) for i in range(37)]
     for w in want:
         rows.append(w)

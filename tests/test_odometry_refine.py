@@ -9,7 +9,7 @@ from frslam_graph.config import OdometryConfig
 from frslam_graph.evaluation.relations import relation_error
 from frslam_graph.evaluation.trajectory_io import load_relations
 from frslam_graph.odometry import ScanOdometry
-from frslam_graph.pipeline import _body_points
+from frslam_graph.pipeline import body_points
 
 
 def _frontend(scans, local_map_scans: int) -> np.ndarray:
@@ -27,7 +27,7 @@ def test_refinement_sharpens_the_real_fr079_odometry(test_data):
     (rotation 0.46 -> 0.26 deg, translation 0.031 -> 0.028 m on this excerpt)."""
     scans = []
     for s in open_recording(test_data / "fr079_250.clf.bz2"):
-        pts, _ = _body_points(s.points, s.sensor_offset)
+        pts, _ = body_points(s.points, s.sensor_offset)
         scans.append((s.stamp, pts, s.odom))
     rel = load_relations(test_data / "fr079_250.relations")
     plain = relation_error(_frontend(scans, 0), rel)

@@ -17,6 +17,7 @@ from frslam_graph import odometry_worker
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
 from frslam_graph.odometry import PreparedScan, ScanOdometry
+from frslam_graph.offline import process
 from frslam_graph.pipeline import FRSlam
 
 CFG = {"odometry": {"max_range": 10.0}}
@@ -49,9 +50,9 @@ def faulty_recording() -> list[Scan]:
 @pytest.mark.parametrize("loop_closure", [False, True])
 def test_parallel_process_equals_the_sequential_one(faulty_recording, loop_closure):
     cfg = FRSlamConfig.from_dict({**CFG, "loop_closure": {"enabled": loop_closure}})
-    seq = FRSlam(cfg).process(faulty_recording, parallel=False)
+    seq = process(FRSlam(cfg), faulty_recording, parallel=False)
     par_slam = FRSlam(cfg)
-    par = par_slam.process(faulty_recording)  # parallel by default where available
+    par = process(par_slam, faulty_recording)  # parallel by default where available
     assert par.parallel and not seq.parallel
     np.testing.assert_array_equal(par.trajectory, seq.trajectory)
     np.testing.assert_array_equal(par.odometry, seq.odometry)
@@ -65,7 +66,7 @@ def test_parallel_process_equals_the_sequential_one(faulty_recording, loop_closu
     assert np.all(par.latencies > 0.0)  # odometry (worker) + backend time of each scan
     # the map from the keyframe scans (kept in this process) is the same
     seq_slam = FRSlam(cfg)
-    seq_slam.process(faulty_recording, parallel=False)
+    process(seq_slam, faulty_recording, parallel=False)
     np.testing.assert_array_equal(par_slam.occupancy_grid(0.1).data, seq_slam.occupancy_grid(0.1).data)
 
 
@@ -77,7 +78,7 @@ def test_input_error_in_the_worker_is_raised_in_order(faulty_recording):
     for parallel in (False, True):
         slam = FRSlam(CFG)
         with pytest.raises(RecordingError, match="stamp must be a finite number") as err:
-            slam.process(scans, parallel=parallel)
+            process(slam, scans, parallel=parallel)
         assert err.value.where == "stamp"
         assert len(slam.trajectory()) == 120  # every scan before the bad one went through the backend
 
@@ -93,7 +94,7 @@ def test_a_worker_that_dies_is_reported_not_waited_for(faulty_recording, monkeyp
 
     monkeypatch.setattr(ScanOdometry, "process", dies_at_scan_50)
     with pytest.raises(RuntimeError, match="exit code 3"):
-        FRSlam(CFG).process(faulty_recording[:200], parallel=True)
+        process(FRSlam(CFG), faulty_recording[:200], parallel=True)
 
 
 def _exited(pid: int) -> bool:
@@ -129,17 +130,17 @@ def test_a_worker_whose_caller_was_killed_exits_on_its_own(tmp_path):
 @needs_worker
 def test_after_a_parallel_run_no_more_scans_and_no_second_parallel_run(faulty_recording):
     slam = FRSlam(CFG)
-    slam.process(faulty_recording[:30], batch=False, parallel=True)
+    process(slam, faulty_recording[:30], batch=False, parallel=True)
     s = faulty_recording[30]
     with pytest.raises(ConfigError, match="worker process") as err:
         slam.add(s)
     assert err.value.where == "parallel"
     with pytest.raises(ConfigError, match="fresh FRSlam"):
-        slam.process(faulty_recording[30:40], parallel=True)
+        process(slam, faulty_recording[30:40], parallel=True)
     # sequential processing may continue a streaming instance
     streaming = FRSlam(CFG)
-    streaming.process(faulty_recording[:30], batch=False, parallel=False)
-    streaming.process(faulty_recording[30:60], parallel=None)  # not fresh: runs in-process
+    process(streaming, faulty_recording[:30], batch=False, parallel=False)
+    process(streaming, faulty_recording[30:60], parallel=None)  # not fresh: runs in-process
     assert len(streaming.trajectory()) == 60
 
 

@@ -12,6 +12,7 @@ from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, sca
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
 from frslam_graph.motion_model import between, compose, inverse, wrap
+from frslam_graph.offline import process
 from frslam_graph.pipeline import FRSlam, KeyframeInfo
 
 CFG = {"odometry": {"max_range": 10.0}}
@@ -91,15 +92,18 @@ class PlanPriors:
     def __init__(self, truth, shift):
         self.truth, self.shift, self.calls, self.handles = truth, np.asarray(shift, float), 0, []
 
-    def on_keyframe(self, slam, kf):
+    def on_keyframe(self, ctx, kf):
         self.calls += 1
         if kf.index % 15 or kf.index == 0:
             return
         true_map = compose(self.shift, self.truth[kf.scan_index, 1:])
         if not self.handles:
-            slam.transform_map(compose(true_map, inverse(kf.pose_map)), reason="first registration")
+            ctx.transform_map(compose(true_map, inverse(kf.pose_map)), reason="first registration")
         cov = np.diag([0.05**2, 0.05**2, np.deg2rad(1.0) ** 2])
-        self.handles.append(slam.add_floorplan_prior(kf.index, true_map, cov, source="test plan"))
+        self.handles.append(ctx.add_prior(kf.index, true_map, cov, source="test plan"))
+
+    def on_finish(self, ctx):
+        pass
 
 
 def test_update_strategy_hook_and_map_to_odom(room):
@@ -132,38 +136,50 @@ def test_callable_strategy_and_wrong_prior_removal(room):
     assert seen == list(range(len(slam.keyframes())))
     before = slam.trajectory()
     # a prior at a non-keyframe scan (by stamp), 2 m off: the robust kernel shrugs it off
-    j = next(i for i in range(100, 200) if slam._scan_kf[i] != slam._scan_kf[i - 1] and i + 1 < 300) + 1
+    j = (
+        next(
+            i
+            for i in range(100, 200)
+            if slam.context.store.scans.keyframe[i] != slam.context.store.scans.keyframe[i - 1]
+            and i + 1 < 300
+        )
+        + 1
+    )
     wrong = compose(np.array([2.0, 0.0, 0.0]), truth[j, 1:])
-    h = slam.add_floorplan_prior(float(truth[j, 0]), wrong, np.diag([0.05**2, 0.05**2, 0.01**2]))
+    h = slam.context.add_prior(float(truth[j, 0]), wrong, np.diag([0.05**2, 0.05**2, 0.01**2]))
     assert np.abs(slam.trajectory()[:, 1:3] - before[:, 1:3]).max() < 0.02
     res = slam.graph.prior_residual(h)
     assert not res.consistent
     with pytest.raises(ConfigError, match="cause must be one of 'wrong', 're-anchored'") as err:
-        slam.remove_prior(h, reason="typo", cause="wrnog")  # refused before anything is removed
+        slam.context.remove_priors([h], reason="typo", cause="wrnog")  # refused before anything is removed
     assert err.value.where == "cause" and h.active
-    slam.remove_prior(h, reason="inconsistent with the graph")
+    slam.context.remove_priors([h], reason="inconsistent with the graph")
     assert slam.log[-1].kind == "prior_removed" and not h.active and slam.log[-1].data["cause"] == "wrong"
     # a correct prior at a non-keyframe scan lands on that scan's pose
     good = compose(np.array([0.0, 0.05, 0.0]), slam.trajectory()[j, 1:])
-    slam.add_floorplan_prior(float(truth[j, 0]), good, np.diag([1e-3**2, 1e-3**2, 1e-4**2]), kernel="none")
+    slam.context.add_prior(float(truth[j, 0]), good, np.diag([1e-3**2, 1e-3**2, 1e-4**2]), kernel="none")
     np.testing.assert_allclose(slam.trajectory()[j, 1:3], good[:2], atol=0.005)
     # a translation-only prior at another non-keyframe scan: its heading value is ignored
-    k = j + 60 if slam._scan_kf[j + 60] != slam._scan_kf[j + 59] else j + 61
-    k = k + 1 if np.all(slam._scan_rel[k] == 0.0) else k
+    k = (
+        j + 60
+        if slam.context.store.scans.keyframe[j + 60] != slam.context.store.scans.keyframe[j + 59]
+        else j + 61
+    )
+    k = k + 1 if np.all(slam.context.store.scans.relative[k] == 0.0) else k
     before_k = slam.trajectory()[k, 1:]
     target = np.array([before_k[0] + 0.04, before_k[1] - 0.03, 2.5])
-    slam.add_floorplan_prior(
+    slam.context.add_prior(
         float(truth[k, 0]), target, np.diag([1e-3**2, 1e-3**2, 1.0]), kind="translation", kernel="none"
     )
     after_k = slam.trajectory()[k, 1:]
     np.testing.assert_allclose(after_k[:2], target[:2], atol=0.005)
     assert abs(wrap(after_k[2] - before_k[2])) < 0.02
     with pytest.raises(RecordingError, match="stamp"):
-        slam.add_floorplan_prior(12345.678, good, np.eye(3))
+        slam.context.add_prior(12345.678, good, np.eye(3))
     with pytest.raises(RecordingError, match="keyframe"):
-        slam.add_floorplan_prior(10**6, good, np.eye(3))
+        slam.context.add_prior(10**6, good, np.eye(3))
     with pytest.raises(RecordingError, match="pose"):
-        slam.add_floorplan_prior(3, [1.0, np.nan, 0.0], np.eye(3))
+        slam.context.add_prior(3, [1.0, np.nan, 0.0], np.eye(3))
 
 
 def test_faults_are_handled_and_logged(room):
@@ -204,7 +220,7 @@ def test_process_recording_of_scans(room):
     truth, ranges, amin, inc, wheel = room
     angles = amin + inc * np.arange(720)
     rec = [Scan(float(truth[i, 0]), ranges[i], angles, tuple(wheel[i]), 10.0) for i in range(200)]
-    res = FRSlam(CFG).process(rec)
+    res = process(FRSlam(CFG), rec)
     assert res.trajectory.shape == (200, 4) and res.odometry.shape == (200, 4)
     assert res.latencies.shape == (200,) and res.duration == pytest.approx(truth[199, 0] - truth[0, 0])
     assert res.realtime_factor > 1.0

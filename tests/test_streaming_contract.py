@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
+from frslam_graph.backend.context import BackendContext
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, FloorPlanError, FrslamError
 from frslam_graph.floorplan.model import FloorPlan
@@ -185,9 +186,9 @@ def test_hooks_may_call_back_on_the_same_thread(room):
     truth, ranges, amin, inc, wheel = room
     added = []
 
-    def hook(slam: FRSlam, kf: Any) -> None:
+    def hook(slam: BackendContext, kf: Any) -> None:
         if kf.index == 1:
-            added.append(slam.add_floorplan_prior(kf.index, kf.pose_map, np.eye(3) * 0.01))
+            added.append(slam.add_prior(kf.index, kf.pose_map, np.eye(3) * 0.01))
 
     s = FRSlam(CFG, update_strategy=hook)
     for i in range(30):

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 from shapely.geometry import box as sbox
 
+from frslam_graph.backend.decisions import DecisionEvent
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan, Room
-from frslam_graph.offline import RunOutput, write_outputs
+from frslam_graph.offline import RunOutput, process, write_outputs
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
-from frslam_graph.update_strategy import FloorPlanUpdater, UpdateEvent
+from frslam_graph.update_strategy import FloorPlanUpdater
 
 # Loop closure off: these tests isolate the floor-plan priors from the other source of corrections.
 # The end-of-run refinement (FloorPlanUpdater.on_finish) off: these tests count the decisions of
@@ -68,7 +69,7 @@ def rotated_about_centre(plan, matrix, angle=0.0, shift=(0.0, 0.0), mirror=False
 
 def run_slam(run, updater=None, hook=None, config=None):
     slam = FRSlam(config=config or CFG, update_strategy=hook or updater)
-    res = slam.process(run.scans)
+    res = process(slam, run.scans)
     return slam, res
 
 
@@ -105,27 +106,28 @@ def test_correct_registration_is_accepted_and_priors_are_right(sim, clean):
         j = int(np.argmin(np.abs(run.stamps - kfs[h.keyframe, 0])))
         assert np.hypot(*(h.pose[:2] - run.true_poses[j, :2])) < 0.05
     # later registrations that agree are only noted
-    assert all(("agrees" in e.reason) or e.accepted for e in reg)
+    assert all(("agrees" in e.message) or e.accepted for e in reg)
 
 
 def test_decision_log_contents(clean):
     upd, slam, _ = clean
-    assert upd.log and all(isinstance(e, UpdateEvent) for e in upd.log)
+    assert upd.log and all(isinstance(e, DecisionEvent) for e in upd.log)
     for e in upd.log:
         assert e.kind in KINDS
-        assert e.reason
+        assert e.message
         assert np.isfinite(e.stamp)
-        assert all(isinstance(v, float) for v in e.numbers.values())
+        numbers = {k: v for k, v in e.data.items() if k not in ("accepted", "pose", "source", "cause")}
+        assert all(isinstance(v, float | int) and not isinstance(v, bool) for v in numbers.values()), e
     reloc = [e for e in upd.log if e.kind == "relocalise"]
-    assert reloc and {"score", "ambiguity", "dx", "dy", "dtheta", "sigma_x"} <= set(reloc[0].numbers)
+    assert reloc and {"score", "ambiguity", "dx", "dy", "dtheta", "sigma_x"} <= set(reloc[0].data)
     added = [e for e in upd.log if e.kind == "prior_added"]
     assert len(added) == len(slam.graph.priors())
-    assert all("chi2" in e.numbers for e in added)
+    assert all("chi2" in e.data for e in added)
     reg = next(e for e in upd.log if e.kind == "register")
-    assert {"score", "ambiguity", "area", "map_fit"} <= set(reg.numbers)
-    # mirrored into the pipeline's log (prior_added is logged by the pipeline itself)
-    slam_kinds = {e.kind for e in slam.log}
-    assert {"register", "relocalise", "prior_added"} <= slam_kinds
+    assert {"score", "ambiguity", "area", "map_fit"} <= set(reg.data)
+    # written once, into the run's decision log (the updater's are a view of it)
+    assert all(any(e is f for f in slam.log) for e in upd.log)
+    assert len([e for e in slam.log if e.kind == "prior_added"]) == len(added)
 
 
 @pytest.mark.parametrize(
@@ -196,14 +198,14 @@ def test_plan_of_another_building_gives_no_priors(sim, baseline):
     slam, res = run_slam(run, upd, config=cfg)
     reg = [e for e in upd.log if e.kind == "register"]
     assert reg and not any(e.accepted for e in reg)
-    assert any("does not fit" in e.reason or "inconsistent" in e.reason for e in reg)
+    assert any("does not fit" in e.message or "inconsistent" in e.message for e in reg)
     assert not slam.graph.priors()
     base_ate = ate(baseline[1].trajectory, run.ground_truth)[0].rmse
     assert ate(res.trajectory, run.ground_truth)[0].rmse <= base_ate * 1.0001
     # with the default map-fit threshold the walls alone reject it
     upd2 = FloorPlanUpdater(other, CFG.updates, register_fn=fixed_source(m, score=0.8))
     slam2, _ = run_slam(run, upd2)
-    reasons = [e.reason for e in upd2.log if e.kind == "register"]
+    reasons = [e.message for e in upd2.log if e.kind == "register"]
     assert reasons and all(("explain" in r) or ("cross free space" in r) for r in reasons)
     assert not slam2.graph.priors()
 
@@ -233,14 +235,17 @@ class Injector:
         self.obstruct_at = obstruct_at
         self.handle = None
 
-    def on_keyframe(self, slam, kf):
+    def on_keyframe(self, ctx, kf):
         if kf.index == self.obstruct_at:
             self.updater.notify_obstructed()
-        self.updater.on_keyframe(slam, kf)
+        self.updater.on_keyframe(ctx, kf)
         if kf.index == self.wrong_at:
             pose = np.asarray(kf.pose_map) + [0.8, -0.5, 0.0]
             tag = f"reloc:reg{self.updater.accepted.id}"
-            self.handle = slam.add_floorplan_prior(kf.index, pose, np.diag([1e-4, 1e-4, 1e-4]), source=tag)
+            self.handle = ctx.add_prior(kf.index, pose, np.diag([1e-4, 1e-4, 1e-4]), source=tag)
+
+    def on_finish(self, ctx):
+        pass
 
 
 def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean, tmp_path):
@@ -251,8 +256,8 @@ def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean, tmp_
     slam, res = run_slam(run, hook=inj)
     assert inj.handle is not None and not inj.handle.active
     removed = [e for e in upd.log if e.kind == "prior_removed"]
-    assert len(removed) == 1 and "proven wrong" in removed[0].reason
-    assert removed[0].numbers["prior"] == inj.handle.id
+    assert len(removed) == 1 and "proven wrong" in removed[0].message
+    assert removed[0].data["prior"] == inj.handle.id
     # the run's metrics say why priors left the graph: this one as wrong, none re-anchored
     assert [e.data["cause"] for e in slam.log if e.kind == "prior_removed"] == ["wrong"]
     priors = write_outputs(RunOutput(slam, res), tmp_path).metrics["priors"]
@@ -263,7 +268,7 @@ def test_prior_proven_wrong_is_removed_and_obstruction_triggers(sim, clean, tmp_
     # the obstruction: logged, and the next action says why
     i = kinds(upd).index("obstructed")
     assert upd.log[i].keyframe == inj.obstruct_at
-    assert "obstructed" in upd.log[i + 1].reason
+    assert "obstructed" in upd.log[i + 1].message
 
 
 def test_disabled_or_no_plan_does_nothing(sim):
@@ -325,12 +330,12 @@ def test_registration_is_retried_while_none_is_accepted(sim):
     wrong = rotated_about_centre(plan, m, angle=np.pi / 2)
     upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(wrong))
     run_slam(run, upd)
-    retries = [e for e in upd.log if e.kind == "register" and "retry" in e.reason]
+    retries = [e for e in upd.log if e.kind == "register" and "retry" in e.message]
     assert len(retries) >= 3 and not any(e.accepted for e in upd.log if e.kind == "register")
     upd_ok = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(m))
     run_slam(run, upd_ok)
     assert upd_ok.accepted is not None
-    assert not [e for e in upd_ok.log if e.kind == "register" and "retry" in e.reason]
+    assert not [e for e in upd_ok.log if e.kind == "register" and "retry" in e.message]
 
 
 def test_agreeing_registration_refines_the_accepted_one(sim):
@@ -349,7 +354,7 @@ def test_agreeing_registration_refines_the_accepted_one(sim):
         )
         slam, _ = run_slam(run, upd)
         assert np.allclose(upd.registration.matrix, expected)
-        refined = [e for e in upd.log if e.kind == "register" and e.reason.endswith("refined")]
+        refined = [e for e in upd.log if e.kind == "register" and e.message.endswith("refined")]
         assert bool(refined) == refine
         assert slam.graph.priors() and {h.source for h in slam.graph.priors()} == {"reloc:reg0"}
 
@@ -370,7 +375,7 @@ def test_backfill_puts_priors_on_keyframes_before_the_registration(sim):
         )
         slam, _ = run_slam(run, upd)
         first = next(e for e in upd.log if e.kind == "register" and e.accepted)
-        filled = [e for e in upd.log if e.kind == "prior_added" and e.reason == "backfill"]
+        filled = [e for e in upd.log if e.kind == "prior_added" and e.message == "backfill"]
         if not backfill:
             assert not filled
             continue
@@ -397,7 +402,7 @@ def test_late_first_registration_needs_a_second_that_agrees(sim):
     run_slam(run, upd)
     reg = [e for e in upd.log if e.kind == "register"]
     assert not reg[0].accepted and not reg[1].accepted
-    assert any("waiting for" in e.reason for e in reg[:2])
+    assert any("waiting for" in e.message for e in reg[:2])
     assert reg[2].accepted and np.allclose(upd.registration.matrix, m)
     # default: the same source is accepted at once early in the run
     seq2 = iter([m] * 40)
@@ -434,7 +439,7 @@ def test_rejected_matches_get_quick_rechecks(sim):
 
     upd, slam, reg = run_with([wrong], 3.0)
     assert len(reg) == 2 and not reg[0].accepted and reg[1].accepted
-    assert "retry after 3 m" in reg[1].reason and np.allclose(upd.registration.matrix, m)
+    assert "retry after 3 m" in reg[1].message and np.allclose(upd.registration.matrix, m)
     kfs = slam.keyframe_array()
     travelled = np.cumsum(np.r_[0.0, np.hypot(*np.diff(kfs[:, 1:3], axis=0).T)])
     assert 3.0 <= travelled[reg[1].keyframe] - travelled[reg[0].keyframe] < 4.0
@@ -442,7 +447,7 @@ def test_rejected_matches_get_quick_rechecks(sim):
     assert len(reg) == 2 and upd.accepted is None
     upd, _, reg = run_with([wrong, wrong], 3.0, n=3)  # a second wrong draw, then the right one
     assert len(reg) == 3 and reg[2].accepted and np.allclose(upd.registration.matrix, m)
-    assert all("retry after 3 m" in e.reason for e in reg[1:])
+    assert all("retry after 3 m" in e.message for e in reg[1:])
     upd, _, reg = run_with([wrong] * 3, 3.0, n=2)  # no more than register_recheck_max in a row
     assert len(reg) == 3 and upd.accepted is None
     upd, _, reg = run_with([wrong], 0.0, n=3)  # off
@@ -474,16 +479,19 @@ def test_only_quick_rechecks_count_towards_the_recheck_limit(sim):
     upd = recheck_updater(plan, [wrong, wrong] + [m] * 40, **NO_REFINEMENT)
 
     class Obstructed:  # the robot reports it is stuck right after the first attempt
-        def on_keyframe(self, slam, keyframe):
+        def on_keyframe(self, ctx, keyframe):
             if len(upd.events("register")) == 1:
                 upd.notify_obstructed()
-            upd.on_keyframe(slam, keyframe)
+            upd.on_keyframe(ctx, keyframe)
+
+        def on_finish(self, ctx):
+            pass
 
     run_slam(run, hook=Obstructed())
     reg = upd.events("register")
     assert len(reg) >= 3 and not reg[0].accepted and not reg[1].accepted
-    assert reg[1].reason.startswith("progress obstructed")
-    assert "retry after 3 m" in reg[2].reason and reg[2].accepted
+    assert reg[1].message.startswith("progress obstructed")
+    assert "retry after 3 m" in reg[2].message and reg[2].accepted
 
 
 def test_no_quick_recheck_once_a_registration_is_accepted(sim):
@@ -505,7 +513,7 @@ def test_no_quick_recheck_once_a_registration_is_accepted(sim):
     run_slam(run, upd)
     reg = [e for e in upd.log if e.kind in ("register", "registration_replaced")]
     assert [e.accepted for e in reg] == [True, False]
-    assert "register again after" in reg[1].reason and "plan walls explain" in reg[1].reason
+    assert "register again after" in reg[1].message and "plan walls explain" in reg[1].message
     assert np.allclose(upd.registration.matrix, m)
 
 
@@ -550,11 +558,11 @@ def test_accepted_registration_is_registered_again_after_refine_distance(sim):
         run_slam(run, upd)
         reg = [e for e in upd.log if e.kind == "register"]
         assert reg[0].accepted and np.allclose(upd.registration.matrix, expected)
-        again = [e for e in reg if "register again" in e.reason]
+        again = [e for e in reg if "register again" in e.message]
         assert len(again) == (n if dist > 0 else 0) and len(reg) == 1 + len(again)
         if dist > 0:
-            assert again[0].reason.endswith("refined") and "keyframe scans better" in again[0].reason
-            assert again[0].numbers["scan_fit"] > again[0].numbers["accepted_scan_fit"]
+            assert again[0].message.endswith("refined") and "keyframe scans better" in again[0].message
+            assert again[0].data["scan_fit"] > again[0].data["accepted_scan_fit"]
 
 
 def test_refinement_by_scans_does_not_depend_on_the_map(sim):
@@ -585,13 +593,13 @@ def test_refinement_by_scans_does_not_depend_on_the_map(sim):
         reg = [e for e in upd.log if e.kind == "register"]
         assert reg[0].accepted and len(reg) >= 2
         assert np.allclose(upd.registration.matrix, expected)
-        assert all(e.numbers["map_fit"] < cfg.min_map_fit for e in reg[1:])
+        assert all(e.data["map_fit"] < cfg.min_map_fit for e in reg[1:])
     cfg = CFG.updates.model_copy(update={**base, "refine_by": "scans"})
     upd = FloorPlanUpdater(plan, cfg, register_fn=sequence_source([m] + [off] * 40))
     run_slam(run, upd)
     reg = [e for e in upd.log if e.kind == "register"]
     assert reg[0].accepted and np.allclose(upd.registration.matrix, m)
-    assert all(e.reason.endswith("kept") and "scans worse" in e.reason for e in reg[1:])
+    assert all(e.message.endswith("kept") and "scans worse" in e.message for e in reg[1:])
 
 
 def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
@@ -623,12 +631,12 @@ def test_scale_refinement_fits_the_plan_scale_to_the_scans(sim):
         done = [e for e in events if e.accepted]
         assert len(done) == (1 if name == "refined" else 0)
         if done:
-            assert done[0].reason.endswith("refined")
-            assert done[0].numbers["scan_fit"] > done[0].numbers["accepted_scan_fit"] + 0.05
-            assert abs(done[0].numbers["scale_x"] * 1.03 - 1.0) < 0.003
+            assert done[0].message.endswith("refined")
+            assert done[0].data["scan_fit"] > done[0].data["accepted_scan_fit"] + 0.05
+            assert abs(done[0].data["scale_x"] * 1.03 - 1.0) < 0.003
         for e in events[1 if done else 0 :]:
-            assert not e.accepted and e.reason.endswith("kept")
-            assert abs(e.numbers["scale_x"] - 1.0) < 0.002 and abs(e.numbers["scale_y"] - 1.0) < 0.002
+            assert not e.accepted and e.message.endswith("kept")
+            assert abs(e.data["scale_x"] - 1.0) < 0.002 and abs(e.data["scale_y"] - 1.0) < 0.002
 
 
 def test_final_refinement_fits_the_scale_the_schedule_left(sim):
@@ -663,8 +671,8 @@ def test_final_refinement_fits_the_scale_the_schedule_left(sim):
         out[final] = (upd, ate(res.trajectory, run.ground_truth)[0].rmse, end)
     upd, err, end = out[True]
     assert [e.kind for e in end][:2] == ["register", "plan_refined"]
-    assert end[0].reason.startswith("end of the run: final refinement")
-    assert end[1].accepted and end[1].reason.endswith("refined")
+    assert end[0].message.startswith("end of the run: final refinement")
+    assert end[1].accepted and end[1].message.endswith("refined")
     scale = np.array(params_from_matrix(upd.registration.matrix)[2:4])
     assert np.allclose(scale / true_scale, 1.0, atol=0.003)
     assert any(e.kind == "prior_added" and e.keyframe is not None for e in upd.log[upd.log.index(end[1]) :])
@@ -704,7 +712,7 @@ def test_end_of_run_changes_of_the_plan_reanchor_its_priors_once(sim, monkeypatc
     n_priors = len(slam.graph.priors())
     slam.finish()
     assert removals and all(w.endswith("scale changed; start changed") for w in removals)
-    removed = [e for e in upd.log if e.kind == "prior_removed" and e.reason.endswith("start changed")]
+    removed = [e for e in upd.log if e.kind == "prior_removed" and e.message.endswith("start changed")]
     assert len(removed) >= n_priors - 1 and len({e.keyframe for e in removed}) == len(removed)
     # logged as re-anchored, not as wrong (the keyframes are relocalised on the changed plan)
     causes = {
@@ -754,11 +762,11 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
         upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(shifted))
         _, res = run_slam(run, upd)
         errors[align] = ate(res.trajectory, run.ground_truth)[0].rmse
-        moved = [e for e in upd.events("plan_refined") if e.reason.startswith("start")]
+        moved = [e for e in upd.events("plan_refined") if e.message.startswith("start")]
         if align:
             assert [e.accepted for e in moved][:2] == [True, False]
             assert matrix_disagreement(plan, upd.registration.matrix, m) < 0.02
-            assert abs(np.rad2deg(moved[0].numbers["dtheta"]) + 2.0) < 0.3
+            assert abs(np.rad2deg(moved[0].data["dtheta"]) + 2.0) < 0.3
         else:
             assert not moved and np.allclose(upd.registration.matrix, shifted)
     assert errors[True] < 0.02 < errors[False]
@@ -785,11 +793,11 @@ def test_plan_within_matching_noise_of_the_start_is_not_moved(sim):
         cfg = CFG.updates.model_copy(update={**base, **extra})
         upd = FloorPlanUpdater(plan, cfg, register_fn=fixed_source(close))
         run_slam(run, upd)
-        start = [e for e in upd.events("plan_refined") if e.reason.startswith("start")]
+        start = [e for e in upd.events("plan_refined") if e.message.startswith("start")]
         assert len(start) >= 2, name
         moves[name] = sum(bool(e.accepted) for e in start)
         if name == "default":
-            assert all(e.numbers["gain"] < cfg.align_min_gain for e in start)
+            assert all(e.data["gain"] < cfg.align_min_gain for e in start)
     assert moves["default"] == 0 and moves["no thresholds"] >= 2
 
 
@@ -828,12 +836,12 @@ def test_ambiguous_registration_is_resolved_by_the_keyframe_scans(sim):
             assert upd.registration is not None and upd.registration.method == "fake+scans"
             assert matrix_disagreement(plan, upd.registration.matrix, m) < 0.05
             first = next(e for e in regs if e.accepted)
-            assert first.numbers["placement"] == 1
-            assert first.numbers["ambiguous_scan_fit"] > first.numbers["runner_up_scan_fit"] + 0.05
+            assert first.data["placement"] == 1
+            assert first.data["ambiguous_scan_fit"] > first.data["runner_up_scan_fit"] + 0.05
             assert ate(res.trajectory, run.ground_truth)[0].rmse < 0.05
         else:
             assert upd.registration is None and not any(e.accepted for e in regs)
-            assert all("ambiguous" in e.reason for e in regs)
+            assert all("ambiguous" in e.message for e in regs)
 
 
 def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_scan_fits(sim, monkeypatch):
@@ -854,8 +862,8 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     slam, res = run_slam(run, upd)
     regs = upd.events("register")
     assert regs and not any(e.accepted for e in regs) and not slam.graph.priors()
-    assert all("no placement's walls explain the map" in e.reason for e in regs)
-    assert all(e.numbers["placements_map_fit"] < cfg.min_map_fit for e in regs)
+    assert all("no placement's walls explain the map" in e.message for e in regs)
+    assert all(e.data["placements_map_fit"] < cfg.min_map_fit for e in regs)
     assert not fits
     # the same run as one whose every registration attempt is rejected outright
     monkeypatch.setattr(FloorPlanUpdater, "_disambiguate", lambda self, slam, reg, grid, nums: None)
@@ -869,7 +877,7 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     )
     run_slam(run, upd)
     first = next(e for e in upd.events("register") if e.accepted)
-    assert "ambiguous_scan_fit" in first.numbers and "placements_map_fit" not in first.numbers
+    assert "ambiguous_scan_fit" in first.data and "placements_map_fit" not in first.data
 
 
 def test_keyframe_scans_reject_the_plan_of_another_building(sim):
@@ -887,8 +895,8 @@ def test_keyframe_scans_reject_the_plan_of_another_building(sim):
         reg = [e for e in upd.log if e.kind == "register"]
         if min_scan_fit:
             assert not any(e.accepted for e in reg) and not slam.graph.priors()
-            rejected = [e for e in reg if "keyframe scans do not fit" in e.reason]
-            assert rejected and all(e.numbers["scan_fit"] < 0.85 for e in rejected)
+            rejected = [e for e in reg if "keyframe scans do not fit" in e.message]
+            assert rejected and all(e.data["scan_fit"] < 0.85 for e in rejected)
         else:
             assert any(e.accepted for e in reg)
 
@@ -936,8 +944,8 @@ def test_retries_back_off_while_the_map_does_not_grow(sim):
         stale = [
             b - a
             for a, b, prev, e in zip(at, at[1:], regs, regs[1:], strict=False)
-            if "no registration accepted yet" in e.reason
-            and e.numbers["area"] - prev.numbers["area"] < cfg.register_min_growth_m2
+            if "no registration accepted yet" in e.message
+            and e.data["area"] - prev.data["area"] < cfg.register_min_growth_m2
         ]
         gaps[backoff] = np.asarray(stale)
     assert len(gaps[1.0]) >= 4 and np.all(gaps[1.0] < 3.0)  # every 2 m (plus a keyframe)

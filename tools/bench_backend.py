@@ -71,6 +71,7 @@ from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, sca
 from frslam_graph import odometry_worker  # noqa: E402
 from frslam_graph.config import FRSlamConfig  # noqa: E402
 from frslam_graph.motion_model import between  # noqa: E402
+from frslam_graph.offline import process  # noqa: E402
 from frslam_graph.pipeline import FRSlam  # noqa: E402
 
 R2V_DIR = REPO.parent / "shared" / "data" / "floorplans" / "r2v"
@@ -201,11 +202,11 @@ def latency_section(laps: int, runs: int, loop_closure: bool) -> tuple[str, list
         scans = [
             Scan(float(truth[i, 0]), rec[1][i], angles, tuple(rec[4][i]), 10.0) for i in range(len(truth))
         ]
-        res = FRSlam(cfg).process(scans, parallel=False)
+        res = process(FRSlam(cfg), scans, parallel=False)
         put("offline process() x real time, sequential", res.realtime_factor)
         if odometry_worker.available(cfg.odometry):
             c0, k0 = time.process_time(), resource.getrusage(resource.RUSAGE_CHILDREN)
-            res = FRSlam(cfg).process(scans, parallel=True)
+            res = process(FRSlam(cfg), scans, parallel=True)
             k1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             parent_cpu = time.process_time() - c0
             worker_cpu = (k1.ru_utime + k1.ru_stime) - (k0.ru_utime + k0.ru_stime)
@@ -338,7 +339,7 @@ def house_task(task: dict) -> dict:
                 slam = FRSlam(cfg, update_strategy=FloorPlanUpdater(plan, cfg.updates, register_fn=wrong))
             t0 = time.perf_counter()
             # houses running in parallel already use the cores: sequential runs then
-            res = slam.process(scans, parallel=None if task.get("odometry_worker") else False)
+            res = process(slam, scans, parallel=None if task.get("odometry_worker") else False)
             wall = time.perf_counter() - t0
             stats, _ = ate(res.trajectory, run.ground_truth)
             lat_ms = 1e3 * np.asarray(res.latencies)  # per scan, what add_scan would take

@@ -22,6 +22,7 @@ from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, s
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan
+from frslam_graph.offline import process
 from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration, register
 from frslam_graph.update_strategy import FloorPlanUpdater
@@ -84,7 +85,7 @@ def run_once(run, plan, cfg, register_fn=None):
         updater = FloorPlanUpdater(plan, cfg.updates, register_fn=register_fn)
     slam = FRSlam(config=cfg, update_strategy=updater)
     t0 = time.perf_counter()
-    res = slam.process(run.scans)
+    res = process(slam, run.scans)
     wall = time.perf_counter() - t0
     stats, _ = ate(res.trajectory, run.ground_truth)
     return stats.rmse, wall, updater, res
