@@ -599,13 +599,7 @@ class LoopCloser:
         est = ctx.graph.estimates()
         self.stats.attempts += 1
         guess = between(est[c], est[i])
-        radius = job.radius
-        if job.predicted is not None:  # check a pending closure's prediction
-            centre, win = job.predicted, radius
-        elif radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
-            centre, win = guess, min(cfg.search_window_xy, max(radius, 0.5))
-        else:  # the prediction is too uncertain: is the robot back at the candidate itself?
-            centre, win = np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
+        centre, win = self._search_window(job, guess)
         m = yield from match_scan_steps(ref, query, centre, win, job.window_theta, cfg, self._rng)
         if m is None:
             self._reject(ctx, i, c, "no_overlap")
@@ -616,19 +610,11 @@ class LoopCloser:
             "relative": m.pose.tolist(),
             "coarse": round(m.coarse_score, 3),
         }
-        if m.coarse_score < cfg.min_coarse_score:
-            self._reject(ctx, i, c, "low_score", **data)
+        refused = self._refused(m)
+        if refused is not None:
+            self._reject(ctx, i, c, refused[0], **refused[1], **data)
             return []
         weak = m.inlier_fraction < cfg.min_inlier_fraction  # only confirms a pending closure
-        if m.inlier_fraction < min(cfg.min_inlier_fraction, cfg.confirm_min_inlier_fraction):
-            self._reject(ctx, i, c, "low_inliers", **data)
-            return []
-        if m.ambiguity > cfg.max_ambiguity:
-            self._reject(ctx, i, c, "ambiguous", **data)
-            return []
-        if m.free_violation > cfg.max_free_violation:
-            self._reject(ctx, i, c, "free_space", free=round(m.free_violation, 3), **data)
-            return []
         cov = regularise_covariance(
             m.covariance * cfg.covariance_inflation,
             cfg.sigma_floor_xy,
@@ -662,6 +648,30 @@ class LoopCloser:
         self._pending = [q for q in self._pending if q is not partner]
         yield from self._add(ctx, [partner, lc], settle=True)
         return [partner, lc]
+
+    def _search_window(self, job: _Job, guess: np.ndarray) -> tuple[np.ndarray, float]:
+        """Centre (the query's pose in the reference's frame) and ± xy window (m) of a search."""
+        cfg = self.config
+        radius = job.radius
+        if job.predicted is not None:  # check a pending closure's prediction
+            return job.predicted, radius
+        if radius <= cfg.search_window_xy or np.hypot(guess[0], guess[1]) <= cfg.search_window_xy:
+            return guess, min(cfg.search_window_xy, max(radius, 0.5))
+        # the prediction is too uncertain: is the robot back at the candidate itself?
+        return np.array([0.0, 0.0, guess[2]]), cfg.search_window_xy
+
+    def _refused(self, m: ScanMatch) -> tuple[str, dict[str, Any]] | None:
+        """Why a match is refused whatever a pending closure says (reason, extra data), or None."""
+        cfg = self.config
+        if m.coarse_score < cfg.min_coarse_score:
+            return "low_score", {}
+        if m.inlier_fraction < min(cfg.min_inlier_fraction, cfg.confirm_min_inlier_fraction):
+            return "low_inliers", {}
+        if m.ambiguity > cfg.max_ambiguity:
+            return "ambiguous", {}
+        if m.free_violation > cfg.max_free_violation:
+            return "free_space", {"free": round(m.free_violation, 3)}
+        return None
 
     def _verify_back(self, ctx: BackendContext, lc: LoopClosure) -> None:
         """Queue (first) a check of the pending ``lc`` from the keyframe ``verify_back_travel``

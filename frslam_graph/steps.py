@@ -2,7 +2,7 @@
 
 A piece of work is a generator: each ``next()`` runs one bounded step; the generator's return
 value (``StopIteration.value``) is the result. The caller decides how many steps to run per scan
-(:meth:`FRSlam.defer <frslam_graph.pipeline.FRSlam.defer>`, the loop closer's budget); the result
+(:class:`~frslam_graph.backend.deferred.DeferredSteps`, the loop closer's budget); the result
 does not depend on it. Each yield gives the estimated cost (ms) of the step that ends there, from
 the sizes involved (never a clock), so steps are packed into a per-scan budget deterministically;
 a yield of None means "unknown: give it the scan's whole budget". The code between yields outside

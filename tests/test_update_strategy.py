@@ -294,6 +294,7 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     from dataclasses import replace
 
     from frslam_graph.plan_checks import occupied_points, walls_through_free_space
+    from frslam_graph.plan_updates.judge import tolerances
     from frslam_graph.relocalisation import Relocaliser
 
     plan, run, _ = sim
@@ -304,9 +305,12 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     right = Relocaliser(plan.transformed(run.house.distortion.matrix, units="m"))
     occ = occupied_points(drifted)
     upd = FloorPlanUpdater(plan, cfg)
-    assert upd._tolerances() == (cfg.map_fit_distance, cfg.free_space_margin)  # nothing travelled
-    upd._dist = 100.0  # metres without a prior
-    fit_tol, margin = upd._tolerances()
+    assert tolerances(cfg, upd.priors.drift) == (
+        cfg.map_fit_distance,
+        cfg.free_space_margin,
+    )  # nothing travelled
+    upd.travel.dist = 100.0  # metres without a prior
+    fit_tol, margin = tolerances(cfg, upd.priors.drift)
     assert (fit_tol, margin) == (cfg.map_fit_distance_max, cfg.free_space_margin_max)
     assert right.fit_points(occ, fit_tol) >= cfg.min_map_fit
     assert right.fit_points(occ) < right.fit_points(occ, fit_tol) - 0.1  # tight: drift hurts
@@ -684,31 +688,33 @@ def test_final_refinement_fits_the_scale_the_schedule_left(sim):
 def test_end_of_run_changes_of_the_plan_reanchor_its_priors_once(sim, monkeypatch):
     """on_finish: the final registration, the scale fit and the move to the start may each
     change the plan; its priors are relocalised once, on the plan the run ends with."""
+    from frslam_graph.plan_updates.priors import PriorManager
+    from frslam_graph.plan_updates.refiner import PlanRefiner, Refinement
+
     plan, run, m = sim
     base = {**NO_REFINEMENT, "scale_refine_distance": 1e4, "final_refine": True}
     cfg = CFG.with_updates(updates=base)
     upd = FloorPlanUpdater(plan, cfg.updates, register_fn=fixed_source(m))
     removals: list[str] = []
-    remove = FloorPlanUpdater._remove_priors_of
+    remove = PriorManager.remove_of
 
-    def counted(self, slam, acc, why, cause):
+    def counted(self, ctx, acc, why, cause):
         removals.append(why)
-        return remove(self, slam, acc, why, cause)
+        return remove(self, ctx, acc, why, cause)
 
     def changes(name):
-        def change(self, slam, keyframe, final=False):
-            self._reanchor(slam, self.accepted, f"{name} changed")
-            return True
+        def change(self, ctx, acc, *args, **kwargs):  # the plan "changed": its priors to re-anchor
+            return Refinement(f"{name} changed", {}, acc, f"{name} changed")
 
         return change
 
-    monkeypatch.setattr(FloorPlanUpdater, "_remove_priors_of", counted)
+    monkeypatch.setattr(PriorManager, "remove_of", counted)
     slam = FRSlam(cfg, update_strategy=upd)
     for scan in run.scans:
         slam.add(scan)
     removals.clear()
-    monkeypatch.setattr(FloorPlanUpdater, "_refine_scale", changes("scale"))
-    monkeypatch.setattr(FloorPlanUpdater, "_align_to_start", changes("start"))
+    monkeypatch.setattr(PlanRefiner, "scale", changes("scale"))
+    monkeypatch.setattr(PlanRefiner, "start", changes("start"))
     n_priors = len(slam.graph.priors())
     slam.finish()
     assert removals and all(w.endswith("scale changed; start changed") for w in removals)
@@ -902,7 +908,7 @@ def test_keyframe_scans_reject_the_plan_of_another_building(sim):
 
 
 def test_coverage_cells_count_each_cell_once_at_any_extent():
-    from frslam_graph.update_strategy import _CoverageCells
+    from frslam_graph.plan_updates.travel import _CoverageCells
 
     rng = np.random.default_rng(3)
     cells = _CoverageCells()
@@ -940,7 +946,7 @@ def test_retries_back_off_while_the_map_does_not_grow(sim):
         run_slam(run, upd)
         regs = [e for e in upd.log if e.kind == "register"]
         assert regs and not any(e.accepted for e in regs)
-        at = [upd._kf_dist[e.keyframe] for e in regs]
+        at = [upd.travel.kf_dist[e.keyframe] for e in regs]
         stale = [
             b - a
             for a, b, prev, e in zip(at, at[1:], regs, regs[1:], strict=False)

@@ -8,7 +8,7 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    Per-scan latency of ``FRSlam.add_scan`` (median, p99; wall clock and process CPU time, the
    latter robust to a machine shared with other jobs), with and without wheel odometry; the
    baseline timed in the same run is bare ``KissICP.register_frame`` on the same scans (ratio);
-   offline ``FRSlam.process`` (incl. the final LM batch) as a multiple of real time, with the
+   offline ``offline.process`` (incl. the final LM batch) as a multiple of real time, with the
    odometry in a worker process (the default) against the sequential run in the same loop (ratio),
    plus each stage's CPU per scan and the multiple both stages would reach each on a free core
    (duration / the slower stage's CPU: robust to a shared machine); odometry drift,
@@ -32,7 +32,7 @@ Sections (each a Markdown table; ``--out DIR`` also writes ``table.md`` and ``re
    Houses run in parallel through Dask distributed (``--workers N``: a LocalCluster of N
    single-threaded processes; ``--scheduler ADDRESS``: an existing cluster), each run on one core; with
    ``--workers 1`` one house at a time, each run with the odometry worker on the second core
-   (``FRSlam.process``'s offline default), so its × real time is the library's offline figure.
+   (``offline.process``'s offline default), so its × real time is the library's offline figure.
    Each run also gives the per-scan latency a robot stack's ``add_scan`` would see on these
    houses (odometry + backend per scan, the final refinement and LM batch excluded): the median
    and p99 of each run, the worst scan, the scans over 20 ms (section 1's room has no plan and

@@ -1,0 +1,329 @@
+"""The verdict on a registration of the floor plan (paper Alg. 3's acceptance checks).
+
+:meth:`RegistrationJudge.judge` returns a :class:`Verdict` with its numbers and writes nothing
+(no log, no graph, no state): the updater acts on it. Checks, in order: the registration
+succeeded, is not doubted by its method (``doubt``: the paper-faithful MFR flags its doubtful
+matches) and scores ``min_score``; an ambiguous one (``max_ambiguity``) before any is accepted
+is disambiguated with MFR's runner-up placements on the keyframe scans; the plan's walls
+explain ``min_map_fit`` of the map's occupied cells and cross at most
+``max_walls_in_free_space`` of its free space; against an accepted registration it refines it
+(agrees within ``agree_tol`` and explains the data as well or better, ``refine_by``), is kept
+out, or replaces it (``switch_margin`` better); the current scan relocalises on it
+(``reloc_min_score``), the keyframe scans fit it (``min_scan_fit``); a first registration passes
+the chi² gate against the trajectory and, after ``confirm_after_m`` metres without a prior, needs a
+second one that agrees. Distances in metres (map frame), fits as shares of cells or scans.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from frslam_graph.config import UpdatesConfig
+from frslam_graph.errors import FrslamError
+from frslam_graph.plan_checks import matrix_disagreement, occupied_points, walls_through_free_space
+from frslam_graph.plan_updates.accepted import AcceptedPlan
+from frslam_graph.plan_updates.evidence import ScanEvidence
+from frslam_graph.plan_updates.priors import gate_chi2
+from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
+
+if TYPE_CHECKING:  # pragma: no cover
+    from frslam_graph.backend.context import BackendContext
+    from frslam_graph.backend.keyframes import KeyframeInfo
+
+
+#: Verdict.pending when the verdict leaves the registration awaiting confirmation as it was
+KEEP = object()
+
+
+@dataclass
+class Verdict:
+    """``accept`` (a new accepted registration; ``relocalisation`` of the current scan on it),
+    ``refine`` (the same placement fitted to more data replaces the accepted one) or ``reject``
+    (``why``). ``pending``: the registration awaiting confirmation afterwards (:data:`KEEP`:
+    unchanged)."""
+
+    outcome: Literal["accept", "refine", "reject"]
+    why: str
+    numbers: dict[str, float] = field(default_factory=dict)
+    registration: Any = None
+    plan_map: Any = None
+    relocaliser: Relocaliser | None = None
+    relocalisation: Relocalisation | None = None
+    map_fit: float = float("nan")
+    pending: Any = KEEP
+
+
+def tolerances(config: UpdatesConfig, drift: float) -> tuple[float, float]:
+    """(map-fit distance, free-space margin) in metres, grown with ``drift``, the distance
+    travelled since the last accepted prior: how far the map may have drifted from the plan."""
+    grow = config.check_growth_per_m * max(drift, 0.0)
+    fit = min(config.map_fit_distance + grow, max(config.map_fit_distance_max, config.map_fit_distance))
+    margin = min(config.free_space_margin + grow, max(config.free_space_margin_max, config.free_space_margin))
+    return fit, margin
+
+
+@dataclass
+class _Case:
+    """One registration under judgement: what the checks share."""
+
+    ctx: BackendContext
+    keyframe: KeyframeInfo
+    grid: Any
+    nums: dict[str, float]
+    accepted: AcceptedPlan | None
+    pending: Any
+    drift: float  # metres since the last accepted prior
+    n_keyframes: int
+
+
+class RegistrationJudge:
+    """Accept, refine or reject a registration (see the module docstring)."""
+
+    def __init__(self, plan: Any, config: UpdatesConfig, params: RelocaliserParams, evidence: ScanEvidence):
+        self.plan = plan
+        self.config = config
+        self.params = params
+        self.evidence = evidence
+
+    def judge(
+        self,
+        ctx: BackendContext,
+        keyframe: KeyframeInfo,
+        reg: Any,
+        grid: Any,
+        numbers: dict[str, float],
+        accepted: AcceptedPlan | None,
+        pending: Any,
+        drift: float,
+        n_keyframes: int,
+    ) -> Verdict:
+        """The verdict on ``reg`` (registration plan -> map) made on ``grid`` (the map); ``numbers``
+        start its numbers; ``pending``: a registration awaiting confirmation; ``drift``: metres
+        since the last accepted prior; ``n_keyframes``: keyframes seen by the updater."""
+        case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
+        cfg = self.config
+        if not reg.ok:
+            return self._reject(case, f"registration failed: {reg.reason or 'no match'}")
+        if reg.doubt:  # the method's own verdict (the paper-faithful MFR's): never a prior
+            return self._reject(case, f"doubtful match: {reg.doubt}")
+        if reg.score < cfg.min_score:
+            return self._reject(case, f"score {reg.score:.2f} < {cfg.min_score:.2f}")
+        relocaliser = None  # the disambiguation's, when it picked a placement: built once
+        if reg.ambiguity > cfg.max_ambiguity:
+            picked = self._disambiguate(case, reg)
+            if picked is None:
+                why = f"ambiguous: {reg.ambiguity:.2f} > {cfg.max_ambiguity:.2f}"
+                if "placements_map_fit" in case.nums:
+                    why += (
+                        f"; no placement's walls explain the map ({case.nums['placements_map_fit']:.0%} < "
+                        f"{cfg.min_map_fit:.0%})"
+                    )
+                return self._reject(case, why)
+            reg, relocaliser = picked
+        try:
+            if relocaliser is None:
+                relocaliser = Relocaliser(reg.apply(self.plan), self.params)
+            plan_map = relocaliser.plan
+        except (FrslamError, ValueError) as exc:
+            return self._reject(case, f"registered plan unusable: {exc}")
+        return self._on_the_map(case, reg, plan_map, relocaliser)
+
+    # ------------------------------------------------------------------ the checks
+    def _on_the_map(self, case: _Case, reg: Any, plan_map: Any, relocaliser: Relocaliser) -> Verdict:
+        """The map checks, against the accepted registration when there is one."""
+        cfg, nums, acc = self.config, case.nums, case.accepted
+        occ = occupied_points(case.grid)
+        fit_tol, margin = tolerances(cfg, case.drift)
+        fit = relocaliser.fit_points(occ, fit_tol)
+        nums["map_fit"] = fit
+        if acc is not None and cfg.refine_on_agreement and cfg.refine_by == "scans":
+            disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            nums["disagreement"] = disp
+            if disp <= cfg.agree_tol:
+                return self._by_the_scans(case, reg, plan_map, relocaliser, occ, fit_tol, fit, disp)
+        if fit < cfg.min_map_fit:
+            return self._reject(
+                case, f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
+            )
+        crossing = walls_through_free_space(relocaliser, case.grid, margin)
+        nums["walls_in_free_space"] = crossing
+        if crossing > cfg.max_walls_in_free_space:
+            return self._reject(
+                case,
+                f"{crossing:.0%} of the plan's observed walls cross free space in the map "
+                f"> {cfg.max_walls_in_free_space:.0%}",
+            )
+        if acc is not None:
+            disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
+            old_fit = acc.relocaliser.fit_points(occ, fit_tol)
+            nums.update(disagreement=disp, accepted_map_fit=old_fit)
+            if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
+                if cfg.refine_on_agreement and fit >= old_fit:
+                    better = f"the map as well or better ({fit:.0%} vs {old_fit:.0%})"
+                    return self._refine(case, reg, plan_map, relocaliser, fit, disp, better)
+                return self._reject(case, f"agrees with registration {acc.id} (RMS {disp:.2f} m); kept")
+            if fit < old_fit + cfg.switch_margin:
+                return self._reject(
+                    case,
+                    f"disagrees with registration {acc.id} (RMS {disp:.2f} m) and explains "
+                    f"the map no better ({fit:.0%} vs {old_fit:.0%})",
+                )
+        return self._on_the_scans(case, reg, plan_map, relocaliser, fit)
+
+    def _by_the_scans(
+        self,
+        case: _Case,
+        reg: Any,
+        plan_map: Any,
+        relocaliser: Relocaliser,
+        occ,
+        fit_tol: float,
+        fit: float,
+        disp: float,
+    ) -> Verdict:
+        """An agreeing registration with ``refine_by`` "scans": the map was drawn at estimates
+        the accepted plan's priors pulled onto it (its fit is biased towards that plan): compare
+        the two on the keyframe scans, each relocalised on its own."""
+        cfg, nums, acc = self.config, case.nums, case.accepted
+        q_new = self.evidence.fit(case.ctx, relocaliser, case.n_keyframes)
+        q_old = self.evidence.fit(case.ctx, acc.relocaliser, case.n_keyframes)
+        nums.update(scan_fit=q_new, accepted_scan_fit=q_old)
+        if q_new > q_old + cfg.refine_scan_margin:
+            better = f"the keyframe scans better ({q_new:.1%} vs {q_old:.1%})"
+        elif q_new >= q_old - cfg.refine_scan_margin:
+            # the scans cannot tell (each scan absorbs a rigid offset of the plan): the map decides
+            old_fit = acc.relocaliser.fit_points(occ, fit_tol)
+            nums["accepted_map_fit"] = old_fit
+            if fit < old_fit:
+                return self._reject(
+                    case,
+                    f"agrees with registration {acc.id} (RMS {disp:.2f} m), explains the keyframe "
+                    f"scans as well ({q_new:.1%} vs {q_old:.1%}) and the map no better "
+                    f"({fit:.0%} vs {old_fit:.0%}); kept",
+                )
+            better = f"the keyframe scans as well and the map as well or better ({fit:.0%} vs {old_fit:.0%})"
+        else:
+            return self._reject(
+                case,
+                f"agrees with registration {acc.id} (RMS {disp:.2f} m) and explains the "
+                f"keyframe scans worse ({q_new:.1%} vs {q_old:.1%}); kept",
+            )
+        return self._refine(case, reg, plan_map, relocaliser, fit, disp, better)
+
+    def _on_the_scans(
+        self, case: _Case, reg: Any, plan_map: Any, relocaliser: Relocaliser, fit: float
+    ) -> Verdict:
+        """The current scan and the keyframe scans on the plan; a first one against the trajectory."""
+        cfg, nums = self.config, case.nums
+        points = case.ctx.keyframe_scans()[0][case.keyframe.index]
+        reloc = relocaliser.relocalise(points, case.keyframe.pose_map)
+        nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
+        if not reloc.ok or reloc.score < cfg.reloc_min_score:
+            return self._reject(
+                case, f"current scan does not fit the registered plan (inliers {reloc.score:.0%})"
+            )
+        if cfg.min_scan_fit > 0.0:
+            # the keyframe scans of the whole run, each relocalised on its own: the plan of another
+            # building (or a wrong placement) that the map checks let through by a small margin
+            # explains them poorly
+            q = (
+                nums["scan_fit"]
+                if "scan_fit" in nums
+                else self.evidence.fit(case.ctx, relocaliser, case.n_keyframes)
+            )
+            nums["scan_fit"] = q
+            if q < cfg.min_scan_fit:
+                return self._reject(
+                    case,
+                    f"the keyframe scans do not fit the registered plan ({q:.1%} < {cfg.min_scan_fit:.0%})",
+                )
+        if case.accepted is None:
+            chi2 = gate_chi2(cfg, case.ctx, case.keyframe, reloc, case.drift)
+            nums["chi2"] = chi2
+            if chi2 > cfg.inconsistent_chi2:
+                return self._reject(
+                    case, f"inconsistent with the trajectory: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
+                )
+            if case.drift > cfg.confirm_after_m:
+                # the drift allowance has made the chi2 gate weak: a second registration that
+                # agrees must confirm this one (as for loop closures with large corrections)
+                if case.pending is None:
+                    why = f"{case.drift:.0f} m travelled without a prior: waiting for a second registration that agrees"
+                    return self._reject(case, why, pending=reg)
+                disp = matrix_disagreement(self.plan, case.pending.matrix, reg.matrix)
+                nums["disagreement"] = disp
+                if disp > cfg.agree_tol:
+                    return self._reject(
+                        case,
+                        f"{case.drift:.0f} m travelled without a prior: disagrees with the previous "
+                        f"registration (RMS {disp:.2f} m); waiting for one that agrees",
+                        pending=reg,
+                    )
+        return Verdict("accept", "accepted", nums, reg, plan_map, relocaliser, reloc, fit, pending=None)
+
+    def _disambiguate(self, case: _Case, reg: Any) -> tuple[Any, Relocaliser] | None:
+        """An ambiguous registration: its placement and the registration's runner-up placements
+        (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
+        its own (which a drifted map cannot bias). Returns the registration of the placement that
+        explains them clearly best (by ``disambiguate_margin``, and at least ``min_scan_fit``)
+        with its relocaliser, else None; the case's numbers get the two best fits.
+
+        The placement picked is judged next by its map fit (``min_map_fit``, the first check after
+        this one; no registration is accepted here). When no placement passes it, the verdict is a
+        rejection whichever one the scans would pick: the scan fits (most of the cost, ~1-2 s
+        with the plan of another building) are skipped and ``placements_map_fit`` says why."""
+        cfg, nums = self.config, case.nums
+        alts = [np.asarray(a["matrix"], float) for a in (reg.details or {}).get("alternatives", [])]
+        if cfg.disambiguate_margin <= 0.0 or not alts or case.accepted is not None:
+            return None
+        matrices = [np.asarray(reg.matrix, float), *alts]
+        relocalisers: list[Relocaliser | None] = []
+        for m in matrices:
+            try:
+                relocalisers.append(Relocaliser(type(reg).from_matrix(m).apply(self.plan), self.params))
+            except (FrslamError, ValueError):
+                relocalisers.append(None)  # the picked one would be "unusable": rejected too
+        occ = occupied_points(case.grid)
+        fit_tol = tolerances(cfg, case.drift)[0]
+        best_map_fit = max(r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers)
+        if best_map_fit < cfg.min_map_fit:
+            nums["placements_map_fit"] = best_map_fit
+            return None
+        fits = [
+            self.evidence.fit(case.ctx, r, case.n_keyframes) if r is not None else 0.0 for r in relocalisers
+        ]
+        order = np.argsort(fits)[::-1]
+        best, second = float(fits[order[0]]), float(fits[order[1]])
+        nums.update(ambiguous_scan_fit=best, runner_up_scan_fit=second, placement=int(order[0]))
+        if best < max(cfg.min_scan_fit, second + cfg.disambiguate_margin):
+            return None
+        nums["scan_fit"] = best
+        picked = type(reg).from_matrix(
+            matrices[order[0]],
+            score=reg.score,
+            ambiguity=second / max(best, 1e-9),
+            method=f"{reg.method}+scans",
+            rooms=reg.rooms,
+        )
+        return picked, relocalisers[order[0]]
+
+    # ------------------------------------------------------------------ verdicts
+    @staticmethod
+    def _reject(case: _Case, why: str, pending: Any = KEEP) -> Verdict:
+        return Verdict("reject", why, case.nums, pending=pending)
+
+    @staticmethod
+    def _refine(
+        case: _Case, reg: Any, plan_map: Any, relocaliser: Relocaliser, fit: float, disp: float, better: str
+    ) -> Verdict:
+        """An agreeing registration explains the data as well or better: the same placement fitted
+        to more data; later relocalisations use it (earlier priors stay: they agree within
+        agree_tol)."""
+        why = f"agrees with registration {case.accepted.id} (RMS {disp:.2f} m) and explains {better}; refined"
+        return Verdict("refine", why, case.nums, reg, plan_map, relocaliser, None, fit)
+
+
+__all__ = ["KEEP", "RegistrationJudge", "Verdict", "tolerances"]
