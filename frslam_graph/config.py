@@ -328,7 +328,7 @@ class GraphConfig(_Section):
 
 
 class UpdatesConfig(_Section):
-    """Floor-plan update strategy (paper Alg. 3, :mod:`frslam_graph.update_strategy`).
+    """Floor-plan update strategy (paper Alg. 3, :mod:`frslam_graph.plan_updates.updater`).
 
     Registration triggers: the mapped area reached ``first_register_area_m2`` (first attempt) or
     grew by ``register_min_growth_m2`` and ``register_growth_frac`` since the last attempt, or
@@ -646,8 +646,8 @@ class UpdatesConfig(_Section):
 
 
 class LoopClosureConfig(_Section):
-    """Loop closure (:mod:`frslam_graph.loop_closure`, its scan matcher
-    :mod:`frslam_graph.submap_matching`): candidates, matching, acceptance."""
+    """Loop closure (:mod:`frslam_graph.loop_closure.closer`, its scan matcher
+    :mod:`frslam_graph.loop_closure.submap_matching`): candidates, matching, acceptance."""
 
     enabled: bool = Field(
         True, description="search for loop closures (false = odometry and plan priors only; faster, drifts)"
@@ -861,7 +861,7 @@ class LoopClosureConfig(_Section):
         2,
         ge=0,
         description="rounds of dense scan-to-submap constraints between passes when a run finishes "
-        "(frslam_graph.final_alignment): each matches every keyframe against the keyframes of other "
+        "(frslam_graph.loop_closure.final_alignment): each matches every keyframe against the keyframes of other "
         "passes near it and re-optimises; 0 = off (finish() only runs the LM batch, faster); also "
         "off when loop closure is off",
     )

@@ -2,7 +2,7 @@
 
 The plan must be in map metres (``registration.apply(plan)``). Free space is every room eroded
 by half a wall thickness plus an opening at every door joining two rooms (the same geometry as
-:mod:`frslam_graph.relocalisation`); a cell is passable when its distance to the nearest wall
+:mod:`frslam_graph.localisation.relocalisation`); a cell is passable when its distance to the nearest wall
 is at least ``clearance`` (the robot's radius plus a margin). Paths are shortest paths
 (Dijkstra on the 8-connected raster, :func:`scipy.sparse.csgraph.dijkstra`) with a mild
 penalty near walls, so they keep to the middle of door openings.
@@ -23,8 +23,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from frslam_graph.errors import FloorPlanError, FrslamError
+from frslam_graph.localisation.relocalisation import free_space_polygons
 from frslam_graph.raster import RasterFrame, rasterise_plan, rasterise_polygons
-from frslam_graph.relocalisation import free_space_polygons
 
 
 @dataclass

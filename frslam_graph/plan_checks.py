@@ -3,7 +3,7 @@
 Frames and units: the registered plan is in ``map`` (metres) through its plan -> map matrix; an
 occupancy grid is the LiDAR map of the keyframes at their current estimates (``map``); scans are
 points (M, 2) in base_link with poses (x, y, theta) in ``map``. Used by
-:mod:`frslam_graph.update_strategy` to judge a registration (how much of the map the plan's walls
+:mod:`frslam_graph.plan_updates.updater` to judge a registration (how much of the map the plan's walls
 explain, whether its walls cross space the map has seen free, how far two registrations
 disagree) and to refine the plan's scale on the scans.
 """
@@ -13,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from frslam_graph.relocalisation import Relocaliser, tukey_weights
+from frslam_graph.localisation.relocalisation import Relocaliser, tukey_weights
 
 
 def occupied_points(grid, max_points: int = 4000) -> np.ndarray:

@@ -1,14 +1,14 @@
-"""Final alignment (frslam_graph.final_alignment): dense constraints between passes at finish()."""
+"""Final alignment (frslam_graph.loop_closure.final_alignment): dense constraints between passes at finish()."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from frslam_graph import final_alignment as fa
-from frslam_graph.final_alignment import candidate_pairs, dense_constraints, field_of_view
-from frslam_graph.motion_model import between, compose
-from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line
+from frslam_graph.loop_closure import final_alignment as fa
+from frslam_graph.loop_closure.final_alignment import candidate_pairs, dense_constraints, field_of_view
+from frslam_graph.loop_closure.submap_matching import ReferenceSubmap, icp_point_to_line
+from frslam_graph.odometry.motion_model import between, compose
 from tests import synthetic_world as sw
 
 
@@ -184,7 +184,7 @@ def test_pairs_of_a_place_passed_many_times_need_memory_for_a_chunk_only():
     index arrays) and equal a direct computation."""
     import tracemalloc
 
-    from frslam_graph import final_alignment as fa
+    from frslam_graph.loop_closure import final_alignment as fa
 
     n = 1500
     t = np.arange(n) * 0.125  # 0.125 m steps on a circle of radius 0.5 m: a pass is 25 keyframes

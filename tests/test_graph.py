@@ -8,10 +8,10 @@ import pytest
 from frslam_graph.factors.between import between_factor, regularise_covariance
 from frslam_graph.factors.floorplan_prior import floorplan_prior, m_estimator, prior_chi2, robust_noise
 
+from frslam_graph.backend.graph import PoseGraph, key
 from frslam_graph.config import FRSlamConfig, GraphConfig
 from frslam_graph.errors import ConfigError, FrslamError
-from frslam_graph.graph import PoseGraph, key
-from frslam_graph.motion_model import compose, inverse
+from frslam_graph.odometry.motion_model import compose, inverse
 
 ODO_COV = np.diag([0.01**2, 0.01**2, np.deg2rad(0.5) ** 2])
 PRIOR_COV = np.diag([0.05**2, 0.05**2, 0.02**2])

@@ -7,8 +7,8 @@ import resource
 import numpy as np
 import pytest
 
+from frslam_graph.backend.mapping import OccupancyMapper, occupancy_grid
 from frslam_graph.errors import ConfigError
-from frslam_graph.mapping import OccupancyMapper, occupancy_grid
 
 GIB = 1 << 30
 SCAN = np.array([[10.0 * np.cos(a), 10.0 * np.sin(a)] for a in np.linspace(-1.5, 1.5, 50)])

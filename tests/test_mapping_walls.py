@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from synthetic_world import box, cast, room_world, to_points
 
-from frslam_graph.mapping import (
+from frslam_graph.backend.mapping import (
     NO_RETURN_RANGE,
     OccupancyMapper,
     endpoint_share,
@@ -15,7 +15,7 @@ from frslam_graph.mapping import (
     occupancy_grid,
     scan_points_in_map,
 )
-from frslam_graph.motion_model import compose
+from frslam_graph.odometry.motion_model import compose
 
 RES = 0.05
 
@@ -179,7 +179,7 @@ def test_the_registration_map_lets_free_space_win_over_a_stray_hit():
     """A chair leg hit by 2 scans, crossed by the free space of 20 others: the map a user loads
     keeps it (hits outweigh misses), the map the floor-plan registration reads (rooms against
     free space, ``FREE_SPACE_WEIGHTS``) clears it."""
-    from frslam_graph.mapping import FREE_SPACE_WEIGHTS
+    from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS
 
     world = np.array(
         [[-5.0, -3.0, 5.0, -3.0], [5.0, -3.0, 5.0, 3.0], [5.0, 3.0, -5.0, 3.0], [-5.0, 3.0, -5.0, -3.0]]

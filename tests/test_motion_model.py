@@ -7,7 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from frslam_graph.motion_model import (
+from frslam_graph.odometry.motion_model import (
     MotionEKF,
     between,
     between_many,

@@ -16,8 +16,8 @@ from synthetic_world import (
 
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import RecordingError
-from frslam_graph.motion_model import between
-from frslam_graph.odometry import ScanOdometry, scan_geometry
+from frslam_graph.odometry.motion_model import between
+from frslam_graph.odometry.scan_odometry import ScanOdometry, scan_geometry
 
 CFG = OdometryConfig(max_range=10.0)
 
@@ -313,8 +313,8 @@ def test_inlier_fractions_local_crop_is_exact():
     """The two-seed score looks at the map near the source only: same fractions as a full search."""
     from scipy.spatial import cKDTree
 
-    from frslam_graph.motion_model import to_matrix4
-    from frslam_graph.odometry import _inlier_fractions
+    from frslam_graph.odometry.motion_model import to_matrix4
+    from frslam_graph.odometry.scan_odometry import _inlier_fractions
 
     rng = np.random.default_rng(3)
     map_pts = np.column_stack((rng.uniform(-30, 30, (20000, 2)), np.zeros(20000)))
@@ -340,8 +340,8 @@ def test_inlier_fractions_local_crop_is_exact():
 
 def test_inlier_fractions_failed_pose_scores_zero():
     """A non-finite ICP pose among the seeds scores no inliers (it used to raise from the k-d tree)."""
-    from frslam_graph.motion_model import to_matrix4
-    from frslam_graph.odometry import _inlier_fractions
+    from frslam_graph.odometry.motion_model import to_matrix4
+    from frslam_graph.odometry.scan_odometry import _inlier_fractions
 
     pts = np.column_stack((np.linspace(0, 5, 200), np.zeros(200), np.zeros(200)))
     good = to_matrix4(np.zeros(3))
@@ -377,7 +377,7 @@ def test_wheel_odometry_that_loses_the_sign_of_the_motion(room):
     encoder without direction; the FR079 log integrates a reversal at 0.5 m/s as forward motion):
     the scan's motion is trusted, those increments count as odometry jumps, and the drift stays
     as without the fault (0.66 % of the route if the wheels are fused)."""
-    from frslam_graph.motion_model import compose
+    from frslam_graph.odometry.motion_model import compose
 
     truth, points, odom = room
     sub = np.arange(0, len(truth), 2)  # 5 Hz: 0.1 m a scan

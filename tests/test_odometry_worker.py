@@ -13,12 +13,12 @@ import pytest
 from frslam_graph.datasets import Scan
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
-from frslam_graph import odometry_worker
+from frslam_graph.backend.offline import process
+from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
-from frslam_graph.odometry import PreparedScan, ScanOdometry
-from frslam_graph.offline import process
-from frslam_graph.pipeline import FRSlam
+from frslam_graph.odometry import worker as odometry_worker
+from frslam_graph.odometry.scan_odometry import PreparedScan, ScanOdometry
 
 CFG = {"odometry": {"max_range": 10.0}}
 
@@ -112,7 +112,7 @@ def test_a_worker_whose_caller_was_killed_exits_on_its_own(tmp_path):
     script.write_text(
         "import os, sys\n"
         "from frslam_graph.config import OdometryConfig\n"
-        "from frslam_graph.odometry_worker import OdometryWorker\n"
+        "from frslam_graph.odometry.worker import OdometryWorker\n"
         "w = OdometryWorker(OdometryConfig(), poll_s=0.1)\n"
         "print(w._proc.pid, flush=True)\n"
         "os._exit(0)\n"

@@ -9,7 +9,7 @@ from synthetic_world import box, cast
 
 from frslam_graph.errors import FloorPlanError, FrslamError
 from frslam_graph.floorplan import Door, FloorPlan, Room
-from frslam_graph.relocalisation import PlanField, Relocaliser, relocalise, subsample
+from frslam_graph.localisation.relocalisation import PlanField, Relocaliser, relocalise, subsample
 
 H = 0.06  # half wall thickness used by the simulated walls and the relocaliser
 

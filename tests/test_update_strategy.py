@@ -9,13 +9,12 @@ import pytest
 from shapely.geometry import box as sbox
 
 from frslam_graph.backend.decisions import DecisionEvent
+from frslam_graph.backend.offline import RunOutput, process, write_outputs
+from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan, Room
-from frslam_graph.offline import RunOutput, process, write_outputs
-from frslam_graph.pipeline import FRSlam
 from frslam_graph.registration import Registration
-from frslam_graph.update_strategy import FloorPlanUpdater
 
 # Loop closure off: these tests isolate the floor-plan priors from the other source of corrections.
 # The end-of-run refinement (FloorPlanUpdater.on_finish) off: these tests count the decisions of
@@ -293,9 +292,9 @@ def test_acceptance_checks_tolerate_map_drift(sim, drift):
     check."""
     from dataclasses import replace
 
+    from frslam_graph.localisation.relocalisation import Relocaliser
     from frslam_graph.plan_checks import occupied_points, walls_through_free_space
     from frslam_graph.plan_updates.judge import tolerances
-    from frslam_graph.relocalisation import Relocaliser
 
     plan, run, _ = sim
     cfg = CFG.updates

@@ -68,11 +68,11 @@ from _sweep import Sweep, SweepError  # noqa: E402
 from frslam_graph.datasets import Scan  # noqa: E402
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along  # noqa: E402
 
-from frslam_graph import odometry_worker  # noqa: E402
+from frslam_graph.backend.offline import process  # noqa: E402
+from frslam_graph.backend.slam import FRSlam  # noqa: E402
 from frslam_graph.config import FRSlamConfig  # noqa: E402
-from frslam_graph.motion_model import between  # noqa: E402
-from frslam_graph.offline import process  # noqa: E402
-from frslam_graph.pipeline import FRSlam  # noqa: E402
+from frslam_graph.odometry import worker as odometry_worker  # noqa: E402
+from frslam_graph.odometry.motion_model import between  # noqa: E402
 
 R2V_DIR = REPO.parent / "shared" / "data" / "floorplans" / "r2v"
 WRONG_FRAC = 0.25
@@ -152,7 +152,7 @@ def accuracy(slam, truth):
     rel_o = between(odo[0, 1:], odo[-1, 1:])
     drift = float(np.hypot(*(rel_t[:2] - rel_o[:2]))) / path
     # align the start (the run without wheel odometry starts its odom frame at the origin)
-    from frslam_graph.motion_model import compose, compose_many, inverse
+    from frslam_graph.odometry.motion_model import compose, compose_many, inverse
 
     align = compose(truth[0, 1:], inverse(traj[0, 1:]))
     est = compose_many(align, traj[:, 1:])
@@ -291,7 +291,7 @@ def house_task(task: dict) -> dict:
 
     from frslam_graph.evaluation.metrics import ate  # noqa: PLC0415
     from frslam_graph.floorplan import FloorPlan  # noqa: PLC0415
-    from frslam_graph.update_strategy import FloorPlanUpdater  # noqa: PLC0415
+    from frslam_graph.plan_updates.updater import FloorPlanUpdater  # noqa: PLC0415
 
     out = {"plan": task["plan"].name, "other": task["other"].name, "rows": [], "skip": None}
     try:

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from synthetic_world import cast  # noqa: E402
 from test_relocalisation import two_rooms  # noqa: E402
 
-from frslam_graph.relocalisation import Relocaliser, subsample  # noqa: E402
+from frslam_graph.localisation.relocalisation import Relocaliser, subsample  # noqa: E402
 
 
 def exhaustive(reloc: Relocaliser, points: np.ndarray, prior: np.ndarray) -> np.ndarray:

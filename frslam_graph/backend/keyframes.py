@@ -1,7 +1,7 @@
 """The keyframe store: per scan what the trajectory needs, per keyframe its scan (base_link).
 
 Poses are (x, y, theta) in metres / radians: ``pose_odom`` in ``odom``, ``relative`` of a scan to
-its keyframe; the ``map`` poses are the pose graph's (:class:`~frslam_graph.graph.PoseGraph`).
+its keyframe; the ``map`` poses are the pose graph's (:class:`~frslam_graph.backend.graph.PoseGraph`).
 """
 
 from __future__ import annotations

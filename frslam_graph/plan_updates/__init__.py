@@ -5,5 +5,5 @@
 - :mod:`.judge`: accept / refine / reject a registration (a verdict; writes nothing);
 - :mod:`.refiner`: the accepted plan's scale and its placement at the start;
 - :mod:`.priors`: relocalisations on the accepted plan as gated floor-plan priors, their check;
-- :class:`~frslam_graph.update_strategy.FloorPlanUpdater`: the hook that routes the verdicts.
+- :class:`~frslam_graph.plan_updates.updater.FloorPlanUpdater`: the hook that routes the verdicts.
 """

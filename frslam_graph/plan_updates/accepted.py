@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from frslam_graph.relocalisation import Relocaliser
+from frslam_graph.localisation.relocalisation import Relocaliser
 
 
 @dataclass

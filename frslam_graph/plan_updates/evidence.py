@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from frslam_graph.relocalisation import Relocaliser
+from frslam_graph.localisation.relocalisation import Relocaliser
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

@@ -23,11 +23,11 @@ import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
+from frslam_graph.localisation.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
 from frslam_graph.plan_checks import matrix_disagreement, occupied_points, walls_through_free_space
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.priors import gate_chi2
-from frslam_graph.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

@@ -1,6 +1,6 @@
 """Final alignment: dense scan-to-submap constraints between passes at the end of a run.
 
-Loop closure (:mod:`frslam_graph.loop_closure`) adds a closure now and then while the robot
+Loop closure (:mod:`frslam_graph.loop_closure.closer`) adds a closure now and then while the robot
 drives, searching widely because the estimate may have drifted. Once the graph has converged
 (:meth:`FRSlam.finish`), every keyframe's estimate is within centimetres of the truth, so
 every place the robot passed more than once can be tied cheaply: for each keyframe, the
@@ -32,14 +32,14 @@ import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
+from frslam_graph.backend.graph import key
 from frslam_graph.factors.between import pose2
-from frslam_graph.graph import key
-from frslam_graph.motion_model import between, between_many, wrap
-from frslam_graph.submap_matching import (
+from frslam_graph.loop_closure.submap_matching import (
     ReferenceSubmap,
     rigid_points,
     voxel_downsample,
 )
+from frslam_graph.odometry.motion_model import between, between_many, wrap
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -228,7 +228,7 @@ def _icp_many(
     ref: np.ndarray,
     start: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`~frslam_graph.submap_matching.icp_point_to_line` of many pairs at once (the same
+    """:func:`~frslam_graph.loop_closure.submap_matching.icp_point_to_line` of many pairs at once (the same
     iterations, gates and covariance; ICP_* settings): pair p's query points are the rows of
     ``queries`` whose ``owner`` is p, matched onto submap ``ref[p]`` from ``start[p]``. Returns
     (poses (P, 3), body covariances (P, 3, 3), ok (P,): False where ICP gave up)."""

@@ -1,8 +1,8 @@
 """Offline processing of a recording: run the backend, write its outputs, evaluate.
 
 :func:`process` is the offline loop: every scan of a recording through an
-:class:`~frslam_graph.pipeline.FRSlam`, the scan odometry in a worker process one stage ahead
-(:mod:`frslam_graph.odometry_worker`) where possible, then the final batch. ``run_recording`` drives :class:`~frslam_graph.pipeline.FRSlam` over every scan of a recording
+:class:`~frslam_graph.backend.slam.FRSlam`, the scan odometry in a worker process one stage ahead
+(:mod:`frslam_graph.odometry.worker`) where possible, then the final batch. ``run_recording`` drives :class:`~frslam_graph.backend.slam.FRSlam` over every scan of a recording
 (optionally with a floor plan, whose registrations / relocalisations become priors) and
 ``write_outputs`` saves what a user needs: the trajectory (TUM, ``map`` frame), the LiDAR map
 (map_server YAML + PGM), the registered plan (JSON, map metres), the decision log (JSON lines)
@@ -27,14 +27,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from frslam_graph import odometry_worker, stream_input
+from frslam_graph import stream_input
 from frslam_graph.atomic import OutputFolder
 from frslam_graph.backend.decisions import PRIOR_REMOVAL_CAUSES, DecisionEvent
 from frslam_graph.backend.keyframes import Rows
+from frslam_graph.backend.slam import FRSlam, body_points
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, TrajectoryError
-from frslam_graph.odometry import OdometryStats
-from frslam_graph.pipeline import FRSlam, body_points
+from frslam_graph.odometry import worker as odometry_worker
+from frslam_graph.odometry.scan_odometry import OdometryStats
 
 if TYPE_CHECKING:
     from frslam_graph.occupancy import OccupancyGrid
@@ -78,9 +79,9 @@ def process(
     """Run ``slam`` over every Scan of a recording (offline); LM batch at the end when ``batch``.
 
     ``parallel``: run the scan odometry in a worker process, one stage ahead of the backend
-    (:mod:`frslam_graph.odometry_worker`; same results, about 1.5x the throughput on two
+    (:mod:`frslam_graph.odometry.worker`; same results, about 1.5x the throughput on two
     cores). None = whenever possible: a fresh instance (no scans yet) where
-    :func:`~frslam_graph.odometry_worker.available` holds. Afterwards ``slam`` takes no more
+    :func:`~frslam_graph.odometry.worker.available` holds. Afterwards ``slam`` takes no more
     scans (its own odometry did not run). ``SlamResult.latencies`` are then the sum of both
     stages' seconds per scan (what ``add_scan`` would take).
     """
@@ -143,7 +144,7 @@ def _odometry_here(slam: FRSlam, recording: Iterable[Any]) -> Iterator[tuple]:
 
 
 def _odometry_in_worker(slam: FRSlam, recording: Iterable[Any], worker) -> Iterator[tuple]:
-    """The same from an :class:`~frslam_graph.odometry_worker.OdometryWorker`; the stateless
+    """The same from an :class:`~frslam_graph.odometry.worker.OdometryWorker`; the stateless
     part of the odometry (prepare) runs in whichever stage is the lighter one."""
 
     def inputs():
@@ -373,7 +374,7 @@ def plan_acceptance(result: SlamResult) -> dict[str, Any] | None:
 def _map_metrics(slam: FRSlam, grid) -> dict[str, Any]:
     """The written map against the keyframe scans at the final estimates: share of end points on
     or next to (8-neighbourhood) an occupied cell, and the occupied / free cell counts."""
-    from frslam_graph.mapping import endpoint_share, scan_points_in_map
+    from frslam_graph.backend.mapping import endpoint_share, scan_points_in_map
 
     pts, _ = slam.keyframe_scans()
     return {

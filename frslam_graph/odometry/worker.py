@@ -1,16 +1,16 @@
 """Scan odometry in a second process, one stage ahead of the backend (offline runs).
 
-The front end (:class:`~frslam_graph.odometry.ScanOdometry`: KISS-ICP fused with wheel odometry)
+The front end (:class:`~frslam_graph.odometry.scan_odometry.ScanOdometry`: KISS-ICP fused with wheel odometry)
 depends on nothing downstream: the graph, loop closure and floor-plan priors never feed back into
-it. Offline, :func:`frslam_graph.offline.process` therefore runs it in a
+it. Offline, :func:`frslam_graph.backend.offline.process` therefore runs it in a
 forked worker on the second core while the caller's process runs the backend on the results of
 earlier scans, a classic two-stage pipeline. The worker gets scans (stamp, points in base_link,
-wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.OdometryResult` per
+wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.scan_odometry.OdometryResult` per
 scan, in order; the results are bit-identical to running the
-same ScanOdometry in-process. Frames and units are those of :mod:`frslam_graph.odometry`.
+same ScanOdometry in-process. Frames and units are those of :mod:`frslam_graph.odometry.scan_odometry`.
 
 The stateless part of the odometry (:meth:`ScanOdometry.prepare
-<frslam_graph.odometry.ScanOdometry.prepare>`: valid points, voxelisation, scan geometry) goes to
+<frslam_graph.odometry.scan_odometry.ScanOdometry.prepare>`: valid points, voxelisation, scan geometry) goes to
 whichever stage is the lighter one: given a ``prepare`` function, :meth:`OdometryWorker.run`
 applies it in the caller to the next chunk while the caller's own work per scan is below the
 worker's (a light backend), and leaves it to the worker otherwise (loop closure and floor-plan
@@ -40,7 +40,7 @@ import numpy as np
 
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import FrslamError
-from frslam_graph.odometry import OdometryResult, OdometryStats, PreparedScan, ScanOdometry
+from frslam_graph.odometry.scan_odometry import OdometryResult, OdometryStats, PreparedScan, ScanOdometry
 
 #: one scan for the worker: stamp (s), points (M, 2) in base_link or their PreparedScan, wheel
 #: pose (x, y, theta) in odom or None

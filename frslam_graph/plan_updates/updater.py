@@ -45,6 +45,7 @@ import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
+from frslam_graph.localisation.relocalisation import RelocaliserParams
 from frslam_graph.plan_checks import walls_through_free_space
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
@@ -53,7 +54,6 @@ from frslam_graph.plan_updates.priors import HeldReanchor, PriorManager, record
 from frslam_graph.plan_updates.refiner import PlanRefiner, Refinement
 from frslam_graph.plan_updates.schedule import RegistrationSchedule, Trigger
 from frslam_graph.plan_updates.travel import Coverage, Travel
-from frslam_graph.relocalisation import RelocaliserParams
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -334,7 +334,7 @@ class FloorPlanUpdater:
     def _local_grid(self, ctx: BackendContext):
         """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
         travelled: less drift accumulated inside it than in the whole map."""
-        from frslam_graph.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
+        from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
 
         d = np.asarray(self.travel.kf_dist)
         keep = np.nonzero(d >= self.travel.dist - self.config.local_map_distance)[0]

@@ -2,11 +2,11 @@
 
 :class:`FRSlam` is the composition root and a small facade. ``add_scan(stamp, ranges,
 angle_min, angle_increment, odom=None)`` runs the scan odometry (KISS-ICP fused with wheel
-odometry, :mod:`frslam_graph.odometry`); every keyframe becomes a Pose2 variable of the
-:class:`~frslam_graph.graph.PoseGraph` (iSAM2). Non-keyframe scans hang off their keyframe by
+odometry, :mod:`frslam_graph.odometry.scan_odometry`); every keyframe becomes a Pose2 variable of the
+:class:`~frslam_graph.backend.graph.PoseGraph` (iSAM2). Non-keyframe scans hang off their keyframe by
 their odometry pose relative to it, so the whole trajectory follows the graph. ``pose()`` and
 ``map_to_odom()`` are the outputs a robot stack reads; ``finish()`` ends a run (the final LM
-batch). The offline loop over a recording is :func:`frslam_graph.offline.process`.
+batch). The offline loop over a recording is :func:`frslam_graph.backend.offline.process`.
 
 Per scan (the core step, :meth:`FRSlam._record`):
 
@@ -14,7 +14,7 @@ Per scan (the core step, :meth:`FRSlam._record`):
 2. a scan that is not a keyframe runs one deferred step, and queued loop-closure work in the rest
    of the scan's budget (:mod:`frslam_graph.backend.deferred`);
 3. a keyframe enters the graph and the keyframe store, then the hooks run: the floor-plan update
-   strategy (paper Alg. 3, :class:`~frslam_graph.update_strategy.FloorPlanUpdater` when a plan is
+   strategy (paper Alg. 3, :class:`~frslam_graph.plan_updates.updater.FloorPlanUpdater` when a plan is
    given) and the loop closer. Hooks see a :class:`~frslam_graph.backend.context.BackendContext`
    (``slam.context``), never the facade.
 
@@ -49,15 +49,15 @@ import numpy as np
 from frslam_graph import stream_input
 from frslam_graph.backend.context import BackendContext, BackendHook, CallableHook, ThreadGuard
 from frslam_graph.backend.decisions import DecisionEvent, DecisionLog
+from frslam_graph.backend.graph import PoseGraph
 from frslam_graph.backend.keyframes import KeyframeInfo, StoredKeyframe
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
-from frslam_graph.final_alignment import align_passes
-from frslam_graph.graph import PoseGraph
-from frslam_graph.loop_closure import LoopCloser
-from frslam_graph.motion_model import compose, compose_many
-from frslam_graph.odometry import OdometryResult, OdometryStats, ScanOdometry
-from frslam_graph.update_strategy import FloorPlanUpdater
+from frslam_graph.loop_closure.closer import LoopCloser
+from frslam_graph.loop_closure.final_alignment import align_passes
+from frslam_graph.odometry.motion_model import compose, compose_many
+from frslam_graph.odometry.scan_odometry import OdometryResult, OdometryStats, ScanOdometry
+from frslam_graph.plan_updates.updater import FloorPlanUpdater
 
 
 def _one_thread(method: Callable[..., Any]) -> Callable[..., Any]:
@@ -86,7 +86,7 @@ class FRSlam:
         """``floor_plan``: a FloorPlan, or a path loaded with ``FloorPlan.load``, or None.
         ``update_strategy``: a :class:`~frslam_graph.backend.context.BackendHook` or a plain
         function ``f(ctx, keyframe)``; None with a floor plan = the paper's Alg. 3
-        (:class:`~frslam_graph.update_strategy.FloorPlanUpdater`)."""
+        (:class:`~frslam_graph.plan_updates.updater.FloorPlanUpdater`)."""
         self.guard = ThreadGuard()
         self.config = _as_config(config)
         self.floor_plan = floor_plan = stream_input.floor_plan(floor_plan)
@@ -339,7 +339,7 @@ class FRSlam:
         The default keeps walls (a hit outweighs many passing beams: the map a user loads);
         ``free_space=True`` weighs hits and misses as the floor-plan registration wants it (free
         space wins over stray hits, see ``mapping.FREE_SPACE_WEIGHTS``). Incremental: one
-        :class:`~frslam_graph.mapping.OccupancyMapper` per resolution and kind is kept; each call
+        :class:`~frslam_graph.backend.mapping.OccupancyMapper` per resolution and kind is kept; each call
         inserts the new keyframes and re-inserts those whose estimate moved.
         """
         return self.context.occupancy_grid(resolution, free_space)

@@ -9,7 +9,7 @@ Per scan: the wheel increment u_t (or a constant-velocity guess) seeds KISS-ICP 
 ``last_delta``; KISS-ICP's pose is refined by point-to-line ICP on a local map of the last
 ``local_map_scans`` scans (walls as lines, :meth:`ScanOdometry._refine`); the ICP pose relative
 to the last keyframe is fused with u_t in
-:class:`~frslam_graph.motion_model.MotionEKF`. The ICP covariance comes from the point-to-line
+:class:`~frslam_graph.odometry.motion_model.MotionEKF`. The ICP covariance comes from the point-to-line
 Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by a residual sigma;
 when the normals span only one direction (a featureless corridor) the scan is *degenerate*: the
 covariance is inflated along the corridor axis so the motion model carries that direction.
@@ -37,7 +37,8 @@ import numpy as np
 
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import RecordingError
-from frslam_graph.motion_model import (
+from frslam_graph.loop_closure.submap_matching import ReferenceSubmap, icp_point_to_line, transform_points
+from frslam_graph.odometry.motion_model import (
     MotionEKF,
     between,
     compose,
@@ -49,7 +50,6 @@ from frslam_graph.motion_model import (
     wheel_increment,
     wheel_noise,
 )
-from frslam_graph.submap_matching import ReferenceSubmap, icp_point_to_line, transform_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,7 +114,7 @@ class PreparedScan:
     ``geometry``: the point-to-line information; ``icp_covariance``: what it gives the ICP step
     (body-frame covariance, degenerate, fallback, weak axis). The last four are None when the scan has too
     few points or scan matching is off (computed on demand then). Preparing scans apart from the
-    sequential registration lets it run in another process (:mod:`frslam_graph.odometry_worker`).
+    sequential registration lets it run in another process (:mod:`frslam_graph.odometry.worker`).
     """
 
     points: np.ndarray

@@ -27,7 +27,7 @@ the fewer closures let aliased ones weigh more); once floor-plan priors are in t
 ``redundant_travel_with_plan`` applies: the priors hold the map to the plan, and most closures of
 a robot re-traversing the plan's rooms would only repeat what the priors already say.
 
-Each candidate is verified by :func:`~frslam_graph.submap_matching.match_scan`: the *query* submap (the points of the last
+Each candidate is verified by :func:`~frslam_graph.loop_closure.submap_matching.match_scan`: the *query* submap (the points of the last
 ``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
 points of c's neighbouring keyframes, in c's frame). A correlative grid search over (x, y, theta)
 scores every pose at once (vectorised over poses × points) on a likelihood field of the reference
@@ -94,19 +94,19 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from frslam_graph.backend.graph import key
+from frslam_graph.backend.steps import Steps, run_steps
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
-from frslam_graph.graph import key
-from frslam_graph.motion_model import between, between_many, compose, wrap
-from frslam_graph.steps import Steps, run_steps
-from frslam_graph.submap_matching import (
+from frslam_graph.loop_closure.submap_matching import (
     ReferenceSubmap,
     ScanMatch,
     match_scan_steps,
     rigid_points,
     transform_points,
 )
+from frslam_graph.odometry.motion_model import between, between_many, compose, wrap
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

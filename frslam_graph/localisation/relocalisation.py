@@ -23,7 +23,7 @@ in ``base_link`` (N, 2) and a prior pose of ``base_link`` in ``map``:
 
 Covariances are in the tangent space of the pose as (x, y, θ) in map (the same vector the graph
 uses for ``PriorFactorPose2`` up to the rotation of the translation block, see
-:func:`frslam_graph.motion_model.tangent_cov`).
+:func:`frslam_graph.odometry.motion_model.tangent_cov`).
 """
 
 from __future__ import annotations
