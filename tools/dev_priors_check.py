@@ -164,7 +164,7 @@ def main() -> None:
             if args.verbose and upd is not None:
                 for e in upd.log:
                     if e.kind != "relocalise":
-                        print(f"    {e.stamp - run.stamps[0]:7.1f}s kf{e.keyframe} {e.kind}: {e.reason}")
+                        print(f"    {e.stamp - run.stamps[0]:7.1f}s kf{e.keyframe} {e.kind}: {e.message}")
                 print("    timings", {k: round(v, 2) for k, v in upd.timings.items()})
 
 
