@@ -858,10 +858,13 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     other, mo = _other_building(run)
     source = ambiguous_source(mo, [rotated_about_centre(other, mo, angle=np.pi / 2)])
     cfg = CFG.updates.model_copy(update=NO_REFINEMENT)
+    from frslam_graph.plan_updates.evidence import ScanEvidence
+    from frslam_graph.plan_updates.judge import RegistrationJudge
+
     fits = []
-    scan_fit = FloorPlanUpdater._scan_fit
+    scan_fit = ScanEvidence.fit
     monkeypatch.setattr(
-        FloorPlanUpdater, "_scan_fit", lambda self, slam, rel: fits.append(1) or scan_fit(self, slam, rel)
+        ScanEvidence, "fit", lambda self, ctx, rel, n: fits.append(1) or scan_fit(self, ctx, rel, n)
     )
     upd = FloorPlanUpdater(other, cfg, register_fn=source)
     slam, res = run_slam(run, upd)
@@ -871,7 +874,7 @@ def test_ambiguous_placements_none_of_which_fits_the_map_are_rejected_without_sc
     assert all(e.data["placements_map_fit"] < cfg.min_map_fit for e in regs)
     assert not fits
     # the same run as one whose every registration attempt is rejected outright
-    monkeypatch.setattr(FloorPlanUpdater, "_disambiguate", lambda self, slam, reg, grid, nums: None)
+    monkeypatch.setattr(RegistrationJudge, "_disambiguate", lambda self, case, reg: None)
     _, res_rejected = run_slam(run, FloorPlanUpdater(other, cfg, register_fn=source))
     np.testing.assert_array_equal(res.trajectory, res_rejected.trajectory)
     # a placement that fits the map keeps the scan fits (the right plan, mirrored and right)
