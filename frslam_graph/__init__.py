@@ -30,7 +30,7 @@ _LAZY = {
     "Registration": "frslam_graph.registration",
     "open_recording": "frslam_graph.datasets",
     "Scan": "frslam_graph.datasets",
-    "FRSlam": "frslam_graph.backend.slam",
+    "FRSlam": "frslam_graph.slam",
     "FRSlamConfig": "frslam_graph.config",
     "FrslamError": "frslam_graph.errors",
     "FloorPlanError": "frslam_graph.errors",

@@ -23,7 +23,7 @@ from frslam_graph.atomic import TEMP_PREFIX
 from frslam_graph.errors import FrslamError
 
 if TYPE_CHECKING:
-    from frslam_graph.backend.offline import RunOutput
+    from frslam_graph.offline import RunOutput
 
 #: how to install the optional dependency
 INSTALL = "pip install 'frslam[viz]' (or: pip install rerun-sdk)"

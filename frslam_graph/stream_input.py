@@ -1,4 +1,4 @@
-"""Checks of the streaming API's arguments (:class:`~frslam_graph.backend.slam.FRSlam` ``add_scan``,
+"""Checks of the streaming API's arguments (:class:`~frslam_graph.slam.FRSlam` ``add_scan``,
 ``add_points``, ``add`` and the constructor's ``floor_plan``).
 
 Each check returns the value in the form the pipeline uses (float, float64 array, FloorPlan) or

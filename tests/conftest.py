@@ -65,7 +65,7 @@ def five_room_sim():
 @pytest.fixture(scope="session")
 def accepted_run(five_room_sim):
     """A run of the five-room simulation with its plan (the plan is accepted within seconds)."""
-    from frslam_graph.backend.offline import run_recording
+    from frslam_graph.offline import run_recording
 
     plan, sim, _ = five_room_sim
     return run_recording(sim.scans, floor_plan=plan, parallel=False)
@@ -74,7 +74,7 @@ def accepted_run(five_room_sim):
 @pytest.fixture
 def replayed(accepted_run, monkeypatch):
     """``run`` / ``compare`` return ``accepted_run`` instead of processing the recording given."""
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     monkeypatch.setattr(offline, "run_recording", lambda recording, floor_plan=None, **kw: accepted_run)
     return accepted_run

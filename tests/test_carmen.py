@@ -348,8 +348,8 @@ def test_shared_logs_read_in_full(shared_data, name, beams):
 def test_intel_excerpt_backwards_stamps_all_kept_by_the_backend(test_data):
     """The Intel log stamps scans in bursts, some before their predecessor (its line 90 is the
     first): the backend keeps every scan, one pose per scan at its own stamp, in file order."""
-    from frslam_graph.backend.offline import process
-    from frslam_graph.backend.slam import FRSlam
+    from frslam_graph.offline import process
+    from frslam_graph.slam import FRSlam
 
     rec = open_recording(test_data / "intel_head.clf.bz2")
     scans, _ = read_all(rec)

@@ -109,7 +109,7 @@ def test_bad_ground_truth_or_config_stops_before_the_run(small_log, tmp_path, ca
     missing one or a config with a mistyped field exits 2 naming the file and the line / field,
     without processing the recording (before, a bad --ground-truth failed after the run and its
     outputs were lost)."""
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     log, _ = small_log
     runs = []
@@ -159,7 +159,7 @@ def test_reader_warnings_are_one_line_and_kept_in_the_metrics(small_log, tmp_pat
 def test_compare_keeps_the_first_runs_outputs_when_the_second_fails(small_log, tmp_path, monkeypatch):
     """compare writes the run without priors before starting the one with them: a failure in
     the second run (here a simulated crash) does not lose the first run's outputs."""
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     log, gt = small_log
     room = tmp_path / "room.json"

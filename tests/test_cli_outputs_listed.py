@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from frslam_graph.backend.decisions import DecisionEvent
-from frslam_graph.backend.offline import plan_acceptance
 from frslam_graph.cli import main
 from frslam_graph.cli.summary import plan_status
+from frslam_graph.offline import plan_acceptance
 from tests.test_outputs_atomic import SIM_ARGS
 from tests.test_registration import EXPLORED, ring_map, synthetic_plan, truth_matrix
 

@@ -63,7 +63,7 @@ def test_an_unknown_key_without_a_close_match_points_to_the_list():
 
 
 def test_run_with_a_mistyped_config_key_exits_2_with_one_line(small_log, tmp_path, capsys, monkeypatch):
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     monkeypatch.setattr(offline, "run_recording", lambda *a, **k: pytest.fail("the run started"))
     bad = tmp_path / "bad.yaml"

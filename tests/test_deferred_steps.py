@@ -8,12 +8,12 @@ import pytest
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
 from frslam_graph.backend.deferred import DeferredSteps
-from frslam_graph.backend.offline import process
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.odometry import worker as odometry_worker
+from frslam_graph.offline import process
 from frslam_graph.plan_updates.updater import FloorPlanUpdater
 from frslam_graph.registration import Registration
+from frslam_graph.slam import FRSlam
 
 ROOM_CFG = {"odometry": {"max_range": 10.0}}
 

@@ -11,12 +11,12 @@ import pytest
 from synthetic_world import ROOM_LOOP, box, cast, corridor_world, room_world, route, scans_along, to_points
 
 from frslam_graph.backend.graph import key
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError
 from frslam_graph.loop_closure.closer import LoopCloser, LoopClosure
 from frslam_graph.loop_closure.submap_matching import ReferenceSubmap, match_scan, transform_points
 from frslam_graph.odometry.motion_model import between, compose
+from frslam_graph.slam import FRSlam
 
 CFG = {"odometry": {"max_range": 10.0}}
 
@@ -415,8 +415,8 @@ def test_confirmed_pair_stays_robust_once_floor_plan_priors_anchor_the_map(ancho
 
     import gtsam
 
-    from frslam_graph.backend.slam import FRSlam
     from frslam_graph.loop_closure.closer import LoopCloser, LoopClosure
+    from frslam_graph.slam import FRSlam
 
     slam = FRSlam()
     g = slam.graph
@@ -493,8 +493,8 @@ def test_large_turn_since_the_closure_unties_the_region():
 
 
 def test_queued_candidate_tied_by_a_later_closure_is_dropped_unmatched():
-    from frslam_graph.backend.steps import run_steps
     from frslam_graph.loop_closure.closer import _Job
+    from frslam_graph.steps import run_steps
 
     closer, est = _circle_closer(None)
     job = _Job(22, 60, 3.0, 0.2, None, len(closer.closures))  # planned before the closure below
@@ -600,9 +600,9 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
     """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with a large correction and
     ``inliers``; with ``pending`` a closure of keyframe 37 on keyframe 0 agrees with it."""
     import frslam_graph.loop_closure.closer as lcm
-    from frslam_graph.backend.steps import run_steps
     from frslam_graph.loop_closure.closer import _Job
     from frslam_graph.loop_closure.submap_matching import ScanMatch
+    from frslam_graph.steps import run_steps
 
     slam = _line_slam()
     # no pruning: the straight chain cannot fold onto itself as these closures would have it

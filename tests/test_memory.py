@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from synthetic_world import ROOM_LOOP, cast, room_world, route
 
-from frslam_graph.backend.offline import process
-from frslam_graph.backend.slam import FRSlam
+from frslam_graph.offline import process
+from frslam_graph.slam import FRSlam
 
 #: retained bytes per scan that is not a keyframe: stamp, keyframe index, pose relative to the
 #: keyframe, odometry pose and latency (72 B), at most twice that while the growable arrays are

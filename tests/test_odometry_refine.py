@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 from frslam_graph.datasets import open_recording
 
-from frslam_graph.backend.slam import body_points
 from frslam_graph.config import OdometryConfig
 from frslam_graph.evaluation.relations import relation_error
 from frslam_graph.evaluation.trajectory_io import load_relations
 from frslam_graph.odometry.scan_odometry import ScanOdometry
+from frslam_graph.slam import body_points
 
 
 def _frontend(scans, local_map_scans: int) -> np.ndarray:

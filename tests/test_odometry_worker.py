@@ -13,12 +13,12 @@ import pytest
 from frslam_graph.datasets import Scan
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
-from frslam_graph.backend.offline import process
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
 from frslam_graph.odometry import worker as odometry_worker
 from frslam_graph.odometry.scan_odometry import PreparedScan, ScanOdometry
+from frslam_graph.offline import process
+from frslam_graph.slam import FRSlam
 
 CFG = {"odometry": {"max_range": 10.0}}
 

@@ -43,7 +43,7 @@ def finished_run(small_log):
     """A finished run of the small log (computed once; the CLI tests reuse it)."""
     from frslam_graph.datasets import open_recording
 
-    from frslam_graph.backend.offline import run_recording
+    from frslam_graph.offline import run_recording
 
     return run_recording(open_recording(small_log[0]), parallel=False)
 
@@ -51,7 +51,7 @@ def finished_run(small_log):
 @pytest.fixture
 def quick_run(finished_run, monkeypatch):
     """``frslam run`` without processing: run_recording returns the finished run; ``calls`` counts."""
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     calls: list[object] = []
 
@@ -107,7 +107,7 @@ def test_run_interrupted_while_writing_leaves_the_previous_run_whole(
 def test_compare_interrupted_in_the_second_run_names_the_first(
     small_log, tmp_path, finished_run, monkeypatch, capsys
 ):
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     def second_interrupted(recording, floor_plan=None, **kw):
         if floor_plan is not None:
@@ -221,8 +221,8 @@ def test_bad_out_is_found_before_any_work(
 ):
     """An output that cannot be written is one line naming the option, exit 2, before the work
     (the run, the registration, the simulation, the rendering) starts."""
-    import frslam_graph.backend.offline as offline
     import frslam_graph.floorplan.render as render
+    import frslam_graph.offline as offline
     import frslam_graph.registration as registration
     from frslam_graph.resources import bundled
 

@@ -9,11 +9,11 @@ import pytest
 from frslam_graph.datasets import Scan
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
-from frslam_graph.backend.offline import process
-from frslam_graph.backend.slam import FRSlam, KeyframeInfo
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, RecordingError
 from frslam_graph.odometry.motion_model import between, compose, inverse, wrap
+from frslam_graph.offline import process
+from frslam_graph.slam import FRSlam, KeyframeInfo
 
 CFG = {"odometry": {"max_range": 10.0}}
 if "loop_closure" in FRSlamConfig.model_fields:  # these tests are about odometry + graph + seams

@@ -12,12 +12,12 @@ from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, sca
 
 from frslam_graph.backend.context import BackendContext, BackendHook
 from frslam_graph.backend.decisions import DecisionLog
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import ConfigError
 from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge
 from frslam_graph.plan_updates.schedule import RegistrationSchedule
 from frslam_graph.plan_updates.updater import FloorPlanUpdater
+from frslam_graph.slam import FRSlam
 
 CFG = {"odometry": {"max_range": 10.0}, "loop_closure": {"enabled": False}}
 

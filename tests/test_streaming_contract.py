@@ -13,10 +13,10 @@ import pytest
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along
 
 from frslam_graph.backend.context import BackendContext
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, FloorPlanError, FrslamError
 from frslam_graph.floorplan.model import FloorPlan
+from frslam_graph.slam import FRSlam
 
 CFG = {"odometry": {"max_range": 10.0}, "loop_closure": {"enabled": False}}
 ROOM = {"rooms": [{"id": "r", "type": "office", "polygon": [[0, 0], [12, 0], [12, 8], [0, 8]]}]}

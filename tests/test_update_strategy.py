@@ -9,12 +9,13 @@ import pytest
 from shapely.geometry import box as sbox
 
 from frslam_graph.backend.decisions import DecisionEvent
-from frslam_graph.backend.offline import RunOutput, process, write_outputs
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan, Room
+from frslam_graph.offline import RunOutput, process, write_outputs
+from frslam_graph.plan_updates.updater import FloorPlanUpdater
 from frslam_graph.registration import Registration
+from frslam_graph.slam import FRSlam
 
 # Loop closure off: these tests isolate the floor-plan priors from the other source of corrections.
 # The end-of-run refinement (FloorPlanUpdater.on_finish) off: these tests count the decisions of

@@ -63,7 +63,7 @@ def test_compare_viz_holds_both_runs(small_log, plan_json, replayed, tmp_path):
 
 
 def test_viz_without_rerun_sdk_is_one_line_naming_the_option(small_log, tmp_path, monkeypatch, capsys):
-    import frslam_graph.backend.offline as offline
+    import frslam_graph.offline as offline
 
     def never(*args, **kwargs):
         raise AssertionError("the run started")

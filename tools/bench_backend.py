@@ -68,11 +68,11 @@ from _sweep import Sweep, SweepError  # noqa: E402
 from frslam_graph.datasets import Scan  # noqa: E402
 from synthetic_world import ROOM_LOOP, drifting_odometry, room_world, route, scans_along  # noqa: E402
 
-from frslam_graph.backend.offline import process  # noqa: E402
-from frslam_graph.backend.slam import FRSlam  # noqa: E402
 from frslam_graph.config import FRSlamConfig  # noqa: E402
 from frslam_graph.odometry import worker as odometry_worker  # noqa: E402
 from frslam_graph.odometry.motion_model import between  # noqa: E402
+from frslam_graph.offline import process  # noqa: E402
+from frslam_graph.slam import FRSlam  # noqa: E402
 
 R2V_DIR = REPO.parent / "shared" / "data" / "floorplans" / "r2v"
 WRONG_FRAC = 0.25

@@ -1,8 +1,8 @@
 """Every shared real log with the default configuration: accuracy, speed, memory (Markdown tables).
 
 Each log runs as ``frslam run`` does it (:func:`frslam_graph.datasets.open_recording`,
-:func:`frslam_graph.backend.offline.run_recording` with the odometry in a worker process, then
-:func:`~frslam_graph.backend.offline.write_outputs` into a folder), each in its own subprocess, so its
+:func:`frslam_graph.offline.run_recording` with the odometry in a worker process, then
+:func:`~frslam_graph.offline.write_outputs` into a folder), each in its own subprocess, so its
 peak RSS is that log's. One row per log:
 
 - relation error of Kümmerle et al. 2009 (``<log>.relations``; ``intel.bag`` is scored with
@@ -114,8 +114,8 @@ def child_frslam(spec: dict) -> dict[str, Any]:
     """Run one recording as ``frslam run`` does; write its outputs to ``spec["out"]``."""
     from frslam_graph.datasets import open_recording
 
-    from frslam_graph.backend.offline import run_recording, write_outputs
     from frslam_graph.evaluation.trajectory_io import load_relations
+    from frslam_graph.offline import run_recording, write_outputs
 
     rec = open_recording(spec["recording"])
     relations = load_relations(spec["relations"]) if spec.get("relations") else None

@@ -19,12 +19,13 @@ from pathlib import Path
 import numpy as np
 from frslam_graph.datasets.simulator import SimulationOptions, five_room_plan, simulate_run
 
-from frslam_graph.backend.offline import process
-from frslam_graph.backend.slam import FRSlam
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.evaluation.metrics import ate
 from frslam_graph.floorplan import FloorPlan
+from frslam_graph.offline import process
+from frslam_graph.plan_updates.updater import FloorPlanUpdater
 from frslam_graph.registration import Registration, register
+from frslam_graph.slam import FRSlam
 
 R2V = Path(__file__).resolve().parents[1] / "frslam_graph" / "data" / "r2v"
 

@@ -1,12 +1,12 @@
-"""The SLAM backend, in the order a scan goes through it.
+"""The backend's state and its lower layer (below the hooks and the facade).
 
-- :mod:`.slam`: ``FRSlam``, the composition root and facade (scans in, pose / ``map_to_odom``
-  out, ``finish``); the per-scan core step;
 - :mod:`.context`: ``BackendContext``, what the hooks see, and the ``BackendHook`` protocol;
 - :mod:`.keyframes`: the keyframe store and the per-scan track;
 - :mod:`.decisions`: the decision log (one typed event per decision);
-- :mod:`.deferred`: deferred steps with the per-scan budget; :mod:`.steps`: step generators;
+- :mod:`.deferred`: deferred steps with the per-scan budget;
 - :mod:`.graph`: the pose graph (iSAM2, priors, LM batches);
-- :mod:`.mapping`: occupancy mapping of the keyframe scans;
-- :mod:`.offline`: the offline run over a recording, its outputs and evaluation.
+- :mod:`.mapping`: occupancy mapping of the keyframe scans.
+
+The facade that builds them is :mod:`frslam_graph.slam` (``FRSlam``); the offline run is
+:mod:`frslam_graph.offline`.
 """

@@ -1,6 +1,6 @@
 """What a backend hook sees: :class:`BackendContext`, and the hook contract :class:`BackendHook`.
 
-The floor-plan update strategy and the loop closer are hooks: :class:`~frslam_graph.backend.slam.FRSlam`
+The floor-plan update strategy and the loop closer are hooks: :class:`~frslam_graph.slam.FRSlam`
 calls ``on_keyframe(ctx, keyframe)`` after each keyframe is in the graph and ``on_finish(ctx)``
 before the final batch. Through the context they read the keyframes (poses in ``map`` from the
 graph, in ``odom`` from the odometry; scans in ``base_link``; metres, radians), read and change
@@ -28,7 +28,7 @@ from frslam_graph.backend.graph import PoseGraph, PriorHandle
 from frslam_graph.backend.keyframes import KeyframeInfo, KeyframeStore
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, FrslamError, RecordingError
-from frslam_graph.odometry.motion_model import compose, inverse
+from frslam_graph.se2 import compose, inverse
 
 
 class ThreadGuard:
@@ -81,7 +81,7 @@ class BackendContext:
 
     def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid of the keyframe scans at the current estimates (see
-        :meth:`FRSlam.occupancy_grid <frslam_graph.backend.slam.FRSlam.occupancy_grid>`)."""
+        :meth:`FRSlam.occupancy_grid <frslam_graph.slam.FRSlam.occupancy_grid>`)."""
         from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS, OccupancyMapper
 
         with self.guard("occupancy_grid"):

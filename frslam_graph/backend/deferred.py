@@ -1,6 +1,6 @@
 """Deferred steps: a hook's work run one step per scan on the following scans (anytime).
 
-A job is a generator (:mod:`frslam_graph.backend.steps`): the work between two yields is one step. One
+A job is a generator (:mod:`frslam_graph.steps`): the work between two yields is one step. One
 step runs per scan that is not a keyframe (keyframe scans have the graph update and the hooks),
 jobs in the order they were deferred; :meth:`DeferredSteps.run_all` runs all that are pending (a
 hook calls it before work that needs them done; ``finish`` and the offline run call it). The

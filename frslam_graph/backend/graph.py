@@ -28,7 +28,7 @@ from frslam_graph.factors.floorplan_prior import (
     m_estimator,
     prior_covariance,
 )
-from frslam_graph.odometry.motion_model import compose, inverse, wrap
+from frslam_graph.se2 import compose, inverse, wrap
 
 _CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345}
 

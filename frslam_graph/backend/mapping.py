@@ -39,7 +39,7 @@ import numpy as np
 
 from frslam_graph import limits
 from frslam_graph.errors import ConfigError
-from frslam_graph.odometry.motion_model import wrap
+from frslam_graph.se2 import wrap
 
 L_HIT = 0.85
 L_MISS = -0.02

@@ -45,8 +45,8 @@ def demo(
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
     from frslam_graph.atomic import Outputs, check_folder
-    from frslam_graph.backend.offline import RUN_OUTPUTS
     from frslam_graph.cli.run import _check_viz
+    from frslam_graph.offline import RUN_OUTPUTS
 
     check_folder(out)
     with Outputs() as outputs:
@@ -131,9 +131,9 @@ def _slam_demo(
     folders: dict[str, OutputFolder],
     viz: Path | None = None,
 ) -> dict[str, Any]:
-    from frslam_graph.backend.offline import run_recording, write_outputs
     from frslam_graph.cli.run import _print_metrics, _write_viz
     from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
+    from frslam_graph.offline import run_recording, write_outputs
     from frslam_graph.viz import save_compare_png
 
     options = SimulationOptions(length=length, beams=720, fov_deg=270.0, max_range=30.0, rotation="any")

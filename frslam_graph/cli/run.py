@@ -49,11 +49,11 @@ if TYPE_CHECKING:
     import numpy as np
 
     from frslam_graph.atomic import Outputs
-    from frslam_graph.backend.offline import RunOutput
+    from frslam_graph.offline import RunOutput
 
 
 def _run_one(rec, plan, config, label: str, progress: ScanProgress, sequential: bool = False):
-    from frslam_graph.backend.offline import run_recording
+    from frslam_graph.offline import run_recording
 
     tick = progress.task(label, len(rec))
     return run_recording(
@@ -172,7 +172,7 @@ def run(
 ) -> None:
     """Run the SLAM backend over a recording; write trajectory, map, registered plan, metrics, plots."""
     from frslam_graph.atomic import Outputs
-    from frslam_graph.backend.offline import RUN_OUTPUTS, write_outputs
+    from frslam_graph.offline import RUN_OUTPUTS, write_outputs
 
     with Outputs() as outputs:
         folder = outputs.folder(out, "metrics.json", RUN_OUTPUTS)
@@ -211,7 +211,7 @@ def compare(
 ) -> None:
     """Run with and without floor-plan priors and print the errors side by side."""
     from frslam_graph.atomic import Outputs
-    from frslam_graph.backend.offline import RUN_OUTPUTS, write_outputs
+    from frslam_graph.offline import RUN_OUTPUTS, write_outputs
 
     with Outputs() as outputs:
         top = outputs.folder(out, "compare.json", ("compare.png",))
@@ -243,7 +243,7 @@ RUN_FOLDERS = ("without_priors", "with_priors")
 
 
 def _summary(m: dict) -> dict:
-    from frslam_graph.backend.offline import _jsonable
+    from frslam_graph.offline import _jsonable
 
     keep = (
         "scans",

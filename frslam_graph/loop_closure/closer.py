@@ -95,7 +95,6 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from frslam_graph.backend.graph import key
-from frslam_graph.backend.steps import Steps, run_steps
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
@@ -106,7 +105,8 @@ from frslam_graph.loop_closure.submap_matching import (
     rigid_points,
     transform_points,
 )
-from frslam_graph.odometry.motion_model import between, between_many, compose, wrap
+from frslam_graph.se2 import between, between_many, compose, wrap
+from frslam_graph.steps import Steps, run_steps
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

@@ -39,7 +39,7 @@ from frslam_graph.loop_closure.submap_matching import (
     rigid_points,
     voxel_downsample,
 )
-from frslam_graph.odometry.motion_model import between, between_many, wrap
+from frslam_graph.se2 import between, between_many, wrap
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

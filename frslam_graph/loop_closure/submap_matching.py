@@ -9,7 +9,7 @@ distinct peaks are refined by point-to-line ICP on the reference points. The res
 (:class:`ScanMatch`) carries the inlier fraction, the ambiguity (best distinct second peak over
 the best), the ICP covariance and the share of query points in space the reference saw free;
 :mod:`frslam_graph.loop_closure.closer` decides on it. :func:`match_scan_steps` is the same work as
-bounded steps, each announcing its estimated cost (:mod:`frslam_graph.backend.steps`).
+bounded steps, each announcing its estimated cost (:mod:`frslam_graph.steps`).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frslam_graph.backend.steps import Steps, run_steps
 from frslam_graph.config import LoopClosureConfig
+from frslam_graph.steps import Steps, run_steps
 
 T = TypeVar("T")
 

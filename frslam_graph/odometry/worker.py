@@ -2,7 +2,7 @@
 
 The front end (:class:`~frslam_graph.odometry.scan_odometry.ScanOdometry`: KISS-ICP fused with wheel odometry)
 depends on nothing downstream: the graph, loop closure and floor-plan priors never feed back into
-it. Offline, :func:`frslam_graph.backend.offline.process` therefore runs it in a
+it. Offline, :func:`frslam_graph.offline.process` therefore runs it in a
 forked worker on the second core while the caller's process runs the backend on the results of
 earlier scans, a classic two-stage pipeline. The worker gets scans (stamp, points in base_link,
 wheel pose in odom) in chunks and returns one :class:`~frslam_graph.odometry.scan_odometry.OdometryResult` per

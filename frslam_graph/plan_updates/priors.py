@@ -22,10 +22,10 @@ import numpy as np
 
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.localisation.relocalisation import Relocalisation, Relocaliser
-from frslam_graph.odometry.motion_model import tangent_cov, vector_cov
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.schedule import RegistrationSchedule
 from frslam_graph.plan_updates.travel import Travel
+from frslam_graph.se2 import tangent_cov, vector_cov
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

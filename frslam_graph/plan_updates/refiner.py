@@ -18,10 +18,10 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import Relocaliser, RelocaliserParams, subsample
-from frslam_graph.odometry.motion_model import compose, inverse, to_matrix
 from frslam_graph.plan_checks import fit_plan_scale
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
+from frslam_graph.se2 import compose, inverse, to_matrix
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext

@@ -1,8 +1,8 @@
 """Offline processing of a recording: run the backend, write its outputs, evaluate.
 
 :func:`process` is the offline loop: every scan of a recording through an
-:class:`~frslam_graph.backend.slam.FRSlam`, the scan odometry in a worker process one stage ahead
-(:mod:`frslam_graph.odometry.worker`) where possible, then the final batch. ``run_recording`` drives :class:`~frslam_graph.backend.slam.FRSlam` over every scan of a recording
+:class:`~frslam_graph.slam.FRSlam`, the scan odometry in a worker process one stage ahead
+(:mod:`frslam_graph.odometry.worker`) where possible, then the final batch. ``run_recording`` drives :class:`~frslam_graph.slam.FRSlam` over every scan of a recording
 (optionally with a floor plan, whose registrations / relocalisations become priors) and
 ``write_outputs`` saves what a user needs: the trajectory (TUM, ``map`` frame), the LiDAR map
 (map_server YAML + PGM), the registered plan (JSON, map metres), the decision log (JSON lines)
@@ -31,11 +31,11 @@ from frslam_graph import stream_input
 from frslam_graph.atomic import OutputFolder
 from frslam_graph.backend.decisions import PRIOR_REMOVAL_CAUSES, DecisionEvent
 from frslam_graph.backend.keyframes import Rows
-from frslam_graph.backend.slam import FRSlam, body_points
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, TrajectoryError
 from frslam_graph.odometry import worker as odometry_worker
 from frslam_graph.odometry.scan_odometry import OdometryStats
+from frslam_graph.slam import FRSlam, body_points
 
 if TYPE_CHECKING:
     from frslam_graph.occupancy import OccupancyGrid

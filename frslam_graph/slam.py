@@ -6,7 +6,7 @@ odometry, :mod:`frslam_graph.odometry.scan_odometry`); every keyframe becomes a 
 :class:`~frslam_graph.backend.graph.PoseGraph` (iSAM2). Non-keyframe scans hang off their keyframe by
 their odometry pose relative to it, so the whole trajectory follows the graph. ``pose()`` and
 ``map_to_odom()`` are the outputs a robot stack reads; ``finish()`` ends a run (the final LM
-batch). The offline loop over a recording is :func:`frslam_graph.backend.offline.process`.
+batch). The offline loop over a recording is :func:`frslam_graph.offline.process`.
 
 Per scan (the core step, :meth:`FRSlam._record`):
 
