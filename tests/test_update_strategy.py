@@ -171,7 +171,7 @@ def test_doubtful_registration_gives_no_priors(sim, baseline):
     slam, res = run_slam(run, upd)
     reg = [e for e in upd.log if e.kind == "register"]
     assert reg and not any(e.accepted for e in reg)
-    assert all("doubtful match: IoU 0.90 < 0.96" in e.reason for e in reg)
+    assert all("doubtful match: IoU 0.90 < 0.96" in e.message for e in reg)
     assert upd.registered_plan is None and not slam.graph.priors()
     assert np.allclose(res.trajectory, baseline[1].trajectory)
 
