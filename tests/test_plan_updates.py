@@ -80,7 +80,7 @@ def test_judge_returns_a_verdict_and_writes_nothing():
             SimpleNamespace(ok=False, reason="no match", score=0.0, ambiguity=0.0),
             "registration failed: no match",
         ),
-        (SimpleNamespace(ok=True, reason="", score=cfg.min_score / 2, ambiguity=0.0), "score"),
+        (SimpleNamespace(ok=True, reason="", doubt=None, score=cfg.min_score / 2, ambiguity=0.0), "score"),
     ):
         v = judge.judge(ctx, kf, reg, None, {"area": 12.0}, None, None, 0.0, 4)
         assert v.outcome == "reject" and v.why.startswith(why) and v.pending is KEEP
