@@ -61,12 +61,19 @@ def _header(path: Path, end: bytes) -> tuple[list[list[str]], int] | None:
     return None
 
 
+#: bytes of ASCII point data: numbers (with nan / inf) and white space
+_ASCII_NUMBER_BYTES = b"0123456789+-.eEnaifNAIF \t\r\n"
+
+
 def _count_lines(path: Path, start: int) -> int:
-    """Lines from byte ``start`` on (an unterminated last line counts), read in 1 MiB pieces."""
+    """Lines from byte ``start`` on (an unterminated last line counts), read in 1 MiB pieces;
+    RecordingError when they hold anything but numbers (open3d read words as points)."""
     count, last = 0, b"\n"
     with open(path, "rb") as f:
         f.seek(start)
         while piece := f.read(1 << 20):
+            if piece.translate(None, _ASCII_NUMBER_BYTES):
+                raise RecordingError("ASCII point data holds something other than numbers", source=path)
             count += piece.count(b"\n")
             last = piece[-1:]
     return count + (last != b"\n")

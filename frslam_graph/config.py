@@ -27,10 +27,9 @@ from pydantic import (
     model_validator,
 )
 
-from frslam_graph import limits
 from frslam_graph.errors import ConfigError
-from frslam_graph.limits import check_file_size, short_repr
-from frslam_graph.textfile import load_yaml, yaml_problem
+from frslam_graph.limits import short_repr
+from frslam_graph.textfile import DuplicateKeyError, load_json, load_yaml, read_text, yaml_problem
 
 
 class _Section(BaseModel):
@@ -54,12 +53,18 @@ class _Section(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_as_number(cls, value: Any, info: ValidationInfo) -> Any:
-        """``true`` / ``false`` for a number field is an error (pydantic would read 1 / 0)."""
+        """``true`` / ``false`` or a string such as ``'10'`` for a number field is an error
+        (pydantic would read 1 / 0, or parse the string)."""
         field = cls.model_fields.get(info.field_name or "")
-        if isinstance(value, bool) and field is not None:
+        if isinstance(value, bool | str) and field is not None:
             kinds = get_args(field.annotation) or (field.annotation,)
-            if bool not in kinds and (int in kinds or float in kinds):
-                raise ValueError(f"expected a number, got {value}")
+            number = int in kinds or float in kinds
+            if (
+                number
+                and not (isinstance(value, bool) and bool in kinds)
+                and not (isinstance(value, str) and str in kinds)
+            ):
+                raise ValueError(f"expected a number, got {short_repr(value)}")
         return value
 
 
@@ -379,7 +384,7 @@ class UpdatesConfig(_Section):
     )
     map_resolution: float = Field(
         0.05,
-        gt=0.0,
+        ge=0.01,
         description="m; cell of the occupancy map registered on the plan; larger = faster, coarser",
     )
     # registration triggers and acceptance
@@ -578,7 +583,7 @@ class UpdatesConfig(_Section):
     )
     reloc_resolution: float = Field(
         0.025,
-        gt=0.0,
+        ge=0.01,
         description="m; cell of the plan's distance field for relocalisation; larger = faster, coarser",
     )
     reloc_inlier_distance: float = Field(
@@ -733,7 +738,9 @@ class LoopClosureConfig(_Section):
     )
     # matcher
     resolution: float = Field(
-        0.05, gt=0.0, description="m; cell of the submap likelihood field; larger = faster, coarser"
+        0.05,
+        ge=0.01,
+        description="m; cell of the submap likelihood field (at least 0.01: finer asks for gigabytes); larger = faster, coarser",
     )
     coarse_step_xy: float = Field(
         0.3,
@@ -936,23 +943,22 @@ class FRSlamConfig(_Section):
     def load(cls, path: str | Path) -> FRSlamConfig:
         """Read a YAML (.yaml/.yml) or JSON (.json) config file."""
         path = Path(path)
-        check_file_size(path, limits.MAX_PLAN_BYTES, ConfigError, "config file")
+        text = read_text(path, ConfigError, "a YAML or JSON configuration", allow_empty=True)
+        kind = path.suffix.lstrip(".") or "YAML"
         try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"cannot read config file ({exc.strerror})", source=path) from None
-        try:
-            if path.suffix.lower() == ".json":
-                data = json.loads(text)
-            else:
-                data = load_yaml(text)  # no aliases (alias bombs), no duplicate keys
-        except (json.JSONDecodeError, Exception) as exc:  # yaml.YAMLError has no common import here
+            data = (
+                load_json(text) if path.suffix.lower() == ".json" else load_yaml(text)
+            )  # no aliases, no duplicate keys
+        except RecursionError:
+            raise ConfigError(f"not valid {kind}: nested too deeply", source=path) from None
+        except (json.JSONDecodeError, DuplicateKeyError, Exception) as exc:  # yaml.YAMLError: no import here
             mark = getattr(exc, "problem_mark", None)
             where = f"line {mark.line + 1}" if mark is not None else None
-            what = yaml_problem(exc) if mark is not None else exc
-            raise ConfigError(
-                f"not valid {path.suffix.lstrip('.') or 'YAML'}: {what}", source=path, where=where
-            ) from None
+            if isinstance(exc, json.JSONDecodeError):
+                where, what = f"line {exc.lineno} column {exc.colno}", exc.msg
+            else:
+                what = yaml_problem(exc) if mark is not None else short_repr(str(exc), 200)[1:-1]
+            raise ConfigError(f"not valid {kind}: {what}", source=path, where=where) from None
         return cls.from_dict(data, source=path)
 
     def save(self, path: str | Path) -> None:

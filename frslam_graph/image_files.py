@@ -4,12 +4,18 @@ A PNG, JPEG or PNM (PGM/PPM/PBM) header states the image size; it is read *befor
 a huge image (more than :data:`MAX_SIDE` pixels on a side or :data:`MAX_PIXELS` pixels in all)
 is refused with one line instead of exhausting memory. Other formats are refused too: their
 size cannot be checked first. Errors are raised as the caller's :class:`FrslamError` subclass,
-naming the file.
+naming the file. The decoder's own messages (libpng's ``libpng error: ...`` on a damaged PNG)
+are kept off standard error while it runs: the caller's error says it, once.
 """
 
 from __future__ import annotations
 
+import os
+import stat
 import struct
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -86,7 +92,10 @@ def read_image(path: str | Path, error: type[FrslamError], expected: str) -> np.
         raise error(f"file not found (expected {expected})", source=src)
     if path.is_dir():
         raise error(f"expected {expected}, got a directory", source=src)
-    if path.stat().st_size == 0:
+    st = path.stat()
+    if not stat.S_ISREG(st.st_mode):  # /dev/zero, a FIFO: no header to trust, maybe no end
+        raise error(f"not a regular file (expected {expected})", source=src)
+    if st.st_size == 0:
         raise error(f"empty file (expected {expected})", source=src)
     size = image_size(path)
     if size is None:
@@ -97,10 +106,31 @@ def read_image(path: str | Path, error: type[FrslamError], expected: str) -> np.
             f"image is {w}x{h} px; the limit is {MAX_SIDE} px a side and {MAX_PIXELS // 1_000_000} Mpx",
             source=src,
         )
-    img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    with _stderr_silenced():
+        img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
         raise error(f"not a readable image (expected {expected}; the file is damaged)", source=src)
     return img
+
+
+@contextmanager
+def _stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 points at /dev/null while the block runs (C libraries that print, such
+    as libpng, bypass Python's ``sys.stderr``); nothing changes when there is no fd 2."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def grey_levels(img: np.ndarray) -> np.ndarray:

@@ -201,7 +201,7 @@ def unvisited_rooms(plan_in_map, visited_grid, min_observed: float = 0.3) -> lis
 def _check_metric(plan) -> None:
     if plan.units != "m" and plan.metres_per_unit is None:
         raise FloorPlanError(
-            f"the plan is in {plan.units!r}, not metres: register it first (registration.apply(plan))",
+            f"the plan is in {plan.units!r}, not metres: register it first (frslam register PLAN MAP.yaml writes it in metres; in Python registration.apply(plan))",
             source=plan.source,
             where="units",
         )

@@ -173,8 +173,9 @@ class OccupancyGrid:
         if resolution is not None or image_options:
             raise MapError(
                 "a map_server YAML states its own resolution, origin and thresholds; "
-                "resolution / image options are only for an image map without a YAML",
+                "a resolution (and the image options) is only for an image map without a YAML",
                 src,
+                "resolution" if resolution is not None else None,
             )
         meta = read_yaml(yaml_path, MapError, "a map_server YAML with image, resolution, origin")
         if not isinstance(meta, dict):

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from frslam_graph.errors import FloorPlanError, RecordingError
+from frslam_graph.limits import short_repr
 
 if TYPE_CHECKING:
     from frslam_graph.floorplan.model import FloorPlan
@@ -25,17 +26,23 @@ if TYPE_CHECKING:
 def finite_number(value: Any, name: str) -> float:
     """``value`` as a float; a real number (not a bool, not a string) and finite."""
     if isinstance(value, bool) or not isinstance(value, Real) or not np.isfinite(value):
-        raise RecordingError(f"{name} must be a finite number, got {value!r}", where=name)
+        raise RecordingError(f"{name} must be a finite number, got {_short(value)}", where=name)
     return float(value)
 
 
 def _array(value: Any, name: str, expected: str) -> np.ndarray:
+    """``value`` as float64; only real numbers (no strings such as "1.0", no booleans)."""
     try:
-        return np.asarray(value, dtype=np.float64)
+        raw = value if isinstance(value, np.ndarray) else np.asarray(value)
+        ok = raw.dtype.kind in "iuf"
+        arr = raw.astype(np.float64, copy=False) if ok else None
     except (TypeError, ValueError):
+        ok, arr = False, None
+    if not ok or arr is None:
         raise RecordingError(
             f"{name} must be {expected}, got {type(value).__name__} {_short(value)}", where=name
         ) from None
+    return arr
 
 
 def ranges(value: Any) -> np.ndarray:
@@ -52,7 +59,8 @@ def range_max(value: Any, default: float) -> float:
         return default
     if isinstance(value, bool) or not isinstance(value, Real) or not value > 0.0:
         raise RecordingError(
-            f"range_max must be a positive number (inf: no limit) or None, got {value!r}", where="range_max"
+            f"range_max must be a positive number (inf: no limit) or None, got {_short(value)}",
+            where="range_max",
         )
     return float(value)
 
@@ -102,5 +110,7 @@ def floor_plan(value: Any) -> FloorPlan | None:
 
 
 def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+    """``value`` quoted for a message, at most 60 characters (a huge value costs no memory)."""
+    if isinstance(value, np.ndarray) and value.size > 60:
+        return f"<array of shape {value.shape}>"
+    return short_repr(value, 60)

@@ -3,6 +3,7 @@ line of OpenCV's before ours; input quoted from a bad file is capped (issue 22, 
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from frslam_graph.datasets.simulator import five_room_plan
@@ -141,3 +142,110 @@ def test_a_map_image_without_a_yaml_names_resolution_and_map_show_takes_it(tmp_p
     err = one_line(capsys.readouterr().err)
     assert "give it with --resolution" in err and "OccupancyGrid" not in err
     assert main(["map", "show", str(image), "--resolution", "0.05", "--out", str(tmp_path / "m.png")]) == 0
+
+
+# ---------------------------------------------------------------- options named as typed (tools/bad_inputs.py)
+@pytest.fixture(scope="module")
+def plan_json(tmp_path_factory):
+    return five_room_plan().save(tmp_path_factory.mktemp("plan") / "plan.json")
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--beams", "-5"], "--beams -5: Input should be greater than or equal to 2"),
+        (["--noise", "inf"], "--noise inf: "),
+        (["--odom-heading-drift", "-3"], "--odom-heading-drift -3: "),
+        (
+            ["--metres-per-unit", "1e300"],
+            "--metres-per-unit 1e+300: Input should be less than or equal to 10000",
+        ),
+    ],
+)
+def test_simulate_names_the_option_not_the_options_field(plan_json, tmp_path, capsys, args, said):
+    """The message said 'simulation.beams' / 'simulation.range_noise', fields a CLI user never saw."""
+    assert main(["simulate", str(plan_json), "--out", str(tmp_path / "s"), *args]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert said in err and "simulation." not in err
+
+
+def test_map_plan_register_and_demo_name_their_options(plan_json, tmp_path, capsys):
+    img = tmp_path / "m.png"
+    cv2.imwrite(str(img), np.full((40, 60), 255, np.uint8))
+    out = str(tmp_path / "o.png")
+    assert main(["map", "show", str(img), "--resolution", "nan", "--out", out]) == 2
+    assert "--resolution nan: must be a positive number" in one_line(capsys.readouterr().err)
+    yaml_map = bundled("prbonn/GMap.yaml")
+    assert main(["map", "show", str(yaml_map), "--resolution", "0.1", "--out", out]) == 2
+    assert one_line(capsys.readouterr().err).startswith("error: --resolution 0.1: a map_server YAML states")
+    plan_img = tmp_path / "plan.png"
+    drawn = np.full((100, 150), 255, np.uint8)
+    drawn[10:14, 10:140] = drawn[86:90, 10:140] = drawn[10:90, 10:14] = drawn[10:90, 136:140] = 0
+    cv2.imwrite(str(plan_img), drawn)
+    assert main(["plan", "convert", str(plan_img), str(tmp_path / "p.json"), "--door-width", "1e9"]) == 2
+    assert "--door-width 1e+09: door width 1e+09 px is wider than the 150x100 px image" in one_line(
+        capsys.readouterr().err
+    )  # was a numpy ArrayMemoryError traceback (888 PiB)
+    assert (
+        main(["register", str(plan_json), str(yaml_map), "--method", "magic", "--out", str(tmp_path / "r")])
+        == 2
+    )
+    assert "--method magic: unknown registration method" in one_line(capsys.readouterr().err)
+    assert main(["demo", "--length", "-5", "--out", str(tmp_path / "demo")]) == 2
+    assert "--length -5: expected a finite length" in one_line(capsys.readouterr().err)
+    assert not (tmp_path / "demo").exists()
+
+
+def test_usage_errors_are_one_line_naming_the_help(plan_json, tmp_path, capsys):
+    """typer drew a five-line box for an unknown option or a missing one."""
+    assert main(["simulte"]) == 2
+    assert (
+        one_line(capsys.readouterr().err)
+        == "error: No such command 'simulte'. Did you mean 'simulate'? (see: frslam --help)"
+    )
+    assert main(["simulate", str(plan_json), "--out", str(tmp_path / "s"), "--beams", "many"]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert "Invalid value for '--beams'" in err and err.endswith("(see: frslam simulate --help)")
+    assert main(["compare", "x.clf"]) == 2
+    assert "Missing option '--floor-plan'" in one_line(capsys.readouterr().err)
+    assert main(["--help"]) == 0
+
+
+def test_relations_options_checked_and_a_relations_file_matching_nothing(tmp_path, capsys):
+    traj = tmp_path / "t.tum"
+    traj.write_text("".join(f"{100 + 0.2 * i:.6f} {0.05 * i:.4f} 0 0 0 0 0 1\n" for i in range(40)))
+    rel = tmp_path / "r.relations"
+    rel.write_text("".join(f"{5000 + i:.6f} {5001 + i:.6f} 0.25 0 0 0 0 0.025\n" for i in range(30)))
+    assert main(["relations", str(traj), str(rel), "--tolerance", "nan"]) == 2
+    assert "--tolerance nan: expected a finite number of seconds" in one_line(capsys.readouterr().err)
+    assert main(["relations", str(traj), str(rel), "--interpolate", "-1"]) == 2
+    assert "--interpolate -1: " in one_line(capsys.readouterr().err)
+    assert main(["relations", str(traj), str(rel)]) == 2  # printed 'nan ± nan' and exit 0
+    assert "r.relations: none of its 30 relations matches a pose" in one_line(capsys.readouterr().err)
+
+
+def test_a_recording_without_a_usable_scan_is_an_error_without_outputs(tmp_path, capsys):
+    """It ran, wrote empty outputs and a matplotlib warning, and exited 0."""
+    log = tmp_path / "nanpose.clf"
+    beams = " ".join(["2.0"] * 90)
+    log.write_text(
+        "".join(
+            f"FLASER 90 {beams} nan nan nan nan nan nan {100 + i}.0 host {100 + i}.0\n" for i in range(10)
+        )
+    )
+    out = tmp_path / "o"
+    assert main(["run", str(log), "--out", str(out), "--sequential"]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert "nanpose.clf: no usable scan (10 skipped: laser record with a non-finite pose" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_plane_tol_must_be_a_positive_finite_thickness(tmp_path, capsys):
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    (folder / "0001.pcd").write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+        "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 0\n3 4 0\n"
+    )
+    assert main(["inspect", str(folder), "--plane-tol", "nan"]) == 2
+    assert "--plane-tol nan: expected a positive finite thickness" in one_line(capsys.readouterr().err)

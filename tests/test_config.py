@@ -124,3 +124,25 @@ def test_config_dump_to_a_bad_out_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "cfg.txt" in err and ".yaml" in err
     assert not (tmp_path / "cfg.txt").exists()
+
+
+def test_a_string_for_a_number_is_refused():
+    """pydantic parsed '10' as 10 (and 'true' was already refused as 1)."""
+    from frslam_graph.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"odometry\.max_range: expected a number, got '10'"):
+        FRSlamConfig.from_dict({"odometry": {"max_range": "10"}})
+
+
+@pytest.mark.parametrize(
+    "key", ["updates.map_resolution", "updates.reloc_resolution", "loop_closure.resolution"]
+)
+def test_grid_resolutions_below_a_centimetre_are_refused(key):
+    """loop_closure.resolution: 1e-9 was accepted (a submap grid of 10^20 cells when a closure came)."""
+    from frslam_graph.errors import ConfigError
+
+    section, field = key.split(".")
+    with pytest.raises(
+        ConfigError, match=rf"{section}\.{field}: Input should be greater than or equal to 0\.01"
+    ):
+        FRSlamConfig.from_dict({section: {field: 1e-9}})

@@ -112,3 +112,54 @@ def test_bad_files(tmp_path):
         with pytest.raises(FloorPlanError) as err:
             load_houseexpo(path)
         assert str(path) in str(err.value) and what in str(err.value), str(err.value)
+
+
+def _house_file(tmp_path: Path, **change) -> Path:
+    house = {
+        "id": "h",
+        "verts": [[0, 0], [10, 0], [10, 8], [0, 8]],
+        "room_category": {"bedroom": [[1, 1, 4, 4]], "kitchen": [[6, 1, 9, 7]]},
+    }
+    house.update(change)
+    path = tmp_path / "house.json"
+    path.write_text(json.dumps(house))
+    return path
+
+
+def test_a_boolean_inside_a_vertex_is_refused(tmp_path):
+    """[true, 0] was read as (1, 0): the check looked at the top level of the list only."""
+    path = _house_file(tmp_path, verts=[[0, 0], [True, 0], [10, 8], [0, 8]])
+    with pytest.raises(FloorPlanError, match=r"house\.json: verts: expected numbers \(not true / false"):
+        FloorPlan.load(path)
+
+
+def test_a_self_intersecting_contour_is_refused_not_repaired(tmp_path):
+    """It was repaired into its largest piece (a triangle), dropping the rooms outside it."""
+    path = _house_file(tmp_path, verts=[[0, 0], [10, 8], [10, 0], [0, 8]])
+    with pytest.raises(
+        FloorPlanError, match=r"verts: the house contour is not a simple polygon \(Self-intersection"
+    ):
+        FloorPlan.load(path)
+
+
+def test_a_room_box_outside_the_contour_is_refused(tmp_path):
+    """It was dropped without a word: a plan with one room fewer."""
+    path = _house_file(tmp_path, room_category={"bedroom": [[1, 1, 4, 4]], "kitchen": [[50, 50, 60, 60]]})
+    with pytest.raises(
+        FloorPlanError, match=r"room_category\.kitchen\[0\]: room box .* lies outside the house contour"
+    ):
+        FloorPlan.load(path)
+
+
+def test_a_contour_of_more_points_than_the_wall_limit_is_refused(tmp_path, monkeypatch):
+    """400,000 contour points became a plan of 400,000 walls (16 s to read, minutes to use)."""
+    import math
+
+    from frslam_graph import limits
+
+    monkeypatch.setattr(limits, "MAX_PLAN_WALLS", 100)
+    ring = [
+        [5 + 4 * math.cos(2 * math.pi * k / 101), 4 + 3 * math.sin(2 * math.pi * k / 101)] for k in range(101)
+    ]
+    with pytest.raises(FloorPlanError, match=r"verts: 101 contour points, over the limit of 100 walls"):
+        FloorPlan.load(_house_file(tmp_path, verts=ring, room_category={}))

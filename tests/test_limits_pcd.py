@@ -96,3 +96,20 @@ def test_inspect_of_a_truncated_cloud_exits_2_with_one_line(tmp_path, capsys):
     assert main(["inspect", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "7.pcd" in err and "truncated cloud" in err and len(err.splitlines()) == 1
+
+
+def test_ascii_cloud_of_words_is_refused(tmp_path):
+    """open3d read 'one two three' as a point: a run on junk gave a scan and exit 0."""
+    from frslam_graph.datasets.pointcloud_folder import check_cloud_size
+
+    path = tmp_path / "0001.pcd"
+    path.write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+        "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\none two three\nfour five six\n"
+    )
+    with pytest.raises(
+        RecordingError, match=r"0001\.pcd: ASCII point data holds something other than numbers"
+    ):
+        check_cloud_size(path)
+    path.write_text(path.read_text().replace("one two three\nfour five six", "1 2 nan\n-3.5e1 +4 inf"))
+    check_cloud_size(path)  # numbers, nan and inf are fine

@@ -76,3 +76,43 @@ def test_plan_cli_with_a_boolean_vertex_exits_2_with_one_line(tmp_path, capsys):
     assert main(["plan", "show", str(path), "--out", str(tmp_path / "p.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert "plan.json" in err and "expected [x, y] number pairs" in err and len(err.splitlines()) == 1
+
+
+def test_rooms_over_the_limit_are_refused_before_they_are_built(tmp_path, monkeypatch):
+    """60,000 small rooms (9 MB of JSON) took over 30 s to convert and minutes to draw."""
+    monkeypatch.setattr(limits, "MAX_PLAN_ROOMS", 50)
+    rooms = [
+        {"id": f"r{i}", "polygon": [[3 * i, 0], [3 * i + 2, 0], [3 * i + 2, 2], [3 * i, 2]]}
+        for i in range(51)
+    ]
+    path = write(tmp_path, {"rooms": rooms})
+    with pytest.raises(
+        FloorPlanError, match=r"plan\.json: rooms: 51 rooms, over the limit of 50 \(MAX_PLAN_ROOMS"
+    ):
+        FloorPlan.load(path)
+    FloorPlan.load(write(tmp_path, {"rooms": rooms[:50]}))  # at the limit: read
+
+
+def test_r2v_doors_count_with_the_walls(tmp_path, monkeypatch):
+    """100,000 random R2V walls (under the old limit of 200,000) grew to 2 GB; the default limit
+    is now 2,000 walls and doors (real plans: at most 75 walls)."""
+    assert limits.MAX_PLAN_WALLS <= 2_000
+    monkeypatch.setattr(limits, "MAX_PLAN_WALLS", 10)
+    path = tmp_path / "doors.txt"
+    path.write_text(
+        "".join(f"{i} 0 {i} 10 wall 1 1\n" for i in range(6))
+        + "".join(f"{i} 0 {i} 1 door 1 1\n" for i in range(6))
+    )
+    with pytest.raises(FloorPlanError, match=r"doors\.txt: line 11: more than 10 walls and doors"):
+        FloorPlan.load(path)
+
+
+def test_room_labels_over_the_limit_are_refused(tmp_path, monkeypatch):
+    import numpy as np
+
+    from frslam_graph.floorplan.roomseg import rooms_from_labels
+
+    monkeypatch.setattr(limits, "MAX_PLAN_ROOMS", 3)
+    lab = np.arange(16, dtype=np.int32).reshape(4, 4)
+    with pytest.raises(FloorPlanError, match=r"seg\.png: 15 room labels, over the limit of 3 rooms"):
+        rooms_from_labels(lab, np.arange(1, 16), [1, 0, 0, 1, 0, 0], source="seg.png")

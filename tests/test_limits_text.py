@@ -72,3 +72,60 @@ def test_inspect_of_a_bomb_exits_2_with_one_line(tmp_path, capsys):
 def test_a_real_compressed_log_is_within_the_limits():
     rec = open_recording(Path(__file__).parent / "data" / "intel_head.clf.bz2")
     assert len(rec) > 0 and len(list(rec)) == len(rec)
+
+
+# ---------------------------------------------------------------- small text inputs (JSON / YAML)
+def test_json_with_a_key_given_twice_is_refused(tmp_path):
+    """The last value silently won ({"rooms": [], "rooms": [...]} read the second)."""
+    from frslam_graph.errors import FloorPlanError
+    from frslam_graph.floorplan import FloorPlan
+
+    path = tmp_path / "dup.json"
+    room = '{"id": "a", "polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}'
+    path.write_text(f'{{"rooms": [], "rooms": [{room}]}}')
+    with pytest.raises(FloorPlanError, match=r"dup\.json: malformed JSON: duplicate key 'rooms'"):
+        FloorPlan.load(path)
+
+
+@pytest.mark.parametrize("suffix", [".json", ".yaml"])
+def test_nesting_too_deep_is_an_error_not_a_recursion_traceback(tmp_path, suffix):
+    from frslam_graph.config import FRSlamConfig
+    from frslam_graph.errors import ConfigError, MapError
+    from frslam_graph.occupancy import OccupancyGrid
+
+    deep = "[" * 100_000 + "]" * 100_000
+    cfg = tmp_path / f"c{suffix}"
+    cfg.write_text(f'{{"odometry": {deep}}}' if suffix == ".json" else f"odometry: {deep}\n")
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        FRSlamConfig.load(cfg)
+    if suffix == ".yaml":
+        m = tmp_path / "m.yaml"
+        m.write_text(f"origin: {deep}\n")
+        with pytest.raises(MapError, match=r"m\.yaml: malformed YAML: nested too deeply"):
+            OccupancyGrid.load(m)
+
+
+def test_a_device_or_binary_file_as_a_config_or_plan(tmp_path, capsys):
+    """/dev/zero read forever (0 bytes by stat, endless by read); a binary config was a
+    UnicodeDecodeError traceback."""
+    zero = tmp_path / "z.yaml"
+    zero.symlink_to("/dev/zero")
+    binary = tmp_path / "b.yaml"
+    binary.write_bytes(bytes(range(128, 256)) * 20)
+    plan = tmp_path / "z.json"
+    plan.symlink_to("/dev/zero")
+    for argv, name, what in [
+        (["config", "dump", "--out", str(tmp_path / "x.yaml")], None, None),
+        (["plan", "show", str(plan), "--out", str(tmp_path / "p.png")], "z.json", "not a regular file"),
+    ]:
+        code = main(argv)
+        err = capsys.readouterr().err
+        if name is not None:
+            assert code == 2 and name in err and what in err and len(err.strip().splitlines()) == 1, err
+    from frslam_graph.config import FRSlamConfig
+    from frslam_graph.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="not a regular file"):
+        FRSlamConfig.load(zero)
+    with pytest.raises(ConfigError, match=r"b\.yaml: cannot read as UTF-8 text"):
+        FRSlamConfig.load(binary)

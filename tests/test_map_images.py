@@ -103,3 +103,19 @@ def test_cli_register_a_plan_image_on_a_map_image(tmp_path, capsys):
     assert main(["register", str(plan), str(map_png), "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert str(map_png) in err and "--resolution" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_damaged_png_says_one_line_libpng_says_nothing(tmp_path, capfd):
+    """libpng printed 'libpng error: PNG input buffer is incomplete' before our line."""
+    ok, buf = cv2.imencode(".png", (np.random.default_rng(0).random((200, 200)) * 255).astype(np.uint8))
+    png = tmp_path / "cut.png"
+    png.write_bytes(buf.tobytes()[: len(buf) // 2])
+    assert main(["map", "show", str(png), "--resolution", "0.05", "--out", str(tmp_path / "o.png")]) == 2
+    err = capfd.readouterr().err
+    assert "libpng" not in err and len(err.strip().splitlines()) == 1 and "cut.png" in err, err
+
+
+def test_a_device_as_a_map_image_is_refused(tmp_path):
+    (tmp_path / "z.pgm").symlink_to("/dev/zero")
+    with pytest.raises(MapError, match="not a regular file"):
+        OccupancyGrid.load(tmp_path / "z.pgm", resolution=0.05)

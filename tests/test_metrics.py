@@ -259,3 +259,11 @@ def test_relative_poses_in_the_first_pose_frame_and_nan_without_poses():
     assert ok.tolist() == [True, False]
     np.testing.assert_allclose(rel[0], [1.0, 0.0, np.pi / 2], atol=1e-12)
     assert np.all(np.isnan(rel[1]))
+
+
+def test_a_tum_file_out_of_time_order_is_refused(tmp_path):
+    """Rows out of order were matched to the wrong poses without a word."""
+    p = tmp_path / "gt.tum"
+    p.write_text("1.0 0 0 0 0 0 0 1\n3.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(TrajectoryError, match=r"gt\.tum: line 3: stamp 2 is not after the previous row's 3"):
+        load_tum(p)

@@ -117,7 +117,9 @@ def test_a_worker_whose_caller_was_killed_exits_on_its_own(tmp_path):
         "print(w._proc.pid, flush=True)\n"
         "os._exit(0)\n"
     )
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=600
+    )  # a guard against a hang only
     pid = int(out.stdout.split()[0])
     # a guard against waiting forever, not a timing assertion: the worker polls every 0.1 s, but a
     # machine loaded 10x over its cores has delayed it by tens of seconds
@@ -125,6 +127,33 @@ def test_a_worker_whose_caller_was_killed_exits_on_its_own(tmp_path):
     while not _exited(pid) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert _exited(pid)
+
+
+@needs_worker
+def test_a_worker_left_with_half_a_chunk_exits_when_its_caller_dies(tmp_path):
+    """A caller killed while it wrote a chunk leaves part of a message in the inbox pipe; the
+    worker (which holds the pipe's write end too) waited for the rest forever: found asleep
+    minutes after a killed ``frslam run`` (tools/bad_inputs.py --kill)."""
+    script = tmp_path / "caller.py"
+    script.write_text(
+        "import os, struct, time\n"
+        "from frslam_graph.config import OdometryConfig\n"
+        "from frslam_graph.odometry_worker import OdometryWorker\n"
+        "w = OdometryWorker(OdometryConfig(), poll_s=0.1)\n"
+        "os.write(w._inbox._writer.fileno(), struct.pack('!i', 1000) + b'x')  # 1 of 1000 bytes\n"
+        "time.sleep(0.5)\n"
+        "print(w._proc.pid, flush=True)\n"
+        "os._exit(0)\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
+    pid = int(out.stdout.split()[0])
+    deadline = time.monotonic() + 180.0  # a guard against waiting forever, not a timing assertion
+    while not _exited(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    exited = _exited(pid)
+    if not exited:
+        os.kill(pid, 9)
+    assert exited
 
 
 @needs_worker

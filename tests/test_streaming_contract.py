@@ -228,3 +228,38 @@ def test_cli_version(capsys):
 
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"frslam {version('frslam')}"
+
+
+@pytest.mark.parametrize(
+    ("change", "where"),
+    [
+        ({"ranges": [True, False] * 360}, "ranges"),
+        ({"ranges": ["1.0"] * 720}, "ranges"),
+        ({"ranges": np.ones(720, dtype=bool)}, "ranges"),
+        ({"odom": ("1", "2", "3")}, "odom"),
+    ],
+)
+def test_booleans_and_number_strings_are_not_ranges(slam, room, change, where):
+    """numpy read [True, False] as 1 / 0 and "1.0" as 1.0: a scan of made-up ranges."""
+    truth, ranges, amin, inc, wheel = room
+    args: dict[str, Any] = {
+        "stamp": truth[1, 0],
+        "ranges": ranges[1],
+        "angle_min": amin,
+        "angle_increment": inc,
+    }
+    args["odom"] = wheel[1]
+    args.update(change)
+    with pytest.raises(FrslamError, match=f"{where} must be"):
+        slam.add_scan(**args)
+
+
+def test_a_huge_bad_value_is_quoted_short():
+    """A 50 MB string given as the stamp was quoted whole in the message (and the line)."""
+    s = FRSlam(CFG)
+    with pytest.raises(FrslamError) as err:
+        s.add_scan("1" * 5_000_000, np.ones(10), 0.0, 0.1)
+    assert len(str(err.value)) < 200
+    with pytest.raises(FrslamError) as err:
+        s.add_scan(0.0, np.ones(10), 0.0, 0.1, range_max=[1.0] * 1_000_000)
+    assert len(str(err.value)) < 200

@@ -27,7 +27,7 @@ def rerun_cli(*args: str, home: Path) -> subprocess.CompletedProcess:
         "XDG_CONFIG_HOME": str(home),
         "XDG_DATA_HOME": str(home),
     }
-    return subprocess.run([str(RERUN), *args], capture_output=True, text=True, env=env, timeout=120)
+    return subprocess.run([str(RERUN), *args], capture_output=True, text=True, env=env, timeout=600)
 
 
 def entities(path: Path, home: Path) -> set[str]:

@@ -71,7 +71,7 @@ class SimulationOptions(BaseModel):
     rotation: Literal["step90", "any", "none"] = "step90"
     aspect_max: float = Field(0.3, ge=0.0, lt=1.0)
     flip_prob: float = Field(0.5, ge=0.0, le=1.0)
-    metres_per_unit: float | None = Field(None, gt=0.0)
+    metres_per_unit: float | None = Field(None, gt=0.0, le=1e4)
     house_diagonal: tuple[float, float] = (10.0, 25.0)  # metres, when metres_per_unit is None
     # lidar
     beams: int = Field(1081, ge=2, le=100_000)

@@ -18,6 +18,11 @@ from contextlib import contextmanager
 from rich.markup import escape
 
 from frslam_graph.cli.app import app, err_console
+
+try:  # typer >= 0.20 carries its own copy of click
+    from typer._click.exceptions import UsageError as _UsageError
+except ImportError:  # pragma: no cover - older typer on click itself
+    from click.exceptions import UsageError as _UsageError
 from frslam_graph.datasets.recording import RecordingWarning
 from frslam_graph.errors import FrslamError, Interrupted
 
@@ -102,7 +107,8 @@ def _quiet_opencv() -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``frslam`` script: runs the app, reporting input errors in one line.
 
-    Usage errors are printed by typer (its own copy of click) with exit code 2; a
+    A usage error (unknown command or option, a value of the wrong type) is one line naming it
+    and the command's ``--help``, exit code 2; a
     :class:`~frslam_graph.errors.FrslamError` (bad input file / field, an output that cannot be
     written) becomes one red line and exit code 2; SIGINT / SIGTERM stop the command with one line
     naming the outputs complete by then (unfinished ones are not left behind) and exit code 130 /
@@ -112,7 +118,21 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings(), _signals_interrupt():
             warnings.showwarning = _show_warning
-            app(args=argv, standalone_mode=True)
+            code = app(args=argv, standalone_mode=False)
+    except _UsageError as exc:  # an unknown command / option, a value of the wrong type
+        if not exc.format_message().strip():  # a group called without a command: its help was shown
+            return exc.exit_code
+        path, ctx = [], exc.ctx
+        while ctx is not None and ctx.parent is not None:  # the commands below the program
+            path.insert(0, ctx.info_name or "")
+            ctx = ctx.parent
+        err_console.print(
+            f"[bold red]error:[/] {escape(_one_line(exc.format_message()))} "
+            f"(see: {escape(' '.join(['frslam', *path, '--help']))})",
+            highlight=False,
+            soft_wrap=True,
+        )
+        return 2
     except FrslamError as exc:
         err_console.print(
             f"[bold red]error:[/] {escape(_one_line(str(exc)))}", highlight=False, soft_wrap=True
@@ -128,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:
         code = exc.code
         return code if isinstance(code, int) else (0 if code is None else 1)
-    return 0
+    return code if isinstance(code, int) else 0
 
 
 if __name__ == "__main__":

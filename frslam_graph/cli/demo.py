@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,9 +46,15 @@ def demo(
 ) -> None:
     """Run the main job on bundled real data: plans, registration on a real map, SLAM with/without priors."""
     from frslam_graph.atomic import Outputs, check_folder
+    from frslam_graph.cli.option_errors import option_text
     from frslam_graph.cli.run import _check_viz
+    from frslam_graph.errors import FrslamError
     from frslam_graph.offline import RUN_OUTPUTS
 
+    if not 0.0 <= length < math.inf:  # checked before the demo's first minute of work
+        raise FrslamError(
+            "expected a finite length in metres, 0 or more", source=option_text("--length", length)
+        )
     check_folder(out)
     with Outputs() as outputs:
         runs = {name: outputs.folder(out / name, "metrics.json", RUN_OUTPUTS) for name in SLAM_RUNS}

@@ -34,6 +34,7 @@ def relations(
     ] = None,
 ) -> None:
     """Print the mean ± std translational (m) and rotational (deg) relation error of a trajectory."""
+    from frslam_graph.cli.option_errors import option_text
     from frslam_graph.datasets import RecordingWarning, open_recording
     from frslam_graph.datasets.carmen import is_carmen
     from frslam_graph.datasets.rosbag import bag_path
@@ -41,6 +42,11 @@ def relations(
     from frslam_graph.evaluation.relations import relation_error
     from frslam_graph.evaluation.trajectory_io import load_relations, load_tum
 
+    for flag, value in (("--tolerance", tolerance), ("--interpolate", interpolate)):
+        if value is not None and not 0.0 <= value < np.inf:  # before reading anything
+            raise TrajectoryError(
+                "expected a finite number of seconds, 0 or more", source=option_text(flag, value)
+            )
     if trajectory.is_dir() or is_carmen(trajectory) or bag_path(trajectory) is not None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RecordingWarning)
@@ -53,6 +59,17 @@ def relations(
         traj = load_tum(trajectory)
         what = "trajectory"
     res = relation_error(traj, load_relations(relations_file), tolerance, interpolate)
+    if res.matched == 0:  # no error to report: another recording's relations, or a tolerance too tight
+        raise TrajectoryError(
+            f"none of its {res.unmatched:,} relations matches a pose of {trajectory} within "
+            + (
+                f"--interpolate {interpolate:g} s"
+                if interpolate is not None
+                else f"--tolerance {tolerance:g} s"
+            )
+            + " (relations of another recording?)",
+            source=relations_file,
+        )
     console.print(f"{trajectory} ({what}, {len(traj):,} poses) against {relations_file}:")
     console.print(
         f"  translational error {res.trans_mean:.4f} ± {res.trans_std:.4f} m (mean of squares {res.trans_sq_mean:.4f} m²)"

@@ -21,12 +21,14 @@ def show(
 ) -> None:
     """Render a map_server occupancy map to PNG with metric axes, and print its summary."""
     from frslam_graph.atomic import FIGURE_SUFFIXES, Outputs
+    from frslam_graph.cli.option_errors import named_options
     from frslam_graph.occupancy import OccupancyGrid
     from frslam_graph.viz import save_grid_png
 
     outputs = Outputs()
     outputs.file(out, FIGURE_SUFFIXES)
-    grid = OccupancyGrid.load(map_yaml, resolution=resolution)
+    with named_options({"resolution": ("--resolution", resolution)} if resolution is not None else {}):
+        grid = OccupancyGrid.load(map_yaml, resolution=resolution)
     outputs.write(out, lambda p: save_grid_png(grid, p, title=map_yaml.name))
     free = int(grid.free_mask().sum())
     occ = int(grid.occupied_mask().sum())

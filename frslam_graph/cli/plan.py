@@ -23,6 +23,7 @@ _DOOR_HELP = "Plan image: widest door gap in pixels (default: max(30, 4 x wall t
 def _load(path: Path, yaml: Path | None, segmentation: str | None = None, door_width: float | None = None):
     """(plan, note): the plan and a line about how it was built (R2V: labels found, strategy;
     plan image: door width, furniture removed)."""
+    from frslam_graph.cli.option_errors import named_options
     from frslam_graph.floorplan import FloorPlan
     from frslam_graph.floorplan.io import IMAGE_SUFFIXES
     from frslam_graph.floorplan.plan_image import load_image_plan_detailed
@@ -41,7 +42,8 @@ def _load(path: Path, yaml: Path | None, segmentation: str | None = None, door_w
     if is_seg and path.is_file():
         return load_room_segmentation(path, yaml), None
     if suffix in IMAGE_SUFFIXES:
-        res = load_image_plan_detailed(path, segmentation=segmentation, door_width=door_width)
+        with named_options({"door_width": ("--door-width", door_width)} if door_width is not None else {}):
+            res = load_image_plan_detailed(path, segmentation=segmentation, door_width=door_width)
         note = (
             f"plan image: door width {res.door_width:.0f} px (walls {res.wall_thickness:.0f} px), "
             f"{res.furniture_removed} furniture blobs removed, rooms from "

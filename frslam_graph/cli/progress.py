@@ -37,8 +37,10 @@ class ScanProgress:
     :data:`PLAIN_STEP` of each task: ``label: 30 % (90/300 scans, 45 scans/s, about 5 s left)``.
     """
 
-    def __init__(self, console: Console | None = None):
+    def __init__(self, console: Console | None = None, clock: Callable[[], float] = time.perf_counter):
+        """``clock`` (seconds) measures the scans per second and the time left; injectable for tests."""
         self.console = console or default_console
+        self.clock = clock
         self.terminal = self.console.is_terminal
         self._bar: Progress | None = None
 
@@ -64,11 +66,11 @@ class ScanProgress:
 
     def task(self, label: str, total: int) -> Callable[[int], None]:
         """The callback ``tick(i)`` reporting ``i`` of ``total`` scans done."""
-        t0 = time.perf_counter()
+        t0 = self.clock()
         total = max(int(total), 0)
 
         def rate(i: int) -> float:
-            dt = time.perf_counter() - t0
+            dt = self.clock() - t0
             return i / dt if dt > 0 else 0.0
 
         if self._bar is not None:

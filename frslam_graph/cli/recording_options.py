@@ -8,6 +8,7 @@ their own argument (``scan_topic``); here it becomes the option a CLI user typed
 from __future__ import annotations
 
 import inspect
+import math
 import shlex
 from pathlib import Path
 from typing import Annotated, Any
@@ -72,6 +73,11 @@ def open_recording_with(path: Path, **options: Any):
     from frslam_graph.datasets import open_recording, reader_for
 
     opts = {k: v for k, v in options.items() if v is not None}
+    tol = opts.get("plane_tol")
+    if tol is not None and not 0.0 < tol < math.inf:
+        raise RecordingError(
+            f"--plane-tol {tol:g}: expected a positive finite thickness in metres", source=path
+        )
     reader = reader_for(path) if path.exists() else None
     if reader is not None:
         accepted = inspect.signature(reader.__init__).parameters

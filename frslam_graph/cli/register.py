@@ -131,6 +131,7 @@ def register_cmd(
 ) -> None:
     """Register a floor plan (unknown scale, aspect, rotation, flip) to a partial occupancy map."""
     from frslam_graph.atomic import Outputs
+    from frslam_graph.cli.option_errors import named_options
     from frslam_graph.cli.plan import _load
     from frslam_graph.occupancy import OccupancyGrid
     from frslam_graph.registration import register
@@ -139,9 +140,11 @@ def register_cmd(
         folder = outputs.folder(out, "report.json", OUTPUTS)
         plan, _ = _load(plan_path, plan_yaml)
         _check_seed_rooms(plan, plan_path, seed_room)
-        grid = OccupancyGrid.load(map_yaml, resolution=resolution)
+        with named_options({"resolution": ("--resolution", resolution)} if resolution is not None else {}):
+            grid = OccupancyGrid.load(map_yaml, resolution=resolution)
         options = {"seed_rooms": list(seed_room)} if seed_room else {}
-        reg = register(plan, grid, method=method, **options)
+        with named_options({"method": ("--method", method)}):
+            reg = register(plan, grid, method=method, **options)
         report = {
             "plan": str(plan_path),
             "map": str(map_yaml),

@@ -53,12 +53,25 @@ if TYPE_CHECKING:
 
 
 def _run_one(rec, plan, config, label: str, progress: ScanProgress, sequential: bool = False):
+    """One run over ``rec``; RecordingError naming it when it gave no scan at all (every record
+    skipped: nothing to write, rather than empty outputs and exit 0)."""
+    import warnings
+
+    from frslam_graph.errors import RecordingError
     from frslam_graph.offline import run_recording
 
     tick = progress.task(label, len(rec))
-    return run_recording(
-        rec, floor_plan=plan, config=config, progress=tick, parallel=False if sequential else None
-    )
+    with warnings.catch_warnings(record=True) as caught:  # the reader's, said after the run
+        result = run_recording(
+            rec, floor_plan=plan, config=config, progress=tick, parallel=False if sequential else None
+        )
+    if len(result.result.trajectory) == 0:  # the error says what the warnings would have
+        stats = result.recording_stats
+        why = stats.summary() if stats is not None else ""
+        raise RecordingError(f"no usable scan{f' ({why})' if why else ''}", source=getattr(rec, "path", None))
+    for w in caught:
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return result
 
 
 def _inputs(
@@ -96,6 +109,7 @@ def _check_evaluation(metrics: dict, sources: dict[str, str], out: Path) -> None
     from frslam_graph.errors import TrajectoryError
 
     for what, message in metrics.get("evaluation_errors", {}).items():
+        message = message if len(message) <= 100 else message[:97] + "..."  # evo's own words, capped
         raise TrajectoryError(
             f"does not match the recording ({message}); the run's other outputs are in {out}",
             source=sources[what],

@@ -14,6 +14,7 @@ from typing import Any
 import typer
 
 from frslam_graph.cli.app import app, console
+from frslam_graph.cli.option_errors import named_options
 from frslam_graph.cli.summary import print_written
 
 
@@ -101,7 +102,31 @@ def simulate_cmd(
         map_see_through_doors=see_through_doors,
         caster=caster,
     )
-    options = SimulationOptions(**values)
+    flags = {
+        "rooms": ("--rooms", rooms),
+        "length": ("--length", length),
+        "closed_doors": ("--closed-doors", closed_doors),
+        "clutter": ("--clutter", clutter),
+        "rotation": ("--rotation", rotation),
+        "aspect_max": ("--aspect-max", aspect_max),
+        "metres_per_unit": ("--metres-per-unit", metres_per_unit),
+        "beams": ("--beams", beams),
+        "fov_deg": ("--fov", fov),
+        "max_range": ("--max-range", max_range),
+        "range_noise": ("--noise", noise),
+        "dropout": ("--dropout", dropout),
+        "scan_rate": ("--scan-rate", scan_rate),
+        "odom_rate": ("--odom-rate", odom_rate),
+        "odom_scale_error": ("--odom-drift", odom_drift),
+        "odom_dist_noise": ("--odom-drift", odom_drift),
+        "odom_heading_noise_deg": ("--odom-heading-drift", odom_heading_drift),
+        "max_speed": ("--speed", speed),
+        "map_completeness": ("--map-completeness", completeness),
+        "caster": ("--caster", caster),
+        "seed": ("--seed", seed),
+    }
+    with named_options(flags):
+        options = SimulationOptions(**values)
     check_output_dir(out, overwrite, "--overwrite")
     stages = ("house", "route", "lidar", "map", "bag")
     with (
@@ -122,7 +147,8 @@ def simulate_cmd(
                 progress.update(tasks[s], completed=1.0)
             progress.update(tasks[stage], completed=frac)
 
-        res = simulate(plan, folder, seed=seed, options=options, overwrite=overwrite, progress=report)
+        with named_options(flags):
+            res = simulate(plan, folder, seed=seed, options=options, overwrite=overwrite, progress=report)
         for s in stages:
             progress.update(tasks[s], completed=1.0)
     d = res.distortion

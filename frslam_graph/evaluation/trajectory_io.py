@@ -67,6 +67,14 @@ def load_tum(path: str | Path) -> np.ndarray:
         raise TrajectoryError(
             f"quaternion norm {norm[bad[0]]:.6f} (expected 1)", source=path, where=f"line {lines[bad[0]]}"
         )
+    back = np.flatnonzero(np.diff(a[:, 0]) <= 0.0)
+    if back.size:  # unsorted rows were matched to the wrong poses without a word
+        k = back[0] + 1
+        raise TrajectoryError(
+            f"stamp {a[k, 0]:.9g} is not after the previous row's {a[k - 1, 0]:.9g} (expected increasing stamps)",
+            source=path,
+            where=f"line {lines[k]}",
+        )
     yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
     return np.column_stack((a[:, 0], a[:, 1], a[:, 2], yaw))
 

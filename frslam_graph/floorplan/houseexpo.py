@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
+from shapely.validation import explain_validity
 
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan._raster_polygons import largest_polygon
@@ -36,9 +37,18 @@ _HOUSEEXPO_TYPES = {
 }
 
 
+def _not_number(value: Any, depth: int = 3) -> bool:
+    """True when a (nested, up to ``depth`` levels) list holds a bool or a string (which numpy
+    would take as 1 / 0 or parse)."""
+    if isinstance(value, bool | str):
+        return True
+    if isinstance(value, list | tuple) and depth > 0:
+        return any(_not_number(v, depth - 1) for v in value)
+    return False
+
+
 def _numbers(value: Any, n: int | None, src: str | None, where: str) -> np.ndarray:
-    flat = value if isinstance(value, list | tuple) else []
-    if any(isinstance(v, bool | str) for v in flat):
+    if _not_number(value):
         raise FloorPlanError("expected numbers (not true / false, not strings)", source=src, where=where)
     try:
         arr = np.asarray(value, dtype=np.float64)
@@ -93,11 +103,21 @@ def load_houseexpo(
         raise FloorPlanError(
             f"expected at least 3 [x, y] points, got shape {verts.shape}", source=src, where="verts"
         )
+    from frslam_graph import limits
+
+    if len(verts) > limits.MAX_PLAN_WALLS:  # each contour edge becomes a wall
+        raise FloorPlanError(
+            f"{len(verts):,} contour points, over the limit of {limits.MAX_PLAN_WALLS:,} walls "
+            "(MAX_PLAN_WALLS, frslam_graph.limits)",
+            source=src,
+            where="verts",
+        )
     house = Polygon(verts)
-    if not house.is_valid:
-        house = largest_polygon(shapely.make_valid(house))
-    if house is None or house.area <= 0:
+    why = "" if house.is_valid else explain_validity(house)
+    if house.convex_hull.area <= 0:  # all points on a line
         raise FloorPlanError("the house contour encloses no area", source=src, where="verts")
+    if why:  # repairing it silently dropped part of the house (and its rooms)
+        raise FloorPlanError(f"the house contour is not a simple polygon ({why})", source=src, where="verts")
     cats = data.get("room_category", {}) or {}
     if not isinstance(cats, Mapping):
         raise FloorPlanError(
@@ -121,8 +141,14 @@ def load_houseexpo(
         boxes.sort(key=lambda t: t[1].area)
     rooms: list[Room] = []
     taken: Polygon | None = None
-    for rtype, b, _where in boxes:
+    for rtype, b, where in boxes:
         poly = b.intersection(house)
+        if poly.area <= 0:  # dropped silently before: a room lost without a word
+            raise FloorPlanError(
+                f"room box {[round(v, 3) for v in b.bounds]} lies outside the house contour (verts)",
+                source=src,
+                where=where,
+            )
         if disjoint and taken is not None:
             poly = poly.difference(taken)
         piece = largest_polygon(poly)

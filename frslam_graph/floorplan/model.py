@@ -227,6 +227,7 @@ class FloorPlan:
         src = self.source
         if not self.rooms:
             raise _fail("a floor plan needs at least one room (found none)", src, "rooms")
+        _check_room_count(len(self.rooms), src)
         seen: set[str] = set()
         for i, room in enumerate(self.rooms):
             where = f"rooms[{i}]"
@@ -253,6 +254,15 @@ class FloorPlan:
             if walls.ndim != 2 or walls.shape[1] != 4:
                 raise _fail(
                     f"walls must be a (K, 4) array of x1 y1 x2 y2, got shape {walls.shape}", src, "walls"
+                )
+            from frslam_graph import limits
+
+            if len(walls) > limits.MAX_PLAN_WALLS:  # every later step loops over the walls
+                raise _fail(
+                    f"{len(walls):,} walls, over the limit of {limits.MAX_PLAN_WALLS:,} "
+                    "(MAX_PLAN_WALLS, frslam_graph.limits)",
+                    src,
+                    "walls",
                 )
             if len(walls):
                 _as_points(walls.reshape(-1, 2), src, "walls", 0)
@@ -397,6 +407,7 @@ class FloorPlan:
         raw_rooms = data["rooms"]
         if not isinstance(raw_rooms, list):
             raise _fail("expected a list of rooms", src, "rooms")
+        _check_room_count(len(raw_rooms), src)
         rooms = []
         for i, rr in enumerate(raw_rooms):
             where = f"rooms[{i}]"
@@ -507,6 +518,18 @@ def _reader() -> Callable[..., FloorPlan]:
     if FloorPlan.reader is None:  # the package installs it on import, before any plan exists
         raise FloorPlanError("no floor-plan readers installed (import frslam_graph.floorplan)")
     return FloorPlan.reader
+
+
+def _check_room_count(n: int, src: str | None) -> None:
+    """FloorPlanError when a plan has more than ``limits.MAX_PLAN_ROOMS`` rooms (read at call time)."""
+    from frslam_graph import limits
+
+    if n > limits.MAX_PLAN_ROOMS:
+        raise _fail(
+            f"{n:,} rooms, over the limit of {limits.MAX_PLAN_ROOMS:,} (MAX_PLAN_ROOMS, frslam_graph.limits)",
+            src,
+            "rooms",
+        )
 
 
 def _is_wall_list(value: Any) -> bool:

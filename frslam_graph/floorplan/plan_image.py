@@ -94,7 +94,7 @@ def load_image_plan_detailed(
         ("min_room_area", min_room_area),
     ):
         if value is not None and (
-            isinstance(value, bool) or not isinstance(value, int | float) or not value > 0
+            isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf
         ):
             raise FloorPlanError(f"expected a positive number of pixels, got {value!r}", src, field)
     check_reading(occupied_thresh, free_thresh, "trinary", src, FloorPlanError)
@@ -110,6 +110,12 @@ def load_image_plan_detailed(
         raise FloorPlanError("no free space (light pixels): expected white rooms and dark walls", src)
     thickness = wall_thickness(dark)
     dw = float(door_width) if door_width is not None else max(MIN_DOOR_WIDTH_PX, DOOR_PER_WALL * thickness)
+    if dw > max(occ.shape):  # the erosion disc would be larger than the image (and its memory)
+        raise FloorPlanError(
+            f"door width {dw:g} px is wider than the {occ.shape[1]}x{occ.shape[0]} px image",
+            src,
+            "door_width",
+        )
     free, dark, n_furniture = _remove_furniture(free, dark, furniture_size or 0.6 * dw)
     if door_width is None and segmentation is None:
         dw = widest_split(free, dw)

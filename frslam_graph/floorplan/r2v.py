@@ -200,16 +200,15 @@ def parse_r2v(path: str | Path) -> R2VData:
                 raise FloorPlanError(
                     f"column {k} must be a number, got {short_repr(extra)}", source=src, where=where
                 )
-        if category == "wall":
-            walls.append(coords)
-            if len(walls) > limits.MAX_PLAN_WALLS:
+        if category in ("wall", "door"):
+            (walls if category == "wall" else doors).append(coords)
+            if len(walls) + len(doors) > limits.MAX_PLAN_WALLS:
                 raise FloorPlanError(
-                    f"more than {limits.MAX_PLAN_WALLS:,} walls (limit MAX_PLAN_WALLS, frslam_graph.limits)",
+                    f"more than {limits.MAX_PLAN_WALLS:,} walls and doors (limit MAX_PLAN_WALLS, "
+                    "frslam_graph.limits)",
                     source=src,
                     where=where,
                 )
-        elif category == "door":
-            doors.append(coords)
         elif category in ROOM_CATEGORIES or (
             category not in ICON_CATEGORIES and normalise_room_type(category) != "unknown"
         ):

@@ -167,6 +167,14 @@ def rooms_from_labels(
     ``fill_holes_below`` (area) in pixels; ``min_door_width`` in plan units: a door wherever
     two rooms share that much boundary.
     """
+    from frslam_graph import limits
+
+    if len(ids) > limits.MAX_PLAN_ROOMS:  # each label costs a pass over the image
+        raise FloorPlanError(
+            f"{len(ids):,} room labels, over the limit of {limits.MAX_PLAN_ROOMS:,} rooms "
+            "(MAX_PLAN_ROOMS, frslam_graph.limits)",
+            source=source,
+        )
     # keep the largest 4-connected part of each label, so every room is one simple polygon
     keep = np.zeros_like(lab)
     for v in ids.tolist():

@@ -77,7 +77,7 @@ class PlanField:
             raise FrslamError(f"resolution must be positive, got {resolution}", where="resolution")
         if plan.units != "m" and plan.metres_per_unit != 1.0:
             raise FloorPlanError(
-                f"the plan is in {plan.units!r}, not metres: register it first (registration.apply(plan))",
+                f"the plan is in {plan.units!r}, not metres: register it first (frslam register PLAN MAP.yaml writes it in metres; in Python registration.apply(plan))",
                 source=plan.source,
                 where="units",
             )

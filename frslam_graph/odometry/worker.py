@@ -30,6 +30,7 @@ import os
 import queue
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import deque
@@ -60,6 +61,16 @@ def available(config: OdometryConfig) -> bool:
     )
 
 
+def _exit_when_orphaned(parent: int, poll_s: float) -> None:
+    """Worker thread: end the worker process once its caller is gone, whatever the worker is
+    blocked in. A caller killed while it wrote a chunk leaves part of a message in the inbox
+    pipe, whose write end the forked worker holds too: its read then waited forever (a worker
+    found still asleep 6 minutes after ``frslam run`` was killed); a full outbox blocks too."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(0)
+
+
 def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1.0) -> None:
     """Worker loop: chunks of ScanInput in, lists of results out; None ends it.
 
@@ -67,6 +78,7 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
     stopping it (killed) exits on its own.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_exit_when_orphaned, args=(parent, poll_s), daemon=True).start()
     odometry = ScanOdometry(config)
     while True:
         try:
