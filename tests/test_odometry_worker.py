@@ -138,7 +138,7 @@ def test_a_worker_left_with_half_a_chunk_exits_when_its_caller_dies(tmp_path):
     script.write_text(
         "import os, struct, time\n"
         "from frslam_graph.config import OdometryConfig\n"
-        "from frslam_graph.odometry_worker import OdometryWorker\n"
+        "from frslam_graph.odometry.worker import OdometryWorker\n"
         "w = OdometryWorker(OdometryConfig(), poll_s=0.1)\n"
         "os.write(w._inbox._writer.fileno(), struct.pack('!i', 1000) + b'x')  # 1 of 1000 bytes\n"
         "time.sleep(0.5)\n"

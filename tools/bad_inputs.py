@@ -1872,7 +1872,7 @@ def out_symlink_config_dump(d):
 API_HEAD = """
 import sys, numpy as np
 from frslam_graph.errors import FrslamError
-from frslam_graph.pipeline import FRSlam
+from frslam_graph.slam import FRSlam
 try:
     s = FRSlam()
     R = np.full(90, 3.0)
