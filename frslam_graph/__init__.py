@@ -1,6 +1,6 @@
 """frslam: factor-graph 2D SLAM with floor-plan registration (FR-SLAM).
 
-Public API (DESIGN.md §3)::
+Public API (README.md, docs/design.md)::
 
     import frslam_graph as fr
     plan = fr.FloorPlan.load("plan.json")
@@ -8,6 +8,7 @@ Public API (DESIGN.md §3)::
     reg = fr.register(plan, grid)
     rec = fr.open_recording("intel.clf.bz2")
     slam = fr.FRSlam(config=None, floor_plan=plan)
+    result = fr.process(slam, rec)  # offline: the whole recording, LM batch at the end
 
 Names are imported lazily so that ``import frslam_graph`` stays cheap and the sub-packages
 (``frslam_graph.datasets``, ``frslam_graph.factors``) can import the model modules without cycles.
@@ -31,6 +32,8 @@ _LAZY = {
     "open_recording": "frslam_graph.datasets",
     "Scan": "frslam_graph.datasets",
     "FRSlam": "frslam_graph.slam",
+    "process": "frslam_graph.offline",
+    "SlamResult": "frslam_graph.offline",
     "FRSlamConfig": "frslam_graph.config",
     "FrslamError": "frslam_graph.errors",
     "FloorPlanError": "frslam_graph.errors",

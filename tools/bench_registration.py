@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Registration benchmark: the FR-SLAM paper's Table I and Fig. 5 on real plans (DESIGN.md §4).
+"""Registration benchmark: the FR-SLAM paper's Table I and Fig. 5 on real plans.
 
 Cases
   * R2V: ``--plans`` shared R2V plans (deterministic: a seeded permutation of the sorted file

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Quick development check of our MFR registration on shared R2V plans with simulated partial maps.
 
-Protocol of DESIGN.md §4 (same as ``tools/bench_registration.py``, smaller and ours only): per plan
+Protocol of the registration benchmark (same as ``tools/bench_registration.py``, smaller and ours only): per plan
 and rotation set one random distortion (``Distortion.random``), per completeness one partial map
 from the simulator; IoU_a over all rooms. Prints a Markdown table (flip / rotation accuracy,
 mean IoU_a, median time), the failure reasons, and optionally every case as CSV.

@@ -117,7 +117,7 @@ class Distortion:
         diagonal_range: tuple[float, float] = (10.0, 25.0),
         translation_max: float = 10.0,
     ) -> Distortion:
-        """A random distortion as in DESIGN.md §4.
+        """A random distortion as in the registration benchmark's protocol (tools/README.md).
 
         ``aspect`` has ``aspect[1] / aspect[0] = 1 + e`` with ``e ~ U(-aspect_max, aspect_max)``
         (area kept); ``rotation`` is a multiple of 90° (``"step90"``), any angle (``"any"``) or 0
