@@ -98,11 +98,6 @@ class OdometryConfig(_Section):
         gt=0.0,
         description="m; fixed KISS-ICP correspondence distance instead of the adaptive one; null = adaptive",
     )
-    min_motion: float = Field(
-        0.1,
-        ge=0.0,
-        description="m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt",
-    )
     local_map_scans: int = Field(
         0,
         ge=0,
@@ -152,33 +147,17 @@ class OdometryConfig(_Section):
         gt=0.0,
         description="s; a keyframe at least this often even when standing still, so loop closure and plan updates still run when progress is obstructed; null = never",
     )
-    # ICP noise model: covariance from the scan's Hessian, inflated, floored
+    # ICP noise model: covariance from the scan's Hessian
     icp_sigma: float = Field(
         0.03,
         gt=0.0,
         description="m; point-to-line residual sigma of the ICP covariance; larger = ICP steps trusted less",
-    )
-    icp_cov_inflation: float = Field(
-        1.0, ge=1.0, description="factor on the ICP covariance; larger = ICP steps trusted less"
-    )
-    icp_sigma_floor_xy: float = Field(
-        0.001, gt=0.0, description="m; smallest ICP translation sigma; larger = ICP never trusted beyond this"
-    )
-    icp_sigma_floor_theta_deg: float = Field(
-        0.01,
-        gt=0.0,
-        description="deg; smallest ICP heading sigma; larger = ICP heading never trusted beyond this",
     )
     degeneracy_threshold: float = Field(
         0.04,
         gt=0.0,
         lt=0.5,
         description="smallest / largest eigenvalue of the summed point normals' outer products below which a scan is degenerate (a corridor); larger = more scans degenerate",
-    )
-    degenerate_sigma: float = Field(
-        10.0,
-        gt=0.0,
-        description="m; ICP sigma along a degenerate axis; larger = the motion model carries that axis more",
     )
     normal_neighbours: int = Field(
         2,
@@ -221,19 +200,6 @@ class OdometryConfig(_Section):
         30.0, gt=0.0, description="deg per s; random-walk heading sigma of the constant-velocity prediction"
     )
     # fault gates
-    odom_jump_gate: float = Field(
-        5.0,
-        gt=0.0,
-        description="sigmas (Mahalanobis) of the jump / ICP-failure gate: wheel vs constant velocity and, with icp_gate reject, ICP vs wheel; larger = fewer jumps detected",
-    )
-    odom_jump_min_m: float = Field(
-        0.15,
-        ge=0.0,
-        description="m; a jump must also disagree by at least this much; larger = fewer jumps detected",
-    )
-    odom_jump_min_deg: float = Field(
-        5.0, ge=0.0, description="deg; ... or turn at least this much; larger = fewer jumps detected"
-    )
     icp_gate: Literal["fuse", "reject"] = Field(
         "fuse",
         description="an ICP result beyond the gate from the wheel increment: fuse (plain EKF update) or reject (the motion model carries the step, the scan is not mapped)",
@@ -243,11 +209,6 @@ class OdometryConfig(_Section):
     )
     max_turn_rate_deg: float = Field(
         360.0, gt=0.0, description="deg/s; faster wheel turns are jumps; larger = fewer jumps detected"
-    )
-    gap_factor: float = Field(
-        2.5,
-        gt=1.0,
-        description="a stamp gap above this times the nominal scan period counts as dropped scans; larger = fewer gaps reported",
     )
 
     @model_validator(mode="after")
@@ -260,24 +221,6 @@ class OdometryConfig(_Section):
 class GraphConfig(_Section):
     """GTSAM Pose2 graph: noise floors, robust prior kernel, iSAM2 settings."""
 
-    between_sigma_floor_xy: float = Field(
-        0.002,
-        gt=0.0,
-        description="m; smallest translation sigma of an odometry between-factor; larger = odometry trusted less",
-    )
-    between_sigma_floor_theta_deg: float = Field(
-        0.05,
-        gt=0.0,
-        description="deg; smallest heading sigma of an odometry between-factor; larger = odometry trusted less",
-    )
-    anchor_sigma_xy: float = Field(
-        1e-3,
-        gt=0.0,
-        description="m; sigma of the prior on the first keyframe (map == odom at start); larger = a looser anchor",
-    )
-    anchor_sigma_theta_deg: float = Field(
-        1e-3, gt=0.0, description="deg; heading sigma of the prior on the first keyframe"
-    )
     prior_kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = Field(
         "cauchy", description="robust kernel of floor-plan priors (none = plain Gaussian)"
     )
@@ -306,24 +249,13 @@ class GraphConfig(_Section):
         ge=1,
         description="iSAM2 relinearises every this many updates while streaming (settle() after priors forces it); larger = faster",
     )
-    prior_settle_near_xy: float = Field(
-        0.05,
-        ge=0.0,
-        description="m; a floor-plan prior within this of the estimate (and prior_settle_near_theta_deg) gets only prior_settle_near_iterations forced iSAM2 steps (others 10)",
-    )
-    prior_settle_near_theta_deg: float = Field(
-        1.0, ge=0.0, description="deg; heading part of the 'near' test of prior_settle_near_xy"
-    )
     prior_settle_near_iterations: int = Field(
         1,
         ge=0,
-        description="forced relinearising iSAM2 steps after a near prior (each a few ms on a large graph); larger = slower, settles more",
+        description="forced relinearising iSAM2 steps after a floor-plan prior within 5 cm and 1 deg of the estimate (others get 10; each a few ms on a large graph); larger = slower, settles more",
     )
     factorization: Literal["QR", "CHOLESKY"] = Field(
         "QR", description="iSAM2 linear solver: QR (stabler) or CHOLESKY (faster)"
-    )
-    batch_max_iterations: int = Field(
-        100, ge=1, description="Levenberg-Marquardt batch iterations at most; larger = slower on hard graphs"
     )
     batch_relative_tolerance: float = Field(
         1e-6,
@@ -336,12 +268,12 @@ class UpdatesConfig(_Section):
     """Floor-plan update strategy (paper Alg. 3, :mod:`frslam_graph.plan_updates.updater`).
 
     Registration triggers: the mapped area reached ``first_register_area_m2`` (first attempt) or
-    grew by ``register_min_growth_m2`` and ``register_growth_frac`` since the last attempt, or
+    grew by ``register_min_growth_m2`` and a share of its area since the last attempt, or
     progress is obstructed. A registration is accepted when ok, ``score >= min_score``,
     ``ambiguity <= max_ambiguity``, the registered plan's walls explain ``min_map_fit`` of the
     map's occupied cells and the current scan relocalises consistently. Every
     ``relocation_distance_D`` metres the current scan is relocalised against the plan; a good,
-    unambiguous match passing the chi² gate (``inconsistent_chi2``) becomes a robust prior.
+    unambiguous match passing a chi² gate against the estimate becomes a robust prior.
     """
 
     enabled: bool = Field(
@@ -350,7 +282,7 @@ class UpdatesConfig(_Section):
     register_min_growth_m2: float = Field(
         4.0,
         ge=0.0,
-        description="m²; the map must grow by this (and register_growth_frac) before another registration; larger = fewer attempts",
+        description="m²; the map must grow by this (and by 20 % of its area) before another registration; larger = fewer attempts",
     )
     relocation_distance_D: float = Field(
         1.0,
@@ -360,14 +292,6 @@ class UpdatesConfig(_Section):
     relocation_angle_deg: float = Field(
         30.0, gt=0.0, description="deg; also relocalise after turning this much; larger = fewer priors"
     )
-    obstruction_speed: float = Field(
-        0.02,
-        ge=0.0,
-        description="m/s; progress slower than this for obstruction_time_s counts as obstructed (triggers a registration)",
-    )
-    obstruction_time_s: float = Field(
-        5.0, gt=0.0, description="s; how long progress must be slow to count as obstructed"
-    )
     max_ambiguity: float = Field(
         0.9,
         gt=0.0,
@@ -376,11 +300,6 @@ class UpdatesConfig(_Section):
     )
     min_score: float = Field(
         0.5, ge=0.0, le=1.0, description="registration score needed (0..1); larger = stricter acceptance"
-    )
-    inconsistent_chi2: float = Field(
-        11.34,
-        gt=0.0,
-        description="chi² gate (3 dof, default 99 %) of a relocalisation against the trajectory; larger = more priors pass",
     )
     map_resolution: float = Field(
         0.05,
@@ -392,11 +311,6 @@ class UpdatesConfig(_Section):
         12.0,
         ge=0.0,
         description="m²; mapped area at the first registration attempt; larger = later but better-informed first attempt",
-    )
-    register_growth_frac: float = Field(
-        0.2,
-        ge=0.0,
-        description="fraction of the mapped area the map must also grow by before another registration; larger = fewer attempts",
     )
     register_retry_distance: float = Field(
         15.0,
@@ -427,11 +341,6 @@ class UpdatesConfig(_Section):
         description="m; with a registration accepted, register again after this travel without an attempt; 0 = off",
     )
     register_refine_max: int = Field(3, ge=0, description="such re-registrations at most; 0 = off")
-    local_map_distance: float = Field(
-        40.0,
-        gt=0.0,
-        description="m; every other retry registers on the map of the keyframes of the last this much travel (the whole map may have drifted too far)",
-    )
     min_map_fit: float = Field(
         0.5,
         ge=0.0,
@@ -459,20 +368,15 @@ class UpdatesConfig(_Section):
     map_fit_distance: float = Field(
         0.1,
         gt=0.0,
-        description="m; an occupied cell within this of a plan wall is 'near' it; grows by check_growth_per_m; larger = laxer fit",
+        description="m; an occupied cell within this of a plan wall is 'near' it; grows by 1 cm per m travelled since the last accepted prior; larger = laxer fit",
     )
     map_fit_distance_max: float = Field(0.25, gt=0.0, description="m; map_fit_distance grows up to this")
     free_space_margin: float = Field(
         0.2,
         ge=0.0,
-        description="m; 'in free space' means farther than this from any occupied cell; grows by check_growth_per_m; larger = laxer",
+        description="m; 'in free space' means farther than this from any occupied cell; grows like map_fit_distance; larger = laxer",
     )
     free_space_margin_max: float = Field(0.4, ge=0.0, description="m; free_space_margin grows up to this")
-    check_growth_per_m: float = Field(
-        0.01,
-        ge=0.0,
-        description="m per m travelled since the last accepted prior (uncorrected drift) added to both tolerances above",
-    )
     retract_walls_in_free_space: float = Field(
         0.2,
         ge=0.0,
@@ -487,11 +391,6 @@ class UpdatesConfig(_Section):
         ge=0.0,
         description="m; with none accepted, after this travel without a prior a registration needs a second, agreeing one before it is accepted",
     )
-    switch_margin: float = Field(
-        0.05,
-        ge=0.0,
-        description="map-fit gain needed for a new registration to replace the accepted one; larger = switches less",
-    )
     refine_on_agreement: bool = Field(
         True,
         description="an agreeing registration (within agree_tol) that explains the grown map at least as well refines the accepted one",
@@ -505,30 +404,11 @@ class UpdatesConfig(_Section):
         ge=1,
         description="keyframe scans spread over the run used by the scan-fit checks; larger = surer, slower",
     )
-    refine_scan_margin: float = Field(
-        0.005, ge=0.0, description="scan fits closer than this (mean soft score) are a tie (the map decides)"
-    )
     # scale refinement of the accepted plan
     scale_refine_distance: float = Field(
         20.0,
         ge=0.0,
         description="m after an acceptance; fit the plan's scale along its two axes to keyframe scans (interval doubles after a fit changing nothing); 0 = off",
-    )
-    scale_refine_sigma: float = Field(
-        0.05, gt=0.0, description="prior sigma of the log scale factors; larger = scale moves more freely"
-    )
-    scale_refine_max: float = Field(
-        0.1,
-        gt=0.0,
-        description="largest scale change accepted (fraction); larger = bigger rescalings allowed",
-    )
-    scale_refine_min: float = Field(
-        0.002, ge=0.0, description="smaller scale changes (fraction) are not tried"
-    )
-    scale_refine_margin: float = Field(
-        0.002,
-        ge=0.0,
-        description="scan-fit gain (mean soft score) a refined scale needs to replace the plan; larger = changes less",
     )
     align_to_start: bool = Field(
         True,
@@ -542,11 +422,6 @@ class UpdatesConfig(_Section):
         0.002,
         ge=0.0,
         description="... and only when the first scan's soft fit at the anchor improves by this much",
-    )
-    scale_reanchor_xy: float = Field(
-        0.05,
-        ge=0.0,
-        description="m; a refined scale moving a prior's keyframe more than this relocalises the keyframes with priors on the new plan",
     )
     final_refine: bool = Field(
         True,
@@ -566,36 +441,16 @@ class UpdatesConfig(_Section):
     reloc_window_theta_deg: float = Field(
         15.0, gt=0.0, le=180.0, description="deg; heading half-width of the relocalisation search"
     )
-    reloc_window_max_xy: float = Field(
-        2.0, gt=0.0, description="m; the window grows with the drift since the last accepted prior up to this"
-    )
-    reloc_window_max_theta_deg: float = Field(
-        30.0, gt=0.0, le=180.0, description="deg; the heading window grows up to this"
-    )
     reloc_min_score: float = Field(
         0.5, ge=0.0, le=1.0, description="relocalisation score needed (0..1); larger = fewer, surer priors"
-    )
-    reloc_max_ambiguity: float = Field(
-        0.8,
-        ge=0.0,
-        le=1.0,
-        description="relocalisation ambiguity (runner-up / best) accepted at most; larger = more ambiguous priors",
     )
     reloc_resolution: float = Field(
         0.025,
         ge=0.01,
         description="m; cell of the plan's distance field for relocalisation; larger = faster, coarser",
     )
-    reloc_inlier_distance: float = Field(
-        0.1,
-        gt=0.0,
-        description="m; a scan point this close to a plan wall is an inlier; larger = laxer score",
-    )
     wall_half_thickness: float = Field(
         0.06, ge=0.0, description="m; half the plan's wall thickness (rooms are eroded by it)"
-    )
-    reloc_cov_inflation: float = Field(
-        4.0, ge=1.0, description="factor on the relocalisation covariance; larger = priors trusted less"
     )
     reloc_sigma_floor_xy: float = Field(
         0.02, gt=0.0, description="m; smallest translation sigma of a relocalisation"
@@ -603,46 +458,9 @@ class UpdatesConfig(_Section):
     reloc_sigma_floor_theta_deg: float = Field(
         0.3, gt=0.0, description="deg; smallest heading sigma of a relocalisation"
     )
-    # chi² gate: the estimate's marginal covariance plus drift since the last accepted prior
-    gate_drift_frac: float = Field(
-        0.05,
-        ge=0.0,
-        description="m per m travelled since the last prior added to the gate's sigma (and window); larger = laxer gate",
-    )
-    gate_drift_deg_per_m: float = Field(
-        1.0, ge=0.0, description="deg per m travelled added to the gate's heading sigma; larger = laxer gate"
-    )
-    gate_sigma_xy: float = Field(
-        0.05, gt=0.0, description="m; base translation sigma of the gate; larger = laxer gate"
-    )
-    gate_sigma_theta_deg: float = Field(
-        1.0, gt=0.0, description="deg; base heading sigma of the gate; larger = laxer gate"
-    )
-    # removal of priors proven wrong
-    remove_chi2: float = Field(
-        30.0,
-        gt=0.0,
-        description="a prior whose residual chi² after optimisation exceeds this is removed as proven wrong; larger = kept more",
-    )
-    remove_min_xy: float = Field(0.15, ge=0.0, description="m; ... and is at least this far off")
-    remove_min_theta_deg: float = Field(3.0, ge=0.0, description="deg; ... or turned at least this much")
-    remove_max_share: float = Field(
-        0.3,
-        gt=0.0,
-        le=1.0,
-        description="share of priors contradicted at once above which all are kept (the graph, not the priors, is off)",
-    )
-    prior_kind: Literal["full", "translation"] = Field(
-        "full", description="what a floor-plan prior constrains: full pose or translation only"
-    )
     backfill: bool = Field(
         True,
         description="after a registration is accepted, relocalise the keyframes before it on the plan too (one per relocation_distance_D, newest first)",
-    )
-    backfill_per_keyframe: int = Field(
-        2,
-        ge=1,
-        description="backfilled keyframes per new keyframe; larger = backfill done sooner, more CPU per keyframe",
     )
     spread_over_scans: bool = Field(
         True,
@@ -657,48 +475,11 @@ class LoopClosureConfig(_Section):
     enabled: bool = Field(
         True, description="search for loop closures (false = odometry and plan priors only; faster, drifts)"
     )
-    # candidates: earlier keyframes at least this far back (keyframes AND travel or turned angle)
-    min_keyframe_gap: int = Field(
-        20,
-        ge=1,
-        description="candidates are at least this many keyframes back; larger = fewer, older candidates",
-    )
-    min_travel_gap: float = Field(
-        5.0,
-        ge=0.0,
-        description="m; ... and at least this much travel back (or min_rotation_gap_deg of turning)",
-    )
-    min_rotation_gap_deg: float = Field(
-        300.0, ge=0.0, description="deg; ... or at least this much turning back"
-    )
-    # search radius and heading window grow with the motion since the last accepted closure
-    radius_base: float = Field(
-        2.0,
-        gt=0.0,
-        description="m; candidate search radius around the estimate right after a closure; larger = more candidates",
-    )
-    radius_per_m: float = Field(
-        0.25,
-        ge=0.0,
-        description="m of radius per m travelled since the last closure (or the candidate); larger = wider search",
-    )
-    radius_max: float = Field(60.0, gt=0.0, description="m; the radius grows up to this")
-    theta_window_base_deg: float = Field(
-        10.0, gt=0.0, le=180.0, description="deg; heading half-window of the search right after a closure"
-    )
-    theta_window_per_m_deg: float = Field(
-        0.3, ge=0.0, description="deg of heading window per m travelled; larger = wider search"
-    )
-    theta_window_per_turn: float = Field(
-        0.05, ge=0.0, description="deg of heading window per deg turned; larger = wider search"
-    )
+    # candidates and the search around them
     search_window_xy: float = Field(
         2.0,
         gt=0.0,
         description="m; translation half-width of the correlative search around the prediction (or the candidate); larger = slower, finds larger drift",
-    )
-    candidate_spacing: float = Field(
-        1.5, gt=0.0, description="m; one candidate per cell of this size; larger = fewer candidates"
     )
     attempt_every: int = Field(
         2, ge=1, description="keyframes between attempts; larger = less CPU, closures found later"
@@ -726,13 +507,6 @@ class LoopClosureConfig(_Section):
         90.0, ge=0.0, description="deg; ... and at most this much turning on that path"
     )
     # submaps (points in the keyframe's frame)
-    submap_travel: float = Field(
-        3.0, ge=0.0, description="m; reference submap: keyframes within ± this travel of the candidate"
-    )
-    query_travel: float = Field(
-        2.0, ge=0.0, description="m; query submap: this much travel back from the keyframe"
-    )
-    submap_keyframes: int = Field(30, ge=1, description="keyframes per side of a submap at most")
     max_point_range: float = Field(
         15.0, gt=0.0, description="m; scan points farther from their keyframe are left out of submaps"
     )
@@ -742,36 +516,10 @@ class LoopClosureConfig(_Section):
         ge=0.01,
         description="m; cell of the submap likelihood field (at least 0.01: finer asks for gigabytes); larger = faster, coarser",
     )
-    coarse_step_xy: float = Field(
-        0.3,
-        gt=0.0,
-        description="m; translation step of the coarse correlative search; larger = faster, may miss peaks",
-    )
-    coarse_step_theta_deg: float = Field(1.5, gt=0.0, description="deg; heading step of the coarse search")
     likelihood_sigma: float = Field(
         0.1,
         gt=0.0,
         description="m; width of the likelihood field around submap points; larger = smoother, less exact",
-    )
-    max_query_points: int = Field(
-        150, ge=20, description="query points sampled for the coarse search; larger = slower, surer"
-    )
-    icp_iterations: int = Field(10, ge=1, description="ICP refinement iterations per peak")
-    icp_max_distance: float = Field(0.5, gt=0.0, description="m; ICP correspondence distance at most")
-    inlier_distance: float = Field(
-        0.1, gt=0.0, description="m; a query point this close to the reference is an inlier"
-    )
-    min_coarse_score: float = Field(
-        0.62,
-        ge=0.0,
-        le=1.0,
-        description="below this coarse score: rejected without ICP; larger = fewer refinements",
-    )
-    refine_ratio: float = Field(
-        0.7,
-        gt=0.0,
-        le=1.0,
-        description="other coarse peaks above this times the best are refined too (ambiguity)",
     )
     # acceptance
     min_inlier_fraction: float = Field(
@@ -792,21 +540,7 @@ class LoopClosureConfig(_Section):
     free_space_margin: float = Field(
         0.3, gt=0.0, description="m; 'seen free' means farther than this from the reference's points"
     )
-    peak_separation_xy: float = Field(
-        1.0, gt=0.0, description="m; peaks closer than this (and in heading) are one peak"
-    )
-    peak_separation_theta_deg: float = Field(10.0, gt=0.0, description="deg; heading part of peak separation")
     # large corrections need a second, consistent closure before entering the graph
-    confirm_xy: float = Field(
-        0.15,
-        ge=0.0,
-        description="m; corrections larger than this (or confirm_theta_deg) wait for a confirming closure",
-    )
-    confirm_theta_deg: float = Field(1.5, ge=0.0, description="deg; heading part of that test")
-    consistency_xy: float = Field(
-        0.3, gt=0.0, description="m; two closures agree within this (plus 2 % of the odometry between them)"
-    )
-    consistency_theta_deg: float = Field(3.0, gt=0.0, description="deg; heading part of the agreement")
     pending_keyframes: int = Field(
         30, ge=1, description="a pending closure waits this many keyframes for confirmation"
     )
@@ -829,17 +563,7 @@ class LoopClosureConfig(_Section):
     hypothesis_window_theta_deg: float = Field(
         10.0, gt=0.0, description="deg; heading half-window of that check"
     )
-    # factor noise: point-to-line sigma, inflation, floors; robust kernel (whitened units)
-    icp_sigma: float = Field(
-        0.05,
-        gt=0.0,
-        description="m; point-to-line sigma of the closure covariance; larger = closures trusted less",
-    )
-    covariance_inflation: float = Field(
-        10.0, ge=1.0, description="factor on the closure covariance; larger = closures trusted less"
-    )
-    sigma_floor_xy: float = Field(0.02, gt=0.0, description="m; smallest translation sigma of a closure")
-    sigma_floor_theta_deg: float = Field(0.5, gt=0.0, description="deg; smallest heading sigma of a closure")
+    # closure factors: robust kernel (whitened units), pruning
     kernel: Literal["cauchy", "geman_mcclure", "huber", "none"] = Field(
         "cauchy",
         description="robust kernel of closure factors (a confirmed pair may enter as plain Gaussians; none = Gaussian)",
@@ -847,18 +571,11 @@ class LoopClosureConfig(_Section):
     kernel_param: float = Field(
         4.0, gt=0.0, description="sigmas (whitened); kernel width; larger = outlying closures pull harder"
     )
-    batch_on_correction: float = Field(
-        1.0,
-        ge=0.0,
-        description="m; an LM batch runs when a closure moves the graph more than this; larger = fewer batches",
-    )
     prune_chi2: float = Field(
         200.0,
         ge=0.0,
-        description="an accepted closure whose residual chi² exceeds this (and prune_xy / prune_theta_deg) is removed, worst first; 0 = off",
+        description="an accepted closure whose residual chi² exceeds this (and is 0.3 m or 3 deg off) is removed, worst first; 0 = off",
     )
-    prune_xy: float = Field(0.3, ge=0.0, description="m; ... and whose residual is at least this")
-    prune_theta_deg: float = Field(3.0, ge=0.0, description="deg; ... or at least this turn")
     prune_pair_contradictions: int = Field(
         10,
         ge=1,
@@ -880,7 +597,7 @@ class LoopClosureConfig(_Section):
     )
     # Anytime scheduling (bounded latency per add_scan): a keyframe queues its candidates (every
     # attempt_every keyframes); every scan then runs *steps* of the queued work (a submap build,
-    # a chunk of the correlative search of at most max_lookups_per_step field look-ups, the ICP
+    # a chunk of the correlative search of a bounded number of field look-ups, the ICP
     # data, one ICP refinement, one relinearising iSAM2 update after a closure; an LM batch after
     # a large correction is one step) while their estimated cost fits in budget_ms. The estimate
     # comes from the sizes involved (look-ups, grid cells, points, keyframes), not from a clock,
@@ -895,11 +612,6 @@ class LoopClosureConfig(_Section):
         4.0,
         gt=0.0,
         description="ms; the budget on keyframe scans (their graph update and plan updates run there too)",
-    )
-    max_lookups_per_step: int = Field(
-        300_000,
-        ge=10_000,
-        description="likelihood-field look-ups per correlative-search step at most; larger = fewer, longer steps",
     )
     settle_small: int = Field(
         0,

@@ -274,7 +274,7 @@ def test_estimates_refresh_incrementally_and_bit_identical():
 
 
 def test_prior_that_agrees_with_the_estimate_gets_a_short_settle():
-    """A prior within prior_settle_near_xy / _theta_deg of the estimate is followed by only
+    """A prior within PRIOR_SETTLE_NEAR_XY / _THETA_DEG of the estimate is followed by only
     prior_settle_near_iterations forced relinearisations (the streaming updates converge the rest,
     and each forced step costs milliseconds on a large graph); one that moves the trajectory gets
     the full settle; an explicit extra_iterations wins."""

@@ -15,7 +15,7 @@ from frslam_graph.backend.decisions import DecisionLog
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import ConfigError
 from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge
-from frslam_graph.plan_updates.schedule import RegistrationSchedule
+from frslam_graph.plan_updates.schedule import REGISTER_GROWTH_FRAC, RegistrationSchedule
 from frslam_graph.plan_updates.updater import FloorPlanUpdater
 from frslam_graph.slam import FRSlam
 
@@ -66,7 +66,7 @@ def test_schedule_first_registration_growth_and_inconsistent_run():
     t = s.next_trigger(cfg.first_register_area_m2, 0.1, False, True)
     assert t is not None and t.reason.startswith(f"{s.inconsistent_run} relocalisations in a row")
     assert s.next_trigger(cfg.first_register_area_m2, 0.1, False, True) is None  # the run restarts
-    grown = cfg.first_register_area_m2 * (2.0 + cfg.register_growth_frac) + cfg.register_min_growth_m2
+    grown = cfg.first_register_area_m2 * (2.0 + REGISTER_GROWTH_FRAC) + cfg.register_min_growth_m2
     assert "grew" in s.next_trigger(grown, 0.2, False, True).reason
 
 
@@ -86,3 +86,25 @@ def test_judge_returns_a_verdict_and_writes_nothing():
         assert v.outcome == "reject" and v.why.startswith(why) and v.pending is KEEP
         assert v.numbers == {"area": 12.0}
     assert len(ctx.log) == 0
+
+
+def test_the_step_runner_is_chosen_once_from_the_config():
+    """spread_over_scans picks, at construction, a runner that defers the steps to the following
+    scans or one that runs them all now (no flag tested on every call)."""
+    from types import SimpleNamespace
+
+    from frslam_graph.plan_updates.priors import get_step_runner
+
+    ran, deferred = [], []
+
+    def steps():
+        ran.append(1)
+        yield 1.0
+        ran.append(2)
+        yield 1.0
+
+    ctx = SimpleNamespace(deferred=SimpleNamespace(defer=deferred.append))
+    get_step_runner(UpdatesConfig(spread_over_scans=True))(ctx, steps())
+    assert ran == [] and len(deferred) == 1
+    get_step_runner(UpdatesConfig(spread_over_scans=False))(ctx, steps())
+    assert ran == [1, 2] and len(deferred) == 1

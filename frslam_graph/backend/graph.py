@@ -30,6 +30,20 @@ from frslam_graph.factors.floorplan_prior import (
 )
 from frslam_graph.se2 import compose, inverse, wrap
 
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# m; smallest translation sigma of an odometry between-factor; larger = odometry trusted less
+BETWEEN_SIGMA_FLOOR_XY = 0.002
+# deg; smallest heading sigma of an odometry between-factor; larger = odometry trusted less
+BETWEEN_SIGMA_FLOOR_THETA_DEG = 0.05
+# m; sigma of the prior on the first keyframe (map == odom at start); larger = a looser anchor
+ANCHOR_SIGMA_XY = 0.001
+ANCHOR_SIGMA_THETA_DEG = 0.001  # deg; heading sigma of the prior on the first keyframe
+BATCH_MAX_ITERATIONS = 100  # Levenberg-Marquardt batch iterations at most; larger = slower on hard graphs
+# m; a floor-plan prior within this of the estimate (and PRIOR_SETTLE_NEAR_THETA_DEG) gets only
+# prior_settle_near_iterations forced iSAM2 steps (others 10)
+PRIOR_SETTLE_NEAR_XY = 0.05
+PRIOR_SETTLE_NEAR_THETA_DEG = 1.0  # deg; heading part of the 'near' test of PRIOR_SETTLE_NEAR_XY
+
 _CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345}
 
 
@@ -75,9 +89,9 @@ class PoseGraph:
     """Keyframe pose graph (iSAM2 with QR factorisation; LM batch on demand)."""
 
     def __init__(self, config: GraphConfig | None = None):
-        self.config = cfg = config or GraphConfig()
-        self._floor_xy = cfg.between_sigma_floor_xy
-        self._floor_th = np.deg2rad(cfg.between_sigma_floor_theta_deg)
+        self.config = config or GraphConfig()
+        self._floor_xy = BETWEEN_SIGMA_FLOOR_XY
+        self._floor_th = np.deg2rad(BETWEEN_SIGMA_FLOOR_THETA_DEG)
         self._isam: gtsam.ISAM2 | None = self._new_isam()
         # the last batch's result while iSAM2 is released (optimize_batch(incremental=False))
         self._batch_values: gtsam.Values | None = None
@@ -181,8 +195,7 @@ class PoseGraph:
         """Keyframe 0 at ``pose`` in map, held by the anchor prior. Returns 0."""
         if self._n:
             raise FrslamError("the graph already has keyframes", where="add_first")
-        cfg = self.config
-        cov = np.diag([cfg.anchor_sigma_xy**2] * 2 + [np.deg2rad(cfg.anchor_sigma_theta_deg) ** 2])
+        cov = np.diag([ANCHOR_SIGMA_XY**2] * 2 + [np.deg2rad(ANCHOR_SIGMA_THETA_DEG) ** 2])
         p = np.asarray(pose, dtype=np.float64)
         factor = gtsam.PriorFactorPose2(key(0), pose2(p), gtsam.noiseModel.Gaussian.Covariance(cov))
         values = gtsam.Values()
@@ -228,8 +241,8 @@ class PoseGraph:
         """Add a robust floor-plan prior on a keyframe; returns its handle (for removal/residuals).
 
         ``extra_iterations`` relinearising iSAM2 steps follow (:meth:`settle`). By default a
-        prior that agrees with the current estimate (within ``prior_settle_near_xy`` /
-        ``prior_settle_near_theta_deg``) gets ``prior_settle_near_iterations`` (the streaming
+        prior that agrees with the current estimate (within ``PRIOR_SETTLE_NEAR_XY`` /
+        ``PRIOR_SETTLE_NEAR_THETA_DEG``) gets ``prior_settle_near_iterations`` (the streaming
         updates converge the rest), one that moves the trajectory 10."""
         cfg = self.config
         if not 0 <= keyframe < self._n:
@@ -263,8 +276,8 @@ class PoseGraph:
         agrees with the keyframe's current estimate (``prior_settle_near_*``), else 10."""
         cfg = self.config
         d = np.asarray(pose, float) - self.estimate(int(keyframe))
-        near = float(np.hypot(d[0], d[1])) <= cfg.prior_settle_near_xy and (
-            kind == "translation" or abs(float(wrap(d[2]))) <= np.deg2rad(cfg.prior_settle_near_theta_deg)
+        near = float(np.hypot(d[0], d[1])) <= PRIOR_SETTLE_NEAR_XY and (
+            kind == "translation" or abs(float(wrap(d[2]))) <= np.deg2rad(PRIOR_SETTLE_NEAR_THETA_DEG)
         )
         return cfg.prior_settle_near_iterations if near else 10
 
@@ -499,7 +512,7 @@ class PoseGraph:
         if not self._n:
             return np.zeros((0, 3))
         params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(self.config.batch_max_iterations)
+        params.setMaxIterations(BATCH_MAX_ITERATIONS)
         params.setRelativeErrorTol(self.config.batch_relative_tolerance)
         initial = self._current_values()
         # iSAM2 is freed before the batch, not after: its factorisation and LM's do not coexist

@@ -1,11 +1,11 @@
 """Loop closure for the keyframe pose graph (``map`` frame; metres, radians).
 
 Every ``attempt_every`` keyframes q, :class:`LoopCloser` looks for earlier keyframes c (not
-recent ones: at least ``min_keyframe_gap`` keyframes and ``min_travel_gap`` metres of travel or
-``min_rotation_gap_deg`` of turning back) near the current estimate. The search radius and the
+recent ones: at least ``MIN_KEYFRAME_GAP`` keyframes and ``MIN_TRAVEL_GAP`` metres of travel or
+``MIN_ROTATION_GAP_DEG`` of turning back) near the current estimate. The search radius and the
 heading window grow with the travel / turning between the two along the shortest path of the
 graph (accepted closures count as zero length), so a long excursion is searched widely and a
-freshly corrected one narrowly. One candidate per ``candidate_spacing`` cell; per attempt the
+freshly corrected one narrowly. One candidate per ``CANDIDATE_SPACING`` cell; per attempt the
 nearest cell not tried recently plus round-robin over the others (a wide area is covered over a
 few keyframes); ``max_candidates`` per attempt, ``max_candidates_idle`` when nothing is queued (the
 matching keeps up with the budget). When the prediction is too uncertain the search is centred on the candidate
@@ -28,7 +28,7 @@ the fewer closures let aliased ones weigh more); once floor-plan priors are in t
 a robot re-traversing the plan's rooms would only repeat what the priors already say.
 
 Each candidate is verified by :func:`~frslam_graph.loop_closure.submap_matching.match_scan`: the *query* submap (the points of the last
-``query_travel`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
+``QUERY_TRAVEL`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
 points of c's neighbouring keyframes, in c's frame). A correlative grid search over (x, y, theta)
 scores every pose at once (vectorised over poses × points) on a likelihood field of the reference
 (``cv2.distanceTransform``), max-filtered so the coarse grid cannot step over the peak; the best
@@ -41,7 +41,7 @@ slips through cannot bend the map.
 
 A robust kernel also refuses a *true* closure that disagrees with the current estimate by many
 sigmas (after a long excursion). So a closure that would move the graph by more than
-``confirm_xy`` / ``confirm_theta_deg`` waits until a second closure from another keyframe agrees
+``CONFIRM_XY`` / ``CONFIRM_THETA_DEG`` waits until a second closure from another keyframe agrees
 with it geometrically (pairwise consistency, as in PCM); then both enter the graph as plain
 Gaussians (the graph converges to them with iSAM2, or an LM batch when the correction is large).
 The bounded pull of a robust kernel could not hold such a correction against the stiff odometry
@@ -56,7 +56,7 @@ rejected.
 
 Closures already in the graph are re-checked after every addition and at the end
 (:meth:`LoopCloser.on_finish`): at the converged estimate (an LM batch first), a closure whose residual
-is far outside its covariance (``prune_chi2``, and ``prune_xy`` / ``prune_theta_deg``) is removed,
+is far outside its covariance (``prune_chi2``, and ``PRUNE_XY`` / ``PRUNE_THETA_DEG``) is removed,
 worst first: the odometry and the other closures disagree with it (on ACES, an aliased corridor
 match confirmed by an unrelated closure of similar correction). Counted in ``stats.pruned``,
 logged as ``loop_removed``. The lower confirmation threshold relies on it: without pruning,
@@ -68,7 +68,7 @@ house before the aliased pair that had bent it).
 
 Bounded latency (anytime): a keyframe only *plans* (candidates into a queue, about 1 ms); the
 work (query and reference submaps, the correlative search in chunks of at most
-``max_lookups_per_step`` look-ups, the reference's ICP data, each ICP refinement, the iSAM2 update
+``MAX_LOOKUPS_PER_STEP`` look-ups, the reference's ICP data, each ICP refinement, the iSAM2 update
 and each relinearising iteration after a closure, an LM batch) is a chain of steps run by every
 ``add_scan`` (keyframe or not) while their estimated cost fits ``budget_ms``. Each step announces
 its cost from the sizes involved (a fixed cost model: look-ups, grid cells, points, keyframes),
@@ -99,6 +99,7 @@ from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
 from frslam_graph.loop_closure.submap_matching import (
+    MIN_COARSE_SCORE,
     ReferenceSubmap,
     ScanMatch,
     match_scan_steps,
@@ -107,6 +108,34 @@ from frslam_graph.loop_closure.submap_matching import (
 )
 from frslam_graph.se2 import between, between_many, compose, wrap
 from frslam_graph.steps import Steps, run_steps
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+MIN_KEYFRAME_GAP = 20  # candidates are at least this many keyframes back; larger = fewer, older candidates
+MIN_TRAVEL_GAP = 5.0  # m; ... and at least this much travel back (or MIN_ROTATION_GAP_DEG of turning)
+MIN_ROTATION_GAP_DEG = 300.0  # deg; ... or at least this much turning back
+# m; candidate search radius around the estimate right after a closure; larger = more candidates
+RADIUS_BASE = 2.0
+# m of radius per m travelled since the last closure (or the candidate); larger = wider search
+RADIUS_PER_M = 0.25
+RADIUS_MAX = 60.0  # m; the radius grows up to this
+THETA_WINDOW_BASE_DEG = 10.0  # deg; heading half-window of the search right after a closure
+THETA_WINDOW_PER_M_DEG = 0.3  # deg of heading window per m travelled; larger = wider search
+THETA_WINDOW_PER_TURN = 0.05  # deg of heading window per deg turned; larger = wider search
+CANDIDATE_SPACING = 1.5  # m; one candidate per cell of this size; larger = fewer candidates
+SUBMAP_TRAVEL = 3.0  # m; reference submap: keyframes within ± this travel of the candidate
+QUERY_TRAVEL = 2.0  # m; query submap: this much travel back from the keyframe
+SUBMAP_KEYFRAMES = 30  # keyframes per side of a submap at most
+CONFIRM_XY = 0.15  # m; corrections larger than this (or CONFIRM_THETA_DEG) wait for a confirming closure
+CONFIRM_THETA_DEG = 1.5  # deg; heading part of that test
+CONSISTENCY_XY = 0.3  # m; two closures agree within this (plus 2 % of the odometry between them)
+CONSISTENCY_THETA_DEG = 3.0  # deg; heading part of the agreement
+CLOSURE_COVARIANCE_INFLATION = 10.0  # factor on the closure covariance; larger = closures trusted less
+CLOSURE_SIGMA_FLOOR_XY = 0.02  # m; smallest translation sigma of a closure
+CLOSURE_SIGMA_FLOOR_THETA_DEG = 0.5  # deg; smallest heading sigma of a closure
+# m; an LM batch runs when a closure moves the graph more than this; larger = fewer batches
+BATCH_ON_CORRECTION = 1.0
+PRUNE_XY = 0.3  # m; ... and whose residual is at least this
+PRUNE_THETA_DEG = 3.0  # deg; ... or at least this turn
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -258,7 +287,7 @@ class LoopCloser:
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            if i >= cfg.min_keyframe_gap and i % cfg.attempt_every == 0:
+            if i >= MIN_KEYFRAME_GAP and i % cfg.attempt_every == 0:
                 self._plan(ctx, i)
             if not work:
                 self.steps_last_call, self.cost_last_call = 0, 0.0
@@ -391,14 +420,13 @@ class LoopCloser:
         return (d_rel <= self._redundant_travel) & (r_rel <= np.deg2rad(cfg.redundant_turn_deg))
 
     def _eligible(self, i: int) -> np.ndarray:
-        """Mask over keyframes 0..i-min_keyframe_gap far enough back (travel or turn)."""
-        cfg = self.config
-        n = i - cfg.min_keyframe_gap + 1
+        """Mask over keyframes 0..i-MIN_KEYFRAME_GAP far enough back (travel or turn)."""
+        n = i - MIN_KEYFRAME_GAP + 1
         if n <= 0:
             return np.zeros(0, bool)
         trav, turn = np.asarray(self._travel), np.asarray(self._turn)
         gap_t, gap_r = trav[i] - trav[:n], turn[i] - turn[:n]
-        return (gap_t >= cfg.min_travel_gap) | (gap_r >= np.deg2rad(cfg.min_rotation_gap_deg))
+        return (gap_t >= MIN_TRAVEL_GAP) | (gap_r >= np.deg2rad(MIN_ROTATION_GAP_DEG))
 
     def _hypothesis(self, est: np.ndarray, i: int) -> tuple[int, float, float, np.ndarray] | None:
         """Where the latest pending closure says keyframe i is in the old map: (the old keyframe
@@ -428,15 +456,15 @@ class LoopCloser:
         cfg = self.config
         limit = cfg.max_candidates if limit is None else limit
         trav, turn = np.asarray(self._travel), np.asarray(self._turn)
-        n = i - cfg.min_keyframe_gap + 1
+        n = i - MIN_KEYFRAME_GAP + 1
         if n <= 0:
             return []
         idx = np.arange(n)
         gap_t, gap_r = trav[i] - trav[:n], turn[i] - turn[:n]
-        ok = (gap_t >= cfg.min_travel_gap) | (gap_r >= np.deg2rad(cfg.min_rotation_gap_deg))
+        ok = (gap_t >= MIN_TRAVEL_GAP) | (gap_r >= np.deg2rad(MIN_ROTATION_GAP_DEG))
         d_rel, r_rel = self._graph_distances(i)
         d_rel, r_rel = d_rel[:n], r_rel[:n]
-        radius = np.minimum(cfg.radius_max, cfg.radius_base + cfg.radius_per_m * d_rel)
+        radius = np.minimum(RADIUS_MAX, RADIUS_BASE + RADIUS_PER_M * d_rel)
         dist = np.hypot(*(est[:n, :2] - est[i, :2]).T)
         ok &= dist <= radius
         if not ok.any():
@@ -449,7 +477,7 @@ class LoopCloser:
             # take its place: places that look alike, where a wrong pair can be confirmed)
             self.stats.redundant += 1
             return []
-        cells = list(map(tuple, np.floor(est[order, :2] / cfg.candidate_spacing).astype(int).tolist()))
+        cells = list(map(tuple, np.floor(est[order, :2] / CANDIDATE_SPACING).astype(int).tolist()))
         order = order.tolist()
         # one candidate per cell (the nearest); the first pick is the nearest cell not tried
         # recently, the others go round-robin (never tried first, then the least recently tried)
@@ -470,9 +498,9 @@ class LoopCloser:
         out = []
         for _, _, c, cell in picks[:limit]:
             window = np.deg2rad(
-                cfg.theta_window_base_deg
-                + cfg.theta_window_per_m_deg * d_rel[c]
-                + cfg.theta_window_per_turn * np.rad2deg(r_rel[c])
+                THETA_WINDOW_BASE_DEG
+                + THETA_WINDOW_PER_M_DEG * d_rel[c]
+                + THETA_WINDOW_PER_TURN * np.rad2deg(r_rel[c])
             )
             out.append((c, float(radius[c]), float(min(window, np.pi))))
             self._tried[cell] = i
@@ -525,9 +553,9 @@ class LoopCloser:
             self._submaps.move_to_end(c)
             return sub
         cfg = self.config
-        lo, hi = c - cfg.submap_keyframes, min(c + cfg.submap_keyframes, i - cfg.min_keyframe_gap)
+        lo, hi = c - SUBMAP_KEYFRAMES, min(c + SUBMAP_KEYFRAMES, i - MIN_KEYFRAME_GAP)
         yield _gather_cost(ctx, lo, hi)
-        pts, scans = self._submap(ctx, ctx.graph.estimates(), c, lo, hi, cfg.submap_travel)
+        pts, scans = self._submap(ctx, ctx.graph.estimates(), c, lo, hi, SUBMAP_TRAVEL)
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
             yield ReferenceSubmap.build_cost(pts, cfg.resolution, cfg.likelihood_sigma, margin)
@@ -575,9 +603,8 @@ class LoopCloser:
         """Query submap of keyframe i (kept: shared by its candidates)."""
         if self._query is not None and self._query[0] == i:
             return self._query[1]
-        cfg = self.config
         est = ctx.graph.estimates()
-        query, _ = self._submap(ctx, est, i, i - cfg.submap_keyframes, i, cfg.query_travel)
+        query, _ = self._submap(ctx, est, i, i - SUBMAP_KEYFRAMES, i, QUERY_TRAVEL)
         self._query = (i, query)
         return query
 
@@ -593,7 +620,7 @@ class LoopCloser:
             self.stats.redundant += 1
             return []
         if self._query is None or self._query[0] != i:
-            yield _gather_cost(ctx, i - cfg.submap_keyframes, i)
+            yield _gather_cost(ctx, i - SUBMAP_KEYFRAMES, i)
         query = self._query_points(ctx, i)
         ref = yield from self._reference(ctx, c, i)
         est = ctx.graph.estimates()
@@ -616,15 +643,13 @@ class LoopCloser:
             return []
         weak = m.inlier_fraction < cfg.min_inlier_fraction  # only confirms a pending closure
         cov = regularise_covariance(
-            m.covariance * cfg.covariance_inflation,
-            cfg.sigma_floor_xy,
-            np.deg2rad(cfg.sigma_floor_theta_deg),
+            m.covariance * CLOSURE_COVARIANCE_INFLATION,
+            CLOSURE_SIGMA_FLOOR_XY,
+            np.deg2rad(CLOSURE_SIGMA_FLOOR_THETA_DEG),
         )
         corr = between(guess, m.pose)
         lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr)
-        small = np.hypot(corr[0], corr[1]) <= cfg.confirm_xy and abs(corr[2]) <= np.deg2rad(
-            cfg.confirm_theta_deg
-        )
+        small = np.hypot(corr[0], corr[1]) <= CONFIRM_XY and abs(corr[2]) <= np.deg2rad(CONFIRM_THETA_DEG)
         partner = None if small else self._consistent_pending(lc, ctx.graph.estimates())
         if weak and partner is None:
             self._reject(ctx, i, c, "low_inliers", **data)
@@ -663,7 +688,7 @@ class LoopCloser:
     def _refused(self, m: ScanMatch) -> tuple[str, dict[str, Any]] | None:
         """Why a match is refused whatever a pending closure says (reason, extra data), or None."""
         cfg = self.config
-        if m.coarse_score < cfg.min_coarse_score:
+        if m.coarse_score < MIN_COARSE_SCORE:
             return "low_score", {}
         if m.inlier_fraction < min(cfg.min_inlier_fraction, cfg.confirm_min_inlier_fraction):
             return "low_inliers", {}
@@ -704,15 +729,14 @@ class LoopCloser:
         self.stats.verifications += 1
 
     def _consistent_pending(self, lc: LoopClosure, est: np.ndarray) -> LoopClosure | None:
-        cfg = self.config
         for p in reversed(self._pending):
             if p.query == lc.query:
                 continue
             implied = between(compose(est[p.reference], p.relative), compose(est[lc.reference], lc.relative))
             odo = between(est[p.query], est[lc.query])
             d = between(implied, odo)
-            tol_xy = cfg.consistency_xy + 0.02 * float(np.hypot(odo[0], odo[1]))
-            if np.hypot(d[0], d[1]) <= tol_xy and abs(d[2]) <= np.deg2rad(cfg.consistency_theta_deg):
+            tol_xy = CONSISTENCY_XY + 0.02 * float(np.hypot(odo[0], odo[1]))
+            if np.hypot(d[0], d[1]) <= tol_xy and abs(d[2]) <= np.deg2rad(CONSISTENCY_THETA_DEG):
                 return p
         return None
 
@@ -744,7 +768,7 @@ class LoopCloser:
         if settle:
             yield from self._settle(graph, 10)
             moved = _moved(graph.estimates(), before)
-            if moved >= self.config.batch_on_correction or self._residual_large(graph, closures):
+            if moved >= BATCH_ON_CORRECTION or self._residual_large(graph, closures):
                 yield _MS_PER_KEYFRAME_BATCH * len(graph)
                 graph.optimize_batch()
                 self.stats.batches += 1
@@ -787,7 +811,7 @@ class LoopCloser:
 
     def _prune(self, ctx: BackendContext, suspects: list[LoopClosure] | None = None) -> Steps[None]:
         """Remove accepted closures the rest of the graph disagrees with (a step generator): while
-        the worst residual exceeds ``prune_chi2`` and ``prune_xy`` / ``prune_theta_deg`` at the
+        the worst residual exceeds ``prune_chi2`` and ``PRUNE_XY`` / ``PRUNE_THETA_DEG`` at the
         converged estimate (an LM batch first), remove that closure and settle again.
 
         ``suspects``: a confirmed pair that just entered as plain Gaussians. Under its pull the
@@ -803,9 +827,7 @@ class LoopCloser:
         suspects = list(suspects or [])
         while self.closures:
             r, chi2_all = self._residual_chi2(graph.estimates())
-            big = (np.hypot(r[:, 0], r[:, 1]) > cfg.prune_xy) | (
-                np.abs(r[:, 2]) > np.deg2rad(cfg.prune_theta_deg)
-            )
+            big = (np.hypot(r[:, 0], r[:, 1]) > PRUNE_XY) | (np.abs(r[:, 2]) > np.deg2rad(PRUNE_THETA_DEG))
             chi2 = np.where(big, chi2_all, 0.0)
             k = int(np.argmax(chi2))
             if chi2[k] <= cfg.prune_chi2:
@@ -832,7 +854,6 @@ class LoopCloser:
     ) -> Steps[None]:
         """Remove the accepted closures at positions ``which`` of ``self.closures`` (residuals
         ``r`` / ``chi2`` as judged) in one iSAM2 update, then settle (a step generator)."""
-        cfg = self.config
         graph = ctx.graph
         yield _MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
@@ -848,7 +869,7 @@ class LoopCloser:
         if idx:
             graph.remove_factors(idx, extra_iterations=0)
         yield from self._settle(graph, 10)
-        if _moved(graph.estimates(), before) >= cfg.batch_on_correction:
+        if _moved(graph.estimates(), before) >= BATCH_ON_CORRECTION:
             yield _MS_PER_KEYFRAME_BATCH * len(graph)
             graph.optimize_batch()
             self.stats.batches += 1

@@ -24,6 +24,21 @@ from scipy.spatial import cKDTree
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.steps import Steps, run_steps
 
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+COARSE_STEP_XY = 0.3  # m; translation step of the coarse correlative search; larger = faster, may miss peaks
+COARSE_STEP_THETA_DEG = 1.5  # deg; heading step of the coarse search
+MAX_QUERY_POINTS = 150  # query points sampled for the coarse search; larger = slower, surer
+ICP_ITERATIONS = 10  # ICP refinement iterations per peak
+ICP_MAX_DISTANCE = 0.5  # m; ICP correspondence distance at most
+INLIER_DISTANCE = 0.1  # m; a query point this close to the reference is an inlier
+REFINE_RATIO = 0.7  # other coarse peaks above this times the best are refined too (ambiguity)
+PEAK_SEPARATION_XY = 1.0  # m; peaks closer than this (and in heading) are one peak
+PEAK_SEPARATION_THETA_DEG = 10.0  # deg; heading part of peak separation
+# likelihood-field look-ups per correlative-search step at most; larger = fewer, longer steps
+MAX_LOOKUPS_PER_STEP = 300_000
+ICP_SIGMA = 0.05  # m; point-to-line sigma of the closure covariance; larger = closures trusted less
+MIN_COARSE_SCORE = 0.62  # below this coarse score: rejected without ICP; larger = fewer refinements
+
 T = TypeVar("T")
 
 # Cost model: milliseconds on one core of the development machine (2-core x86 VM, 2020s); only
@@ -315,7 +330,7 @@ class ReferenceSubmap:
 class ScanMatch:
     """Result of :func:`match_scan`: the query frame's pose in the reference frame.
 
-    ``inlier_fraction``: share of query points within ``inlier_distance`` of the reference after
+    ``inlier_fraction``: share of query points within ``INLIER_DISTANCE`` of the reference after
     ICP; ``ambiguity``: the best distinct second peak's inlier fraction / the best (0 = none);
     ``covariance``: 3×3 in GTSAM's Pose2 tangent (body frame of ``pose``).
     """
@@ -533,7 +548,7 @@ def match_scan_steps(
     rng: np.random.Generator | None = None,
 ) -> Steps[ScanMatch | None]:
     """:func:`match_scan` as a generator that yields between bounded pieces of work (a chunk of
-    the correlative search of at most ``config.max_lookups_per_step`` look-ups, the finer level,
+    the correlative search of at most ``MAX_LOOKUPS_PER_STEP`` look-ups, the finer level,
     building the reference's ICP data, one ICP refinement); its return value is the match.
     The anytime loop closer runs a few pieces per scan; the result does not depend on how the
     pieces are spread."""
@@ -544,27 +559,27 @@ def match_scan_steps(
     if len(fine) < 20 or len(reference.points) < 20:
         return None
     coarse = fine
-    if len(coarse) > cfg.max_query_points:
+    if len(coarse) > MAX_QUERY_POINTS:
         rng = rng or np.random.default_rng(0)
-        coarse = coarse[rng.choice(len(coarse), cfg.max_query_points, replace=False)]
-    step_th = np.deg2rad(cfg.coarse_step_theta_deg)
+        coarse = coarse[rng.choice(len(coarse), MAX_QUERY_POINTS, replace=False)]
+    step_th = np.deg2rad(COARSE_STEP_THETA_DEG)
     c0 = np.asarray(centre, dtype=np.float64)
-    sep_xy, sep_th = cfg.peak_separation_xy, np.deg2rad(cfg.peak_separation_theta_deg)
+    sep_xy, sep_th = PEAK_SEPARATION_XY, np.deg2rad(PEAK_SEPARATION_THETA_DEG)
     poses, scores = yield from _coarse_search(
         reference,
         coarse,
         c0,
         window_xy,
         min(window_theta, np.pi),
-        cfg.coarse_step_xy,
+        COARSE_STEP_XY,
         step_th,
         sep_xy,
         sep_th,
-        cfg.max_lookups_per_step,
+        MAX_LOOKUPS_PER_STEP,
     )
     peaks = _distinct_peaks(poses, scores, 3, sep_xy, sep_th)
     top = float(scores[peaks[0]])
-    if top < cfg.min_coarse_score:  # not even the optimistic coarse score: no ICP
+    if top < MIN_COARSE_SCORE:  # not even the optimistic coarse score: no ICP
         second = float(scores[peaks[1]]) / top if len(peaks) > 1 and top > 0 else 0.0
         return ScanMatch(poses[peaks[0]], 0.0, second, np.eye(3), top, len(fine), None)
     cells = reference.shape[0] * reference.shape[1]
@@ -576,22 +591,22 @@ def match_scan_steps(
         reference.prepare_icp()
     refined, unrefined = [], 0.0
     for j in peaks:
-        if j != peaks[0] and scores[j] < cfg.refine_ratio * top:
+        if j != peaks[0] and scores[j] < REFINE_RATIO * top:
             unrefined = max(unrefined, float(scores[j]) / top)  # clearly lower already
             continue
-        yield _MS_ICP + _MS_PER_POINT_ICP * len(fine) * cfg.icp_iterations
+        yield _MS_ICP + _MS_PER_POINT_ICP * len(fine) * ICP_ITERATIONS
         r = icp_point_to_line(
             reference,
             fine,
             poses[j],
-            cfg.icp_iterations,
-            cfg.icp_max_distance,
-            kernel=cfg.inlier_distance / 2.0,
-            sigma=cfg.icp_sigma,
+            ICP_ITERATIONS,
+            ICP_MAX_DISTANCE,
+            kernel=INLIER_DISTANCE / 2.0,
+            sigma=ICP_SIGMA,
         )
         if r is None:
             continue
-        inl = reference.inlier_fraction(fine, r[0], cfg.inlier_distance)
+        inl = reference.inlier_fraction(fine, r[0], INLIER_DISTANCE)
         refined.append((inl, r[0], r[1], float(scores[j])))
     if not refined:
         return None

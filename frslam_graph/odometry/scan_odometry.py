@@ -23,7 +23,7 @@ odometry that lost the sign: a reversal logged as forward motion) are *odometry 
 trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
-(:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``gap_factor`` nominal
+(:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
 periods count as dropped scans.
 """
 
@@ -50,6 +50,23 @@ from frslam_graph.odometry.motion_model import (
     wheel_increment,
     wheel_noise,
 )
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt
+MIN_MOTION = 0.1
+ICP_COV_INFLATION = 1.0  # factor on the ICP covariance; larger = ICP steps trusted less
+ICP_SIGMA_FLOOR_XY = 0.001  # m; smallest ICP translation sigma; larger = ICP never trusted beyond this
+# deg; smallest ICP heading sigma; larger = ICP heading never trusted beyond this
+ICP_SIGMA_FLOOR_THETA_DEG = 0.01
+# m; ICP sigma along a degenerate axis; larger = the motion model carries that axis more
+DEGENERATE_SIGMA = 10.0
+# sigmas (Mahalanobis) of the jump / ICP-failure gate: wheel vs constant velocity and, with icp_gate reject,
+# ICP vs wheel; larger = fewer jumps detected
+ODOM_JUMP_GATE = 5.0
+ODOM_JUMP_MIN_M = 0.15  # m; a jump must also disagree by at least this much; larger = fewer jumps detected
+ODOM_JUMP_MIN_DEG = 5.0  # deg; ... or turn at least this much; larger = fewer jumps detected
+# a stamp gap above this times the nominal scan period counts as dropped scans; larger = fewer gaps reported
+GAP_FACTOR = 2.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,7 +214,7 @@ class ScanOdometry:
             adaptive_threshold=AdaptiveThresholdConfig(
                 fixed_threshold=cfg.fixed_threshold,
                 initial_threshold=cfg.initial_threshold,
-                min_motion_th=cfg.min_motion,
+                min_motion_th=MIN_MOTION,
             ),
         )
         self._icp = KissICP(kcfg)
@@ -213,9 +230,7 @@ class ScanOdometry:
             floor_xy=cfg.wheel_sigma_floor_xy,
             floor_theta=np.deg2rad(cfg.wheel_sigma_floor_theta_deg),
         )
-        self._floor = np.diag(
-            [cfg.icp_sigma_floor_xy**2] * 2 + [np.deg2rad(cfg.icp_sigma_floor_theta_deg) ** 2]
-        )
+        self._floor = np.diag([ICP_SIGMA_FLOOR_XY**2] * 2 + [np.deg2rad(ICP_SIGMA_FLOOR_THETA_DEG) ** 2])
         # state
         # recent stamps, never decreasing (a stamp before its predecessor does not rewind the
         # clock); empty before the first scan
@@ -342,12 +357,11 @@ class ScanOdometry:
             self._ekf.predict(u, cov_u)
             if not icp_rejected and used_wheel and not fallback and not degenerate:
                 y, m2 = self._ekf.innovation(z, R)
-                outside = m2 > cfg.odom_jump_gate**2
+                outside = m2 > ODOM_JUMP_GATE**2
                 beyond = outside and (
-                    np.hypot(y[0], y[1]) > cfg.odom_jump_min_m
-                    or abs(y[2]) > np.deg2rad(cfg.odom_jump_min_deg)
+                    np.hypot(y[0], y[1]) > ODOM_JUMP_MIN_M or abs(y[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
                 )
-                if outside and _reversed(between(prev_rel, z), u, cfg.odom_jump_min_m / 4.0):
+                if outside and _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0):
                     # the scan moved the robot backwards where the wheels say forwards (or the
                     # reverse): wheel odometry that lost the sign of the motion (FR079 logs
                     # reversing at 0.5 m/s as forward motion). A wheel fault: ICP is trusted,
@@ -447,7 +461,7 @@ class ScanOdometry:
         an unsteady clock (recent steps off the nominal period by more than a quarter of it, in
         the median) a step cannot tell a gap from a late stamp: each scan is one nominal period
         of motion and no scan counts as dropped. On a steady clock the step is the stamp
-        difference, and one over ``gap_factor`` periods counts dropped scans. The speed test
+        difference, and one over ``GAP_FACTOR`` periods counts dropped scans. The speed test
         never gets less than one period, so a burst of stamps is never a wheel-odometry jump.
         """
         t = self._t_hist
@@ -470,7 +484,7 @@ class ScanOdometry:
         if not steady:
             return period, max(raw, period), 0
         dropped = 0
-        if raw > self.config.gap_factor * period:
+        if raw > GAP_FACTOR * period:
             dropped = max(int(round(raw / period)) - 1, 1)
             self.stats.dropped_scans += dropped
             self.stats.gaps += 1
@@ -481,26 +495,25 @@ class ScanOdometry:
         """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
         cfg = self.config
         if geo.n_normals < 10:
-            big = np.diag([cfg.degenerate_sigma**2] * 2 + [np.pi**2])
+            big = np.diag([DEGENERATE_SIGMA**2] * 2 + [np.pi**2])
             return big, True, True, None
         H = geo.hessian + 1e-9 * np.eye(3)
-        cov = np.linalg.inv(H) * (cfg.icp_sigma**2 * cfg.icp_cov_inflation)
+        cov = np.linalg.inv(H) * (cfg.icp_sigma**2 * ICP_COV_INFLATION)
         cov = 0.5 * (cov + cov.T) + self._floor
         degenerate = geo.eig_ratio < cfg.degeneracy_threshold
         axis = None
         if degenerate:
             axis = geo.weak_axis / np.linalg.norm(geo.weak_axis)
             a3 = np.array([axis[0], axis[1], 0.0])
-            cov = cov + cfg.degenerate_sigma**2 * np.outer(a3, a3)
+            cov = cov + DEGENERATE_SIGMA**2 * np.outer(a3, a3)
         # an ill-conditioned Hessian also gives a huge inverse along the axis; cap it
-        cov = np.minimum(cov, np.diag([cfg.degenerate_sigma**2] * 2 + [np.pi**2]).max())
+        cov = np.minimum(cov, np.diag([DEGENERATE_SIGMA**2] * 2 + [np.pi**2]).max())
         return cov, degenerate, False, axis
 
     def _disagree(self, a: np.ndarray, b: np.ndarray, cov: np.ndarray) -> bool:
-        cfg = self.config
         d = between(b, a)
-        big = np.hypot(d[0], d[1]) > cfg.odom_jump_min_m or abs(d[2]) > np.deg2rad(cfg.odom_jump_min_deg)
-        return bool(big and d @ np.linalg.solve(cov, d) > cfg.odom_jump_gate**2)
+        big = np.hypot(d[0], d[1]) > ODOM_JUMP_MIN_M or abs(d[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
+        return bool(big and d @ np.linalg.solve(cov, d) > ODOM_JUMP_GATE**2)
 
     def _align(
         self, scan: PreparedScan, seeds: list[np.ndarray]

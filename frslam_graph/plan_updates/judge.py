@@ -8,7 +8,7 @@ is disambiguated with MFR's runner-up placements on the keyframe scans; the plan
 explain ``min_map_fit`` of the map's occupied cells and cross at most
 ``max_walls_in_free_space`` of its free space; against an accepted registration it refines it
 (agrees within ``agree_tol`` and explains the data as well or better, ``refine_by``), is kept
-out, or replaces it (``switch_margin`` better); the current scan relocalises on it
+out, or replaces it (``SWITCH_MARGIN`` better); the current scan relocalises on it
 (``reloc_min_score``), the keyframe scans fit it (``min_scan_fit``); a first registration passes
 the chi² gate against the trajectory and, after ``confirm_after_m`` metres without a prior, needs a
 second one that agrees. Distances in metres (map frame), fits as shares of cells or scans.
@@ -27,7 +27,15 @@ from frslam_graph.localisation.relocalisation import Relocalisation, Relocaliser
 from frslam_graph.plan_checks import matrix_disagreement, occupied_points, walls_through_free_space
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
-from frslam_graph.plan_updates.priors import gate_chi2
+from frslam_graph.plan_updates.priors import INCONSISTENT_CHI2, gate_chi2
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# m per m travelled since the last accepted prior (uncorrected drift) added to map_fit_distance and
+# free_space_margin
+CHECK_GROWTH_PER_M = 0.01
+# map-fit gain needed for a new registration to replace the accepted one; larger = switches less
+SWITCH_MARGIN = 0.05
+REFINE_SCAN_MARGIN = 0.005  # scan fits closer than this (mean soft score) are a tie (the map decides)
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -59,7 +67,7 @@ class Verdict:
 def tolerances(config: UpdatesConfig, drift: float) -> tuple[float, float]:
     """(map-fit distance, free-space margin) in metres, grown with ``drift``, the distance
     travelled since the last accepted prior: how far the map may have drifted from the plan."""
-    grow = config.check_growth_per_m * max(drift, 0.0)
+    grow = CHECK_GROWTH_PER_M * max(drift, 0.0)
     fit = min(config.map_fit_distance + grow, max(config.map_fit_distance_max, config.map_fit_distance))
     margin = min(config.free_space_margin + grow, max(config.free_space_margin_max, config.free_space_margin))
     return fit, margin
@@ -160,12 +168,12 @@ class RegistrationJudge:
             disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             old_fit = acc.relocaliser.fit_points(occ, fit_tol)
             nums.update(disagreement=disp, accepted_map_fit=old_fit)
-            if disp <= cfg.agree_tol and fit < old_fit + cfg.switch_margin:
+            if disp <= cfg.agree_tol and fit < old_fit + SWITCH_MARGIN:
                 if cfg.refine_on_agreement and fit >= old_fit:
                     better = f"the map as well or better ({fit:.0%} vs {old_fit:.0%})"
                     return self._refine(case, reg, plan_map, relocaliser, fit, disp, better)
                 return self._reject(case, f"agrees with registration {acc.id} (RMS {disp:.2f} m); kept")
-            if fit < old_fit + cfg.switch_margin:
+            if fit < old_fit + SWITCH_MARGIN:
                 return self._reject(
                     case,
                     f"disagrees with registration {acc.id} (RMS {disp:.2f} m) and explains "
@@ -187,13 +195,13 @@ class RegistrationJudge:
         """An agreeing registration with ``refine_by`` "scans": the map was drawn at estimates
         the accepted plan's priors pulled onto it (its fit is biased towards that plan): compare
         the two on the keyframe scans, each relocalised on its own."""
-        cfg, nums, acc = self.config, case.nums, case.accepted
+        nums, acc = case.nums, case.accepted
         q_new = self.evidence.fit(case.ctx, relocaliser, case.n_keyframes)
         q_old = self.evidence.fit(case.ctx, acc.relocaliser, case.n_keyframes)
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old)
-        if q_new > q_old + cfg.refine_scan_margin:
+        if q_new > q_old + REFINE_SCAN_MARGIN:
             better = f"the keyframe scans better ({q_new:.1%} vs {q_old:.1%})"
-        elif q_new >= q_old - cfg.refine_scan_margin:
+        elif q_new >= q_old - REFINE_SCAN_MARGIN:
             # the scans cannot tell (each scan absorbs a rigid offset of the plan): the map decides
             old_fit = acc.relocaliser.fit_points(occ, fit_tol)
             nums["accepted_map_fit"] = old_fit
@@ -243,9 +251,9 @@ class RegistrationJudge:
         if case.accepted is None:
             chi2 = gate_chi2(cfg, case.ctx, case.keyframe, reloc, case.drift)
             nums["chi2"] = chi2
-            if chi2 > cfg.inconsistent_chi2:
+            if chi2 > INCONSISTENT_CHI2:
                 return self._reject(
-                    case, f"inconsistent with the trajectory: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
+                    case, f"inconsistent with the trajectory: chi2 {chi2:.1f} > {INCONSISTENT_CHI2:.1f}"
                 )
             if case.drift > cfg.confirm_after_m:
                 # the drift allowance has made the chi2 gate weak: a second registration that

@@ -5,7 +5,7 @@
 gates the result (:func:`gate_chi2`: its covariance plus the estimate's marginal plus the drift
 since the last accepted prior) and adds it as a robust prior; it backfills the keyframes before
 a registration, re-anchors the priors of a replaced or refined plan and removes the priors later
-proven wrong (``remove_chi2``). With ``spread_over_scans`` a relocalisation, its prior, each
+proven wrong (``REMOVE_CHI2``). With ``spread_over_scans`` a relocalisation, its prior, each
 relinearising iteration after it and the check of the priors are deferred steps (one per scan),
 each announcing its cost from a fixed cost model (ms on one core; sizes, never a clock).
 Poses in ``map`` (metres, radians).
@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -26,6 +26,50 @@ from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.schedule import RegistrationSchedule
 from frslam_graph.plan_updates.travel import Travel
 from frslam_graph.se2 import tangent_cov, vector_cov
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# chi² gate (3 dof, default 99 %) of a relocalisation against the trajectory; larger = more priors pass
+INCONSISTENT_CHI2 = 11.34
+RELOC_WINDOW_MAX_XY = 2.0  # m; the window grows with the drift since the last accepted prior up to this
+RELOC_WINDOW_MAX_THETA_DEG = 30.0  # deg; the heading window grows up to this
+# relocalisation ambiguity (runner-up / best) accepted at most; larger = more ambiguous priors
+RELOC_MAX_AMBIGUITY = 0.8
+# m per m travelled since the last prior added to the gate's sigma (and window); larger = laxer gate
+GATE_DRIFT_FRAC = 0.05
+GATE_DRIFT_DEG_PER_M = 1.0  # deg per m travelled added to the gate's heading sigma; larger = laxer gate
+GATE_SIGMA_XY = 0.05  # m; base translation sigma of the gate; larger = laxer gate
+GATE_SIGMA_THETA_DEG = 1.0  # deg; base heading sigma of the gate; larger = laxer gate
+# a prior whose residual chi² after optimisation exceeds this is removed as proven wrong; larger = kept more
+REMOVE_CHI2 = 30.0
+REMOVE_MIN_XY = 0.15  # m; ... and is at least this far off
+REMOVE_MIN_THETA_DEG = 3.0  # deg; ... or turned at least this much
+# share of priors contradicted at once above which all are kept (the graph, not the priors, is off)
+REMOVE_MAX_SHARE = 0.3
+PRIOR_KIND = "full"  # what a floor-plan prior constrains: full pose or translation only
+# backfilled keyframes per new keyframe; larger = backfill done sooner, more CPU per keyframe
+BACKFILL_PER_KEYFRAME = 2
+
+
+class StepRunner(Protocol):
+    """Runs a step generator (each ``yield`` ends one step, giving its estimated ms)."""
+
+    def __call__(self, ctx: BackendContext, steps: Iterator[Any]) -> None: ...
+
+
+def _run_on_later_scans(ctx: BackendContext, steps: Iterator[Any]) -> None:
+    ctx.deferred.defer(steps)  # one step per following scan (same decisions, lower latency)
+
+
+def _run_now(ctx: BackendContext, steps: Iterator[Any]) -> None:
+    for _ in steps:
+        pass
+
+
+def get_step_runner(config: UpdatesConfig) -> StepRunner:
+    """How relocalisations, priors and their checks run, chosen once: as deferred steps on the
+    scans after the keyframe (``spread_over_scans``) or all at once on the keyframe."""
+    return _run_on_later_scans if config.spread_over_scans else _run_now
+
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -45,8 +89,8 @@ def gate_chi2(
     est = np.asarray(keyframe.pose_map, float)
     d = reloc.pose - est
     d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
-    sxy = config.gate_sigma_xy + config.gate_drift_frac * travelled
-    sth = np.deg2rad(config.gate_sigma_theta_deg + config.gate_drift_deg_per_m * travelled)
+    sxy = GATE_SIGMA_XY + GATE_DRIFT_FRAC * travelled
+    sth = np.deg2rad(GATE_SIGMA_THETA_DEG + GATE_DRIFT_DEG_PER_M * travelled)
     s = reloc.covariance + np.diag([sxy**2, sxy**2, sth**2])
     try:
         s = s + vector_cov(est, ctx.graph.marginal_covariance(keyframe.index))
@@ -93,6 +137,7 @@ class PriorManager:
         timings: dict[str, float],
     ) -> None:
         self.config = config
+        self._run = get_step_runner(config)
         self.travel = travel
         self.schedule = schedule
         self.accepted = accepted  # the accepted plan when a step runs (it may change meanwhile)
@@ -136,10 +181,10 @@ class PriorManager:
         # relocalisations does not lose the plan for good
         travelled = self.drift
         k = self.window_sigmas
-        wxy = min(max(cfg.reloc_window_xy, k * cfg.gate_drift_frac * travelled), cfg.reloc_window_max_xy)
+        wxy = min(max(cfg.reloc_window_xy, k * GATE_DRIFT_FRAC * travelled), RELOC_WINDOW_MAX_XY)
         wth = min(
-            max(cfg.reloc_window_theta_deg, k * cfg.gate_drift_deg_per_m * travelled),
-            cfg.reloc_window_max_theta_deg,
+            max(cfg.reloc_window_theta_deg, k * GATE_DRIFT_DEG_PER_M * travelled),
+            RELOC_WINDOW_MAX_THETA_DEG,
         )
         self.relocalised_now()
         ctx.deferred.run_all()  # the previous relocalisation's, if any: a bounded backlog
@@ -149,13 +194,8 @@ class PriorManager:
         self.later(ctx, steps)
 
     def later(self, ctx: BackendContext, steps: Iterator[Any]) -> None:
-        """Run a step generator: one step per following scan with ``spread_over_scans``, else
-        all of it now."""
-        if self.config.spread_over_scans:
-            ctx.deferred.defer(steps)
-        else:
-            for _ in steps:
-                pass
+        """Run a step generator with the runner chosen at construction (:func:`get_step_runner`)."""
+        self._run(ctx, steps)
 
     def _relocalise_steps(
         self,
@@ -188,7 +228,7 @@ class PriorManager:
         """:meth:`offer`, then the graph's relinearising iterations one per step (each yield ends
         one, giving its estimated ms); returns whether the prior was added and the estimated cost
         of the step still open (the caller yields it)."""
-        n = ctx.graph.prior_settle_iterations(keyframe.index, reloc.pose, self.config.prior_kind)
+        n = ctx.graph.prior_settle_iterations(keyframe.index, reloc.pose, PRIOR_KIND)
         added = self.offer(ctx, keyframe, reloc, why, drift, backfill, settle=False)
         cost = self.ms_prior
         if added:
@@ -232,13 +272,13 @@ class PriorManager:
             rej = f"relocalisation failed: {reloc.reason}"
         elif reloc.score < cfg.reloc_min_score:
             rej = f"poor fit: inliers {reloc.score:.0%} < {cfg.reloc_min_score:.0%}"
-        elif reloc.ambiguity > cfg.reloc_max_ambiguity:
-            rej = f"ambiguous: {reloc.ambiguity:.2f} > {cfg.reloc_max_ambiguity:.2f}"
+        elif reloc.ambiguity > RELOC_MAX_AMBIGUITY:
+            rej = f"ambiguous: {reloc.ambiguity:.2f} > {RELOC_MAX_AMBIGUITY:.2f}"
         else:
             chi2 = gate_chi2(cfg, ctx, keyframe, reloc, self.drift if drift is None else drift)
             nums["chi2"] = chi2
-            if chi2 > cfg.inconsistent_chi2:
-                rej = f"inconsistent with the estimate: chi2 {chi2:.1f} > {cfg.inconsistent_chi2:.1f}"
+            if chi2 > INCONSISTENT_CHI2:
+                rej = f"inconsistent with the estimate: chi2 {chi2:.1f} > {INCONSISTENT_CHI2:.1f}"
                 if not backfill:
                     self.schedule.relocalised(consistent=False)
         if rej is not None:
@@ -251,7 +291,7 @@ class PriorManager:
             reloc.pose,
             tangent_cov(reloc.pose, reloc.covariance),
             source=f"reloc:reg{self.accepted().id}",
-            kind=cfg.prior_kind,
+            kind=PRIOR_KIND,
             info={"score": reloc.score, "ambiguity": reloc.ambiguity},
             extra_iterations=None if settle else 0,
             why=why,
@@ -270,7 +310,6 @@ class PriorManager:
         something else (e.g. a wrong loop closure bending the trajectory): then nothing is
         removed and a "prior_conflict" event is logged instead.
         """
-        cfg = self.config
         handles = [h for h in ctx.graph.priors() if h.source.startswith("reloc:")]
         if not handles:
             return
@@ -280,14 +319,14 @@ class PriorManager:
         bad = []
         for h, res in zip(handles, ctx.graph.prior_residuals(handles), strict=True):
             e = np.asarray(res.error, float)
-            far = (len(e) >= 2 and float(np.hypot(e[0], e[1])) > cfg.remove_min_xy) or (
-                len(e) != 2 and abs(float(e[-1])) > np.deg2rad(cfg.remove_min_theta_deg)
+            far = (len(e) >= 2 and float(np.hypot(e[0], e[1])) > REMOVE_MIN_XY) or (
+                len(e) != 2 and abs(float(e[-1])) > np.deg2rad(REMOVE_MIN_THETA_DEG)
             )
-            if res.chi2 > cfg.remove_chi2 and far:
+            if res.chi2 > REMOVE_CHI2 and far:
                 bad.append((h, res, e))
         if not bad:
             return
-        if len(bad) > max(1, cfg.remove_max_share * len(handles)):
+        if len(bad) > max(1, REMOVE_MAX_SHARE * len(handles)):
             record(
                 ctx,
                 stamp,
@@ -302,7 +341,7 @@ class PriorManager:
             return
         for h, res, e in bad:
             why = (
-                f"proven wrong: residual chi2 {res.chi2:.1f} > {cfg.remove_chi2:.1f}, "
+                f"proven wrong: residual chi2 {res.chi2:.1f} > {REMOVE_CHI2:.1f}, "
                 f"error {np.round(e, 3).tolist()} (weight {res.weight:.2f})"
             )
             ctx.remove_priors([h], reason=why, cause="wrong", chi2=_num(res.chi2), weight=_num(res.weight))
@@ -368,11 +407,11 @@ class PriorManager:
         self._backfill_anchor = here
 
     def run_backfill(self, ctx: BackendContext) -> None:
-        """Relocalise the next ``backfill_per_keyframe`` queued keyframes and add their priors
+        """Relocalise the next ``BACKFILL_PER_KEYFRAME`` queued keyframes and add their priors
         (as steps), once the previous steps are done."""
         if self.accepted() is None or not self._backfill or ctx.deferred.pending:
             return
-        for _ in range(min(self.config.backfill_per_keyframe, len(self._backfill))):
+        for _ in range(min(BACKFILL_PER_KEYFRAME, len(self._backfill))):
             self.later(ctx, self._backfill_steps(ctx, self._backfill.pop(0)))
 
     def _backfill_steps(self, ctx: BackendContext, k: int) -> Iterator[float]:

@@ -21,7 +21,22 @@ from frslam_graph.localisation.relocalisation import Relocaliser, RelocaliserPar
 from frslam_graph.plan_checks import fit_plan_scale
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
+from frslam_graph.plan_updates.priors import (
+    RELOC_MAX_AMBIGUITY,
+    RELOC_WINDOW_MAX_THETA_DEG,
+    RELOC_WINDOW_MAX_XY,
+)
 from frslam_graph.se2 import compose, inverse, to_matrix
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+SCALE_REFINE_SIGMA = 0.05  # prior sigma of the log scale factors; larger = scale moves more freely
+SCALE_REFINE_MAX = 0.1  # largest scale change accepted (fraction); larger = bigger rescalings allowed
+SCALE_REFINE_MIN = 0.002  # smaller scale changes (fraction) are not tried
+# scan-fit gain (mean soft score) a refined scale needs to replace the plan; larger = changes less
+SCALE_REFINE_MARGIN = 0.002
+# m; a refined scale moving a prior's keyframe more than this relocalises the keyframes with priors on the
+# new plan
+SCALE_REANCHOR_XY = 0.05
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -84,11 +99,10 @@ class PlanRefiner:
         can be a few per cent off in scale; the priors then bend the map onto it, so a
         registration on the map would repeat the error. The refined plan replaces the accepted
         one (same id; its priors are relocalised on it when it moves them by more than
-        ``scale_reanchor_xy``) when it explains the scans better (``scale_refine_margin``). With
+        ``SCALE_REANCHOR_XY``) when it explains the scans better (``SCALE_REFINE_MARGIN``). With
         ``final`` (the end of the run: no later check) any gain on the scans is enough and all
         its priors are relocalised on the refined plan.
         """
-        cfg = self.config
         t0 = time.perf_counter()
         rel = acc.relocaliser
         p = rel.params
@@ -105,13 +119,13 @@ class PlanRefiner:
         lin_inv = np.linalg.inv(lin)
         poses = np.asarray(poses)
         centre = np.mean((poses[:, :2] - t) @ lin_inv.T, axis=0)  # plan units
-        log_s = fit_plan_scale(rel.field, pts, poses, lin, t, centre, p.truncation, cfg.scale_refine_sigma)
+        log_s = fit_plan_scale(rel.field, pts, poses, lin, t, centre, p.truncation, SCALE_REFINE_SIGMA)
         f = np.exp(log_s)
         nums = {"scale_x": f[0], "scale_y": f[1], "scans": len(pts)}
-        if np.max(np.abs(log_s)) > np.log1p(cfg.scale_refine_max):
+        if np.max(np.abs(log_s)) > np.log1p(SCALE_REFINE_MAX):
             return kept(f"scale: factors {np.round(f, 4).tolist()} out of range", **nums)
-        if np.max(np.abs(log_s)) < cfg.scale_refine_min:
-            return kept(f"scale x{f[0]:.4f} / x{f[1]:.4f}: below {cfg.scale_refine_min:.1%}; kept", **nums)
+        if np.max(np.abs(log_s)) < SCALE_REFINE_MIN:
+            return kept(f"scale x{f[0]:.4f} / x{f[1]:.4f}: below {SCALE_REFINE_MIN:.1%}; kept", **nums)
         fix = np.eye(3)
         fix[:2, :2] = np.diag(f)
         fix[:2, 2] = centre - f * centre
@@ -128,7 +142,7 @@ class PlanRefiner:
         q_new, q_old = self.evidence.fit(ctx, relocaliser, n_keyframes), float(np.mean(soft))
         nums.update(scan_fit=q_new, accepted_scan_fit=q_old, time_s=time.perf_counter() - t0)
         t0 += time.perf_counter() - t_fit  # the evidence counted its own time
-        if q_new <= q_old + (0.0 if final else cfg.scale_refine_margin):
+        if q_new <= q_old + (0.0 if final else SCALE_REFINE_MARGIN):
             return kept(
                 f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans no better "
                 f"({q_new:.1%} vs {q_old:.1%}); kept",
@@ -140,7 +154,7 @@ class PlanRefiner:
         tag = f"reloc:reg{acc.id}"
         xy = np.asarray([h.pose[:2] for h in ctx.graph.priors() if h.source == tag]).reshape(-1, 2)
         moved = (xy - t) @ lin_inv.T @ (m @ fix)[:2, :2].T + (m @ fix)[:2, 2] - xy
-        far = len(xy) and (final or float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > cfg.scale_reanchor_xy)
+        far = len(xy) and (final or float(np.max(np.hypot(moved[:, 0], moved[:, 1]))) > SCALE_REANCHOR_XY)
         return Refinement(
             f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans better ({q_new:.1%} vs {q_old:.1%}); refined",
             nums,
@@ -179,12 +193,12 @@ class PlanRefiner:
         start = anchor.pose if anchor is not None and anchor.active else ctx.keyframe(0).pose_map
         first = ctx.keyframe_scans()[0][0]
         r = acc.relocaliser.relocalise(
-            first, start, cfg.reloc_window_max_xy, np.deg2rad(cfg.reloc_window_max_theta_deg)
+            first, start, RELOC_WINDOW_MAX_XY, np.deg2rad(RELOC_WINDOW_MAX_THETA_DEG)
         )
         d = compose(start, inverse(r.pose))  # plan-consistent pose -> anchored pose
         nums = {"dx": d[0], "dy": d[1], "dtheta": d[2], "score": r.score, "ambiguity": r.ambiguity}
         moved = float(np.hypot(*(compose(d, r.pose)[:2] - r.pose[:2])))
-        if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > cfg.reloc_max_ambiguity:
+        if not r.ok or r.score < cfg.reloc_min_score or r.ambiguity > RELOC_MAX_AMBIGUITY:
             return Refinement("start: the first scan does not fit the plan unambiguously; kept", nums)
         # d's translation includes the lever arm of its rotation about the map origin: judge the
         # move by its rotation and by how far the scan's pose moves; and move only when the fit

@@ -3,12 +3,12 @@
 :class:`RegistrationSchedule` owns the attempt counters and answers :meth:`next_trigger` at each
 keyframe from the mapped area (m²), the distance travelled (m) and the obstruction. Triggers, in
 order: the first registration once the mapped area reaches ``first_register_area_m2``; the map
-grew by ``register_min_growth_m2`` and ``register_growth_frac``; progress obstructed (the map
+grew by ``register_min_growth_m2`` and ``REGISTER_GROWTH_FRAC``; progress obstructed (the map
 grew by ``obstructed_min_growth_m2``); a quick recheck ``register_recheck_distance`` metres after
 a match the checks rejected while none is accepted (up to ``register_recheck_max`` in a row); a
 retry every ``register_retry_distance`` metres while none is accepted (doubling by
 ``register_retry_backoff`` on a map that has not grown, up to ``register_retry_max_distance``;
-every other retry on the map of the last ``local_map_distance`` metres); a refinement every
+every other retry on the map of the last ``LOCAL_MAP_DISTANCE`` metres); a refinement every
 ``register_refine_distance`` metres once one is accepted (at most ``register_refine_max``);
 ``inconsistent_run`` relocalisations in a row inconsistent with the estimate.
 """
@@ -19,10 +19,17 @@ from dataclasses import dataclass
 
 from frslam_graph.config import UpdatesConfig
 
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# fraction of the mapped area the map must also grow by before another registration; larger = fewer attempts
+REGISTER_GROWTH_FRAC = 0.2
+# m; every other retry registers on the map of the keyframes of the last this much travel (the whole map may
+# have drifted too far)
+LOCAL_MAP_DISTANCE = 40.0
+
 
 @dataclass(frozen=True, slots=True)
 class Trigger:
-    """Why to register now; ``local``: on the map of the last ``local_map_distance`` metres;
+    """Why to register now; ``local``: on the map of the last ``LOCAL_MAP_DISTANCE`` metres;
     ``quick``: a quick recheck (counts towards ``register_recheck_max`` in a row)."""
 
     reason: str
@@ -61,7 +68,7 @@ class RegistrationSchedule:
             return None
         grown = area - self._area_at_attempt
         since = dist - self.dist_at_attempt
-        if grown >= cfg.register_min_growth_m2 and grown >= cfg.register_growth_frac * max(
+        if grown >= cfg.register_min_growth_m2 and grown >= REGISTER_GROWTH_FRAC * max(
             self._area_at_attempt, 1e-9
         ):
             self._stale_retries = 0
@@ -76,8 +83,8 @@ class RegistrationSchedule:
             # the map has not grown since the last attempt: the next retry waits longer
             self._stale_retries = self._stale_retries + 1 if grown < cfg.register_min_growth_m2 else 0
             # the whole map may have drifted too far to match: alternate with the map of the last
-            # local_map_distance metres
-            local = self._retries % 2 == 1 and dist > cfg.local_map_distance
+            # LOCAL_MAP_DISTANCE metres
+            local = self._retries % 2 == 1 and dist > LOCAL_MAP_DISTANCE
             self._retries += 1
             return Trigger(f"no registration accepted yet; retry after {since:.0f} m", local=local)
         if (

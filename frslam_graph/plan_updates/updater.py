@@ -12,7 +12,7 @@ routes the verdicts of its collaborators (:mod:`frslam_graph.plan_updates`), eac
 state:
 
 1. :class:`~frslam_graph.plan_updates.travel.Travel` and ``Coverage``: distance, turn,
-   obstruction (no progress for ``obstruction_time_s``, or :meth:`notify_obstructed`), the
+   obstruction (no progress for ``OBSTRUCTION_TIME_S``, or :meth:`notify_obstructed`), the
    mapped area;
 2. :class:`~frslam_graph.plan_updates.schedule.RegistrationSchedule`: whether to **register**
    the plan now (``register_fn(plan, grid)``, MFR by default) and why;
@@ -52,8 +52,13 @@ from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge, Verdict, tolerances
 from frslam_graph.plan_updates.priors import HeldReanchor, PriorManager, record
 from frslam_graph.plan_updates.refiner import PlanRefiner, Refinement
-from frslam_graph.plan_updates.schedule import RegistrationSchedule, Trigger
+from frslam_graph.plan_updates.schedule import LOCAL_MAP_DISTANCE, RegistrationSchedule, Trigger
 from frslam_graph.plan_updates.travel import Coverage, Travel
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+# m/s; progress slower than this for OBSTRUCTION_TIME_S counts as obstructed (triggers a registration)
+OBSTRUCTION_SPEED = 0.02
+OBSTRUCTION_TIME_S = 5.0  # s; how long progress must be slow to count as obstructed
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -98,14 +103,12 @@ class FloorPlanUpdater:
             wall_offset=cfg.wall_half_thickness,
             window_xy=cfg.reloc_window_xy,
             window_theta=np.deg2rad(cfg.reloc_window_theta_deg),
-            inlier_distance=cfg.reloc_inlier_distance,
-            cov_inflation=cfg.reloc_cov_inflation,
             sigma_floor_xy=cfg.reloc_sigma_floor_xy,
             sigma_floor_theta=np.deg2rad(cfg.reloc_sigma_floor_theta_deg),
         )
         self.timings: dict[str, float] = {"register": 0.0, "relocalise": 0.0, "coverage": 0.0}
         self.coverage = Coverage()
-        self.travel = Travel(cfg.obstruction_time_s, cfg.obstruction_speed)
+        self.travel = Travel(OBSTRUCTION_TIME_S, OBSTRUCTION_SPEED)
         self.schedule = RegistrationSchedule(cfg)
         evidence = ScanEvidence(cfg.refine_scan_samples, self.timings)
         self.judge = RegistrationJudge(plan, cfg, self.params, evidence)
@@ -229,7 +232,7 @@ class FloorPlanUpdater:
         reason = trigger.reason
         if trigger.local:
             grid = self._local_grid(ctx)
-            reason += f"; on the map of the last {cfg.local_map_distance:.0f} m"
+            reason += f"; on the map of the last {LOCAL_MAP_DISTANCE:.0f} m"
         else:
             grid = ctx.occupancy_grid(cfg.map_resolution, free_space=True)
         if self.accepted is not None:
@@ -332,12 +335,12 @@ class FloorPlanUpdater:
         self.priors.retract(ctx, acc, why)
 
     def _local_grid(self, ctx: BackendContext):
-        """Occupancy grid (map frame) of the keyframes of the last ``local_map_distance`` metres
+        """Occupancy grid (map frame) of the keyframes of the last ``LOCAL_MAP_DISTANCE`` metres
         travelled: less drift accumulated inside it than in the whole map."""
         from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
 
         d = np.asarray(self.travel.kf_dist)
-        keep = np.nonzero(d >= self.travel.dist - self.config.local_map_distance)[0]
+        keep = np.nonzero(d >= self.travel.dist - LOCAL_MAP_DISTANCE)[0]
         pts, origins = ctx.keyframe_scans()
         est = ctx.graph.estimates()
         return occupancy_grid(
