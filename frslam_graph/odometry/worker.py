@@ -75,18 +75,13 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
     """Worker loop: chunks of ScanInput in, lists of results out; None ends it.
 
     Ctrl-C is the caller's to handle (it stops the worker); a worker whose caller died without
-    stopping it (killed) exits on its own.
+    stopping it (killed) is ended by :func:`_exit_when_orphaned`, whatever it is blocked in.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_when_orphaned, args=(parent, poll_s), daemon=True).start()
     odometry = ScanOdometry(config)
     while True:
-        try:
-            chunk = inbox.get(timeout=poll_s)
-        except queue.Empty:
-            if os.getppid() != parent:
-                return
-            continue
+        chunk = inbox.get()
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
