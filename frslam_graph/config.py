@@ -99,7 +99,7 @@ class OdometryConfig(_Section):
         description="m; fixed KISS-ICP correspondence distance instead of the adaptive one; null = adaptive",
     )
     local_map_scans: int = Field(
-        0,
+        20,
         ge=0,
         description="recent scans in a local map that refines each KISS-ICP result by point-to-line "
         "ICP (walls as lines, not KISS-ICP's sparse voxel points); larger = a longer memory, slower; "

@@ -93,6 +93,7 @@ def field_of_view(points: list[np.ndarray]) -> float:
 #: keyframes whose neighbours are gathered at once by :func:`candidate_pairs` (its memory is this
 #: times the keyframes within the radius of one, not the square of the keyframes in the map)
 PAIRS_CHUNK = 128
+_LIFT = 1.0e6  # m between the submaps' layers in the exact-neighbour k-d tree (beyond any distance)
 
 
 def candidate_pairs(
@@ -178,6 +179,7 @@ class _ReferenceStack:
         self.nearest = np.concatenate([r.nearest for r in refs])  # indices into each submap's points
         self.points = np.concatenate([r.points for r in refs])
         self.normals = self.quality = None
+        self._tree: cKDTree | None = None
 
     def prepare_icp(self, used: np.ndarray) -> None:
         """Normals and line quality of the submaps ``used`` (indices; the others' stay zero)."""
@@ -203,6 +205,19 @@ class _ReferenceStack:
         d = np.hypot(*(points[sel] - self.points[np.maximum(j, 0)]).T)
         ok = (j >= 0) & (d <= max_distance)
         return sel[ok], j[ok]
+
+    def exact_nearest(
+        self, points: np.ndarray, ref: np.ndarray, max_distance: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`nearest_points` with the exact nearest point of each point's submap (ICP's
+        correspondences; see :meth:`ReferenceSubmap.exact_nearest_offsets`): one k-d tree over
+        all submaps, each lifted to its own height so that no query reaches another's points."""
+        if self._tree is None:
+            owner = np.repeat(np.arange(len(self.refs)), [len(r.points) for r in self.refs])
+            self._tree = cKDTree(np.column_stack((self.points, _LIFT * owner)))
+        d, j = self._tree.query(np.column_stack((points, _LIFT * ref)), distance_upper_bound=max_distance)
+        sel = np.flatnonzero(np.isfinite(d))
+        return sel, j[sel]
 
     def inlier_fractions(
         self, queries: np.ndarray, owner: np.ndarray, ref: np.ndarray, poses: np.ndarray, distance: float
@@ -248,7 +263,7 @@ def _icp_many(
             queries, owner, dropped = queries[live], owner[live], done.copy()
         own = owner
         p = _transform_each(x, queries, own)
-        sel, j = stack.nearest_points(p, ref[own], dmax)
+        sel, j = stack.exact_nearest(p, ref[own], dmax)
         own, p = own[sel], p[sel]
         running = ~done
         ok &= ~running | (np.bincount(own, minlength=n_pairs) >= 10)

@@ -7,7 +7,8 @@ laser's mounting offset).
 
 Per scan: the wheel increment u_t (or a constant-velocity guess) seeds KISS-ICP through
 ``last_delta``; KISS-ICP's pose is refined by point-to-line ICP on a local map of the last
-``local_map_scans`` scans (walls as lines, :meth:`ScanOdometry._refine`); the ICP pose relative
+``local_map_scans`` scans, thinned to one mean point per ``voxel_size`` cell (walls as lines,
+exact nearest neighbours: :meth:`ScanOdometry._refine`); the ICP pose relative
 to the last keyframe is fused with u_t in
 :class:`~frslam_graph.odometry.motion_model.MotionEKF`. The ICP covariance comes from the point-to-line
 Hessian of the scan (normals from neighbouring beams, voxel-thinned), scaled by a residual sigma;
@@ -37,7 +38,12 @@ import numpy as np
 
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import RecordingError
-from frslam_graph.loop_closure.submap_matching import ReferenceSubmap, icp_point_to_line, transform_points
+from frslam_graph.loop_closure.submap_matching import (
+    ReferenceSubmap,
+    cell_means,
+    icp_point_to_line,
+    transform_points,
+)
 from frslam_graph.odometry.motion_model import (
     MotionEKF,
     between,
@@ -603,6 +609,7 @@ class ScanOdometry:
             self._since_rebuild += 1
             if self._since_rebuild >= _LOCAL_MAP_REBUILD and len(self._recent) >= min(n, 3):
                 pts = np.concatenate([transform_points(p, q) for p, q in self._recent])
+                pts = cell_means(pts, self.config.voxel_size)
                 self._local_ref = ReferenceSubmap(pts, _LOCAL_MAP_RESOLUTION, 0.1, _REFINE_MAX_DISTANCE)
                 self._since_rebuild = 0
 
