@@ -610,7 +610,9 @@ class ScanOdometry:
             if self._since_rebuild >= _LOCAL_MAP_REBUILD and len(self._recent) >= min(n, 3):
                 pts = np.concatenate([transform_points(p, q) for p, q in self._recent])
                 pts = cell_means(pts, self.config.voxel_size)
-                self._local_ref = ReferenceSubmap(pts, _LOCAL_MAP_RESOLUTION, 0.1, _REFINE_MAX_DISTANCE)
+                self._local_ref = ReferenceSubmap(
+                    pts, _LOCAL_MAP_RESOLUTION, 0.1, _REFINE_MAX_DISTANCE, likelihood=False
+                )
                 self._since_rebuild = 0
 
     def _resync_icp(self, u: np.ndarray) -> None:
