@@ -425,7 +425,7 @@ class UpdatesConfig(_Section):
     )
     final_refine: bool = Field(
         True,
-        description="at the end of an offline run, one more registration on the complete map and scale refinement (the final plan depends less on timing)",
+        description="at the end of an offline run, one more registration on the complete map, whatever max_registrations left (with none accepted it is judged as a first one), and scale refinement (the final plan depends less on timing)",
     )
     max_registrations: int = Field(
         40,

@@ -350,7 +350,9 @@ def _run_metrics(
 def plan_acceptance(result: SlamResult) -> dict[str, Any] | None:
     """When the floor plan was first accepted, from the decision log: the first accepted
     registration's scan index (into the trajectory), stamp, seconds since the first scan and
-    keyframe, and how many registrations had been tried by then; None when none was accepted."""
+    keyframe, how many registrations had been tried by then, the distance travelled (m) and the
+    share of the registered plan's room area the map had seen (0..1) then, and whether it came
+    only at the end of the run (on the complete map); None when none was accepted."""
     tried = 0
     for ev in result.log:
         if ev.kind != "register":
@@ -367,6 +369,9 @@ def plan_acceptance(result: SlamResult) -> dict[str, Any] | None:
             "time_s": ev.stamp - float(stamps[0]),
             "keyframe": ev.keyframe,
             "registrations_tried": tried,
+            "distance_m": ev.data.get("distance_m"),
+            "plan_seen": ev.data.get("plan_seen"),
+            "at_end": ev.message.startswith("end of the run"),
         }
     return None
 

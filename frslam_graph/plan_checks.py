@@ -27,6 +27,23 @@ def occupied_points(grid, max_points: int = 4000) -> np.ndarray:
     return grid.cell_to_world(np.column_stack((cols, rows)).astype(np.float64) + 0.5)
 
 
+def plan_seen(plan_map, grid) -> float:
+    """Share (0..1) of the registered plan's room area (``plan_map``: FloorPlan in map metres)
+    that the map has observed (free or occupied cells of ``grid``): how much of the building the
+    robot had seen, e.g. when the registration was accepted."""
+    import shapely
+
+    rooms = shapely.union_all([r.polygon for r in plan_map.rooms]) if plan_map.rooms else None
+    if rooms is None or rooms.is_empty or rooms.area <= 0.0:
+        return 0.0
+    rows, cols = np.nonzero(grid.free_mask() | grid.occupied_mask())
+    if not len(rows):
+        return 0.0
+    xy = grid.cell_to_world(np.column_stack((cols, rows)).astype(np.float64) + 0.5)
+    inside = int(np.count_nonzero(shapely.contains_xy(rooms, xy[:, 0], xy[:, 1])))
+    return float(min(1.0, inside * grid.resolution**2 / rooms.area))
+
+
 def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2) -> float:
     """Share of the plan's interior walls, where the map has observed them, that the map has
     seen *through*: every cell along the wall normal within ``2 * wall_offset + margin`` metres

@@ -333,6 +333,14 @@ class FRSlam:
             return self.update_strategy.registered_plan
         return None
 
+    def refused_plan(self):
+        """With no registration accepted: the placement of the registration on the complete map
+        at the end of the run (FloorPlan in ``map`` metres) that its checks refused, for a figure
+        to show where the plan would sit; else None."""
+        if isinstance(self.update_strategy, FloorPlanUpdater) and self.update_strategy.accepted is None:
+            return self.update_strategy.final_placement
+        return None
+
     def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid (``OccupancyGrid``) of the keyframe scans at the current estimates.
 

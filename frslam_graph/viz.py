@@ -39,12 +39,19 @@ def _draw_overview(
     grid: OccupancyGrid | None,
     plan: Any,
     ground_truth: np.ndarray | None = None,
+    refused_plan: Any = None,
 ) -> None:
-    """The map, the registered plan (faint), the ground truth (dashed) and each trajectory on ``ax``."""
+    """The map, the registered plan (faint) or a refused placement (dashed room outlines), the
+    ground truth (dashed) and each trajectory on ``ax``."""
     if grid is not None:
         draw_grid(ax, grid)
     if plan is not None:
         draw_plan(ax, plan, alpha=0.25, labels=False, legend=False)
+    elif refused_plan is not None:
+        for k, room in enumerate(refused_plan.rooms):
+            xy = np.asarray(room.polygon.exterior.coords)
+            label = "plan: placement refused by the checks" if k == 0 else None
+            ax.plot(xy[:, 0], xy[:, 1], color="tab:red", lw=0.9, ls="--", alpha=0.8, label=label)
     if ground_truth is not None and len(ground_truth):
         ax.plot(ground_truth[:, 1], ground_truth[:, 2], color="black", lw=1.2, ls="--", label="ground truth")
     for name, traj in trajectories.items():
@@ -59,13 +66,15 @@ def save_trajectory_png(
     grid: OccupancyGrid | None = None,
     plan: Any = None,
     title: str = "",
+    refused_plan: Any = None,
 ) -> Path:
-    """Trajectories ((N, 4) stamp, x, y, theta in map) over an optional map and registered plan."""
+    """Trajectories ((N, 4) stamp, x, y, theta in map) over an optional map and registered plan
+    (or, dashed, the placement of a registration its checks refused: ``refused_plan``)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig = Figure(figsize=(10, 8))
     ax = fig.add_subplot(1, 1, 1)
-    _draw_overview(ax, trajectories, grid, plan, ground_truth)
+    _draw_overview(ax, trajectories, grid, plan, ground_truth, refused_plan)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")

@@ -34,7 +34,9 @@ def test_plan_acceptance_is_the_first_accepted_registration():
     log = [
         DecisionEvent(101.0, "register", "too little map", 1, {"accepted": False}),
         DecisionEvent(101.5, "prior_added", "prior", 2, {}),
-        DecisionEvent(102.0, "register", "accepted", 3, {"accepted": True}),
+        DecisionEvent(
+            102.0, "register", "accepted", 3, {"accepted": True, "distance_m": 4.0, "plan_seen": 0.4}
+        ),
         DecisionEvent(102.5, "register", "agrees; refined", 4, {"accepted": False}),
         DecisionEvent(102.75, "registration_replaced", "replaces", 5, {"accepted": True}),
     ]
@@ -45,6 +47,9 @@ def test_plan_acceptance_is_the_first_accepted_registration():
         "time_s": 2.0,
         "keyframe": 3,
         "registrations_tried": 2,
+        "distance_m": 4.0,
+        "plan_seen": 0.4,
+        "at_end": False,
     }
     assert plan_acceptance(SimpleNamespace(trajectory=result.trajectory, log=log[:2])) is None
 
@@ -53,6 +58,14 @@ def test_plan_status_says_never_accepted_and_nothing_without_a_plan():
     never = plan_status({"floor_plan": True, "plan_accepted": None, "decisions": {"register": 3}})
     assert "never accepted" in never and "3 registrations tried" in never
     assert plan_status({"floor_plan": False, "plan_accepted": None}) is None
+
+
+def test_plan_status_says_how_far_the_robot_drove_and_how_much_it_had_seen():
+    acc = {"scan": 8, "time_s": 2.0, "registrations_tried": 2, "distance_m": 41.4, "plan_seen": 0.62}
+    line = plan_status({"floor_plan": True, "plan_accepted": acc, "scans": 12, "decisions": {"register": 3}})
+    assert "41 m driven, 62% of the plan's rooms seen" in line and "end of the run" not in line
+    at_end = plan_status({"floor_plan": True, "plan_accepted": {**acc, "at_end": True}, "scans": 12})
+    assert "on the complete map at the end of the run" in at_end
 
 
 def test_run_lists_every_file_and_when_the_plan_was_accepted(

@@ -961,3 +961,61 @@ def test_retries_back_off_while_the_map_does_not_grow(sim):
     g = gaps[2.0]
     assert len(g) >= 2 and g.max() >= 7.5 and np.all(g <= 9.0)  # 4, 8, 8, ... m
     assert len(g) < len(gaps[1.0])
+
+
+def refused_source(matrix):
+    """MFR-like registrations that place the plan right but are refused ("no match")."""
+
+    def register(plan, grid):
+        reg = Registration.from_matrix(
+            matrix, score=0.6, ambiguity=0.2, method="fake", candidates=[(0.1, False, 0.0)]
+        )
+        reg.ok, reg.reason = False, "no match: refused"
+        return reg
+
+    return register
+
+
+def test_with_none_accepted_the_complete_map_gets_one_registration_whatever_the_budget(sim, tmp_path):
+    """final_refine with no registration accepted (the budget spent, here max_registrations 1):
+    on_finish registers once more on the complete map. Refused, its placement is kept for the
+    run's figure (FRSlam.refused_plan, drawn dashed in trajectory.png); accepted, its priors
+    and the backfill over the whole run are added before the final batch, and metrics.json's
+    plan_accepted says it came at the end, with the distance driven and the share of the plan
+    seen."""
+    from frslam_graph.cli.run import _trajectory_figure
+
+    plan, run, m = sim
+    base = {**NO_REFINEMENT, "final_refine": True, "max_registrations": 1, "confirm_after_m": 1e4}
+    cfg = CFG.with_updates(updates=base)
+    upd = FloorPlanUpdater(plan, cfg.updates, register_fn=refused_source(m))
+    slam, res = run_slam(run, upd, config=cfg)
+    reg = upd.events("register")
+    assert len(reg) == 2 and not any(e.accepted for e in reg)
+    assert reg[-1].message.startswith("end of the run: registration on the complete map")
+    assert slam.registered_plan() is None and slam.refused_plan() is not None
+    assert np.allclose(
+        slam.refused_plan().rooms[0].polygon.bounds, plan.transformed(m, units="m").rooms[0].polygon.bounds
+    )
+    out = write_outputs(RunOutput(slam, res), tmp_path / "refused")
+    assert out.metrics["plan_accepted"] is None
+    _trajectory_figure({"frslam": res.trajectory}, None, RunOutput(slam, res))(tmp_path / "t.png")
+    assert (tmp_path / "t.png").stat().st_size > 0
+
+    calls = []
+
+    def refused_then_right(plan_, grid):
+        calls.append(grid)
+        return (
+            refused_source(m)(plan_, grid)
+            if len(calls) == 1
+            else Registration.from_matrix(m, score=0.9, ambiguity=0.2)
+        )
+
+    upd = FloorPlanUpdater(plan, cfg.updates, register_fn=refused_then_right)
+    slam, res = run_slam(run, upd, config=cfg)
+    reg = upd.events("register")
+    assert [e.accepted for e in reg] == [False, True] and slam.refused_plan() is None
+    assert len(slam.graph.priors()) >= 5  # the backfill ran over the whole run
+    acc = write_outputs(RunOutput(slam, res), tmp_path / "accepted").metrics["plan_accepted"]
+    assert acc["at_end"] and acc["distance_m"] > 10.0 and 0.5 < acc["plan_seen"] <= 1.0

@@ -35,10 +35,7 @@ def refused_placement(reg) -> bool:
     """A failed registration that still places the plan (MFR's "no match": the best placement,
     refused by its checks), as opposed to one that never got a placement (too few rooms, no
     subset fits, a degenerate fit): its matrix is drawn in the overlay for a user to judge."""
-    if reg.ok or not reg.candidates:
-        return False
-    a = np.asarray(reg.matrix, dtype=float)
-    return bool(np.all(np.isfinite(a)) and abs(np.linalg.det(a[:2, :2])) > 0.0)
+    return not reg.ok and reg.placed
 
 
 def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:

@@ -124,7 +124,10 @@ def _trajectory_figure(
 
     grid = result.slam.occupancy_grid(0.05) if len(result.result.keyframes) else None
     plan = result.slam.registered_plan()
-    return lambda path: save_trajectory_png(path, trajectories, gt, grid=grid, plan=plan, title=title)
+    refused = result.slam.refused_plan()
+    return lambda path: save_trajectory_png(
+        path, trajectories, gt, grid=grid, plan=plan, title=title, refused_plan=refused
+    )
 
 
 def _compare_figure(

@@ -60,7 +60,12 @@ def plan_status(metrics: dict[str, Any], label: str = "") -> str | None:
             f"{who}: [bold yellow]never accepted[/] ({tried} registration{'s' * (tried != 1)} tried; "
             "the reasons are in log.jsonl)"
         )
+    where = ""
+    if acc.get("distance_m") is not None and acc.get("plan_seen") is not None:
+        where = f", {acc['distance_m']:.0f} m driven, {acc['plan_seen']:.0%} of the plan's rooms seen"
+    end = " on the complete map at the end of the run" if acc.get("at_end") else ""
     return (
-        f"{who}: [bold green]accepted[/] at scan {acc['scan']:,} of {metrics.get('scans', 0):,}, "
-        f"{acc['time_s']:.1f} s into the recording (registration {acc['registrations_tried']} of {tried} tried)"
+        f"{who}: [bold green]accepted[/]{end} at scan {acc['scan']:,} of {metrics.get('scans', 0):,}, "
+        f"{acc['time_s']:.1f} s into the recording{where} "
+        f"(registration {acc['registrations_tried']} of {tried} tried)"
     )

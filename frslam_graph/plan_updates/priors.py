@@ -406,6 +406,10 @@ class PriorManager:
         self._backfill = queue
         self._backfill_anchor = here
 
+    def backfill_pending(self) -> bool:
+        """Whether keyframes are still queued for backfill on the accepted registration."""
+        return self.accepted() is not None and bool(self._backfill)
+
     def run_backfill(self, ctx: BackendContext) -> None:
         """Relocalise the next ``BACKFILL_PER_KEYFRAME`` queued keyframes and add their priors
         (as steps), once the previous steps are done."""

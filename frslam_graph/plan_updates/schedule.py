@@ -4,7 +4,9 @@
 keyframe from the mapped area (m²), the distance travelled (m) and the obstruction. Triggers, in
 order: the first registration once the mapped area reaches ``first_register_area_m2``; the map
 grew by ``register_min_growth_m2`` and ``REGISTER_GROWTH_FRAC``; progress obstructed (the map
-grew by ``obstructed_min_growth_m2``); a quick recheck ``register_recheck_distance`` metres after
+grew by ``obstructed_min_growth_m2``, doubling by ``register_retry_backoff`` after each attempt an
+obstruction triggered: a robot that stops often must not spend the run's ``max_registrations``
+on maps that hardly grew); a quick recheck ``register_recheck_distance`` metres after
 a match the checks rejected while none is accepted (up to ``register_recheck_max`` in a row); a
 retry every ``register_retry_distance`` metres while none is accepted (doubling by
 ``register_retry_backoff`` on a map that has not grown, up to ``register_retry_max_distance``;
@@ -30,11 +32,13 @@ LOCAL_MAP_DISTANCE = 40.0
 @dataclass(frozen=True, slots=True)
 class Trigger:
     """Why to register now; ``local``: on the map of the last ``LOCAL_MAP_DISTANCE`` metres;
-    ``quick``: a quick recheck (counts towards ``register_recheck_max`` in a row)."""
+    ``quick``: a quick recheck (counts towards ``register_recheck_max`` in a row);
+    ``obstructed``: progress obstructed (the next one needs more growth)."""
 
     reason: str
     local: bool = False
     quick: bool = False
+    obstructed: bool = False
 
 
 class RegistrationSchedule:
@@ -42,7 +46,8 @@ class RegistrationSchedule:
 
     #: relocalisations in a row inconsistent with the estimate that trigger a registration
     inconsistent_run: int = 5
-    #: m² the map must have grown since the last attempt for an obstruction to trigger one
+    #: m² the map must have grown since the last attempt for the first obstruction to trigger one
+    #: (times ``register_retry_backoff`` per obstruction-triggered attempt before)
     obstructed_min_growth_m2: float = 1.0
 
     def __init__(self, config: UpdatesConfig) -> None:
@@ -56,6 +61,7 @@ class RegistrationSchedule:
         self._recheck_run = 0  # quick retries in a row (register_recheck_max)
         self._refines = 0  # registrations triggered by register_refine_distance
         self._inconsistent = 0  # relocalisations in a row inconsistent with the estimate
+        self._obstructed_attempts = 0  # attempts an obstruction triggered (their growth backs off)
 
     def next_trigger(self, area: float, dist: float, obstructed: bool, accepted: bool) -> Trigger | None:
         """The trigger of a registration at this keyframe, or None (it counts as taken)."""
@@ -73,8 +79,8 @@ class RegistrationSchedule:
         ):
             self._stale_retries = 0
             return Trigger(f"mapped area grew by {grown:.1f} m² to {area:.1f} m²")
-        if obstructed and grown >= self.obstructed_min_growth_m2:
-            return Trigger("progress obstructed")
+        if obstructed and grown >= self.obstructed_growth_m2():
+            return Trigger("progress obstructed", obstructed=True)
         if self._recheck and cfg.register_recheck_distance > 0.0 and since >= cfg.register_recheck_distance:
             return Trigger(
                 f"the last registration matched but was rejected; retry after {since:.0f} m", quick=True
@@ -106,6 +112,7 @@ class RegistrationSchedule:
         """A registration is attempted now (any other trigger than a quick recheck starts a new
         run of rechecks)."""
         self.attempts += 1
+        self._obstructed_attempts += trigger.obstructed
         self._recheck = False
         self._recheck_run = self._recheck_run + 1 if trigger.quick else 0
         self._area_at_attempt = area
@@ -120,6 +127,10 @@ class RegistrationSchedule:
     def relocalised(self, consistent: bool) -> None:
         """A relocalisation's prior passed the chi² gate (consistent) or failed it."""
         self._inconsistent = 0 if consistent else self._inconsistent + 1
+
+    def obstructed_growth_m2(self) -> float:
+        """m² the map must have grown since the last attempt for an obstruction to trigger one."""
+        return self.obstructed_min_growth_m2 * self.config.register_retry_backoff**self._obstructed_attempts
 
     def _retry_distance(self) -> float:
         """Metres after an attempt before a retry while none is accepted."""

@@ -46,7 +46,7 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import RelocaliserParams
-from frslam_graph.plan_checks import walls_through_free_space
+from frslam_graph.plan_checks import plan_seen, walls_through_free_space
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge, Verdict, tolerances
@@ -116,6 +116,8 @@ class FloorPlanUpdater:
         self.priors = PriorManager(cfg, self.travel, self.schedule, lambda: self.accepted, self.timings)
         self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
         self._next_id = 0
+        #: a refused final registration's placement (FloorPlan in map metres), for the figures
+        self.final_placement = None
         self._decisions: Sequence[DecisionEvent] = ()  # the run's decision log (the context's)
 
     # ------------------------------------------------------------------ public
@@ -175,16 +177,21 @@ class FloorPlanUpdater:
         self.priors.run_backfill(ctx)  # as fast as the steps get done
 
     def on_finish(self, ctx: BackendContext) -> None:
-        """The end of an offline run (:meth:`FRSlam.finish`, before the final batch): with a
-        registration accepted and ``final_refine`` on, one more registration on the complete map
-        (it refines the accepted one when it agrees and explains the data as well or better, as
-        any later one) and the scale refinement, whenever the schedule last ran them. The plan the
-        run ends with then depends less on when its refinements happened (a rejected wrong draw
-        or an attempt on a small map no longer leaves an unrefined plan behind)."""
+        """The end of an offline run (:meth:`FRSlam.finish`, before the final batch), with
+        ``final_refine`` on: one more registration on the complete map whatever the attempt budget
+        left. With a registration accepted it refines the accepted one when it agrees and explains
+        the data as well or better (as any later one), then the scale refinement runs, whenever
+        the schedule last ran them: the plan the run ends with depends less on when its
+        refinements happened. With none accepted it is judged as any first registration (accepted:
+        its priors and their backfill are added before the final batch); refused, its placement
+        is kept as :attr:`final_placement` for the run's figures."""
         self._decisions = ctx.log
         cfg = self.config
-        if not cfg.enabled or self.plan is None or self.accepted is None or not cfg.final_refine:
-            return  # (a registration accepted: the graph has keyframes)
+        if not cfg.enabled or self.plan is None or not cfg.final_refine or len(ctx.graph) == 0:
+            return
+        if self.accepted is None:
+            self._final_first(ctx)
+            return
         ctx.deferred.run_all()
         last = ctx.keyframe(len(ctx.graph) - 1)
         # the registration, the scale and the move to the start may each change the plan: its
@@ -207,6 +214,21 @@ class FloorPlanUpdater:
             self.priors.reanchor(ctx, held.previous, "; ".join(held.reasons))
         ctx.deferred.run_all()
 
+    def _final_first(self, ctx: BackendContext) -> None:
+        """With none accepted: the registration on the complete map (see :meth:`on_finish`)."""
+        ctx.deferred.run_all()
+        last = ctx.keyframe(len(ctx.graph) - 1)
+        reg = self._register(ctx, last, Trigger("end of the run: registration on the complete map"))
+        if self.accepted is not None:  # its backfill, all of it, before the final batch
+            while self.priors.backfill_pending():
+                self.priors.run_backfill(ctx)
+                ctx.deferred.run_all()
+        elif reg is not None and reg.placed:
+            try:
+                self.final_placement = reg.apply(self.plan)
+            except (FrslamError, ValueError):
+                self.final_placement = None
+
     # ------------------------------------------------------------------ routing
     def _obstruction(self, ctx: BackendContext, keyframe: KeyframeInfo) -> bool:
         """Whether progress is obstructed at this keyframe (a new obstruction is logged)."""
@@ -222,8 +244,9 @@ class FloorPlanUpdater:
             )
         return obstructed
 
-    def _register(self, ctx: BackendContext, keyframe: KeyframeInfo, trigger: Trigger) -> None:
-        """Register the plan on the map and route the judge's verdict."""
+    def _register(self, ctx: BackendContext, keyframe: KeyframeInfo, trigger: Trigger):
+        """Register the plan on the map and route the judge's verdict; the registration (None
+        when the method raised)."""
         cfg = self.config
         t0 = time.perf_counter()
         area = self.coverage.area
@@ -242,7 +265,7 @@ class FloorPlanUpdater:
         except FrslamError as exc:
             record(ctx, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
             self.timings["register"] += time.perf_counter() - t0
-            return
+            return None
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
         n_kf = len(self.travel.kf_dist)
         verdict = self.judge.judge(
@@ -252,8 +275,8 @@ class FloorPlanUpdater:
         if verdict.pending is not KEEP:
             self._pending_reg = verdict.pending
         if verdict.outcome == "accept":
-            self._accept(ctx, keyframe, verdict, reason)
-            return
+            self._accept(ctx, keyframe, verdict, reason, grid)
+            return reg
         record(ctx, stamp, "register", f"{reason}; {verdict.why}", i, False, **verdict.numbers)
         if verdict.outcome == "refine":  # the same placement fitted to more data
             acc = self.accepted
@@ -261,15 +284,21 @@ class FloorPlanUpdater:
                 acc.id, verdict.registration, verdict.plan_map, verdict.relocaliser, verdict.map_fit
             )
         self.schedule.rejected(matched=reg.ok, accepted=self.accepted is not None)
+        return reg
 
-    def _accept(self, ctx: BackendContext, keyframe: KeyframeInfo, verdict: Verdict, reason: str) -> None:
+    def _accept(
+        self, ctx: BackendContext, keyframe: KeyframeInfo, verdict: Verdict, reason: str, grid
+    ) -> None:
         """A new accepted registration: it replaces the previous one (whose priors are re-anchored
-        on it); the current scan's relocalisation becomes its first prior; backfill follows."""
+        on it); the current scan's relocalisation becomes its first prior; backfill follows. Its
+        event also says how far the robot had travelled (``distance_m``, metres) and how much of
+        the registered plan's room area the map ``grid`` had seen (``plan_seen``, 0..1)."""
         stamp, i = float(keyframe.stamp), keyframe.index
         msg, kind = f"{reason}; accepted", "register"
         if self.accepted is not None:
             msg, kind = f"{reason}; replaces registration {self.accepted.id}", "registration_replaced"
-        record(ctx, stamp, kind, msg, i, True, **verdict.numbers)
+        seen = plan_seen(verdict.plan_map, grid)
+        record(ctx, stamp, kind, msg, i, True, **verdict.numbers, distance_m=self.travel.dist, plan_seen=seen)
         previous = self.accepted
         self.accepted = AcceptedPlan(
             self._next_id, verdict.registration, verdict.plan_map, verdict.relocaliser, verdict.map_fit

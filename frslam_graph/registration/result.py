@@ -98,6 +98,16 @@ class Registration:
             return "failed"
         return "doubtful" if self.doubt else "registered"
 
+    @property
+    def placed(self) -> bool:
+        """Whether the matrix places the plan: an ok registration, or a failed one that still
+        carries its best placement (MFR's "no match": refused by its checks, with candidates), as
+        opposed to one that never got a placement (too few rooms, no subset fits, degenerate)."""
+        if not self.ok and not self.candidates:
+            return False
+        a = np.asarray(self.matrix, dtype=float)
+        return bool(np.all(np.isfinite(a)) and abs(np.linalg.det(a[:2, :2])) > 0.0)
+
     @classmethod
     def from_matrix(cls, matrix: np.ndarray, **kwargs: Any) -> Registration:
         """A successful registration whose parameters are read from ``matrix``."""
