@@ -327,6 +327,8 @@ def _run_metrics(
     }
     if map_metrics:
         metrics["map"] = map_metrics
+    if run.slam.loop_closer is not None:  # the work done (matches, batches, plans skipped) and its time
+        metrics["loop_closure"] = run.slam.loop_closer.stats
     st = run.recording_stats
     if st is not None:  # records the reader skipped or flagged: kept with the results
         metrics["recording"] = {

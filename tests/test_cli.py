@@ -54,6 +54,10 @@ def test_run_writes_every_output(small_log, tmp_path, capsys):
     assert metrics["scans"] > 100
     assert metrics["ate"]["rmse"] < 0.10  # KISS-ICP in a well-constrained room
     assert "ATE RMSE" in capsys.readouterr().out
+    # the loop closer's work (matches, batches, plans skipped while the queue was full)
+    lc = metrics["loop_closure"]
+    assert lc["attempts"] >= lc["accepted"] + lc["rejected"]
+    assert {"plans_skipped", "cpu_seconds", "batches", "reasons"} <= set(lc)
 
 
 def test_run_sequential_gives_the_same_trajectory(small_log, tmp_path):

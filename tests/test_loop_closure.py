@@ -806,3 +806,53 @@ def test_the_rest_of_a_shared_budget_runs_only_steps_that_fit():
     # 5 ms left: the glue and step 0 fit, step 1 would not; 2 ms: nothing fits, the queue waits
     assert out == [[0], [], [1], [2]]
     assert not closer.idle
+
+
+def test_a_full_queue_plans_no_more_candidates_but_the_pending_check():
+    """While MAX_QUEUED_JOBS candidates wait (the matching fell behind the budget), a keyframe
+    plans none: the queue stays short and its closures come in time; the check of a pending
+    closure is queued all the same, first."""
+    from frslam_graph.loop_closure.closer import MAX_QUEUED_JOBS, _Job
+
+    closer, est = _circle_closer(None, max_candidates=2, max_candidates_idle=3, redundant_travel=0.0)
+    slam = _fake_slam(est)
+    full = [_Job(5, 30, 2.0, 0.2) for _ in range(MAX_QUEUED_JOBS)]
+    closer._jobs.extend(full)
+    closer._plan(slam, 60)
+    assert list(closer._jobs) == full  # nothing planned, nor marked tried
+    assert not closer._tried and closer.stats.plans_skipped == 1
+    closer._jobs.pop()  # one below the cap: the keyframe plans again
+    closer._plan(slam, 61)
+    assert len(closer._jobs) == MAX_QUEUED_JOBS - 1 + 2
+
+    closer = LoopCloser()
+    est = _straight_line_with_pending_closure(closer)
+    closer._jobs.extend(full)
+    closer._last_plan = 38
+    closer._plan(_fake_slam(est), 40)
+    first = closer._jobs[0]
+    assert (first.reference, first.query) == (3, 40) and first.predicted is not None
+    assert list(closer._jobs)[1:] == full
+
+
+def test_free_space_is_measured_only_for_a_match_the_closer_could_accept():
+    """The free-space test (a polygon fill of every reference scan) is skipped for a match refused
+    anyway, ambiguous or with too few inliers even to confirm a pending closure (most candidates
+    on real logs): its free_violation is NaN and the mask is not built; an acceptable match is
+    measured."""
+    import math
+
+    cfg = FRSlamConfig().loop_closure
+    corridor = corridor_world(60.0, 2.0)
+    a, b = np.array([0.0, 0.0, 0.0]), np.array([0.4, 0.1, 0.05])
+    ref = _reference(corridor, a)
+    bad = match_scan(ref, _points(corridor, b, 3), between(a, b), 2.0, np.deg2rad(10.0), cfg)
+    assert bad is not None and bad.ambiguity > cfg.max_ambiguity  # refused: ambiguous
+    assert bad.coarse_score >= 0.62  # (refined: not refused by the coarse score alone)
+    assert math.isnan(bad.free_violation) and ref._free is None
+    world = room_world()
+    pose = np.array([4.0, 3.0, 0.0])
+    ref = _reference(world, pose)
+    good = match_scan(ref, _points(world, pose, 5), np.zeros(3), 2.0, 0.3, cfg)
+    assert good.inlier_fraction >= cfg.min_inlier_fraction and good.free_violation < 0.02
+    assert ref._free is not None

@@ -76,6 +76,12 @@ never from a clock, so the run is deterministic and the same on any machine; a s
 above the budget runs alone. ``wall_budget_ms`` optionally caps each call by the clock as well
 (then the spread depends on the load). ``FRSlam.finish()`` runs what is left (:meth:`on_finish`).
 With an unbounded budget the result is exactly that of doing everything in the keyframe's call.
+When the matching falls behind the budget, a keyframe plans no candidates while
+``MAX_QUEUED_JOBS`` wait (a pending closure's check excepted): without this cap the queue grew
+all along a long log (FR079: 430 candidates waiting at the end, matched by ``finish`` hundreds of
+keyframes after their plan), and the closures they found came too late to help the matches
+after them (with it, FR079 finds more closures with two thirds of the matches; figures in
+tools/README.md).
 
 Decisions go to ``ctx.log`` as ``loop_closure`` / ``loop_pending`` / ``loop_rejected`` (with the
 reason: ``no_overlap``, ``low_score``, ``low_inliers``, ``ambiguous``, ``free_space``).
@@ -136,6 +142,11 @@ CLOSURE_SIGMA_FLOOR_THETA_DEG = 0.5  # deg; smallest heading sigma of a closure
 BATCH_ON_CORRECTION = 1.0
 PRUNE_XY = 0.3  # m; ... and whose residual is at least this
 PRUNE_THETA_DEG = 3.0  # deg; ... or at least this turn
+# candidates waiting to be matched at most: a keyframe plans none while this many wait (the
+# matching fell behind the per-scan budget; planning more would only grow the queue, and a
+# candidate matched hundreds of keyframes after its plan closes late). A pending closure's check
+# is queued all the same.
+MAX_QUEUED_JOBS = 12
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -207,6 +218,7 @@ class LoopClosureStats:
     redundant: int = 0  # searches skipped: the keyframe already tied to the region (see config)
     pruned: int = 0  # accepted closures removed again: the rest of the graph disagreed
     verifications: int = 0  # earlier keyframes matched to check a pending closure
+    plans_skipped: int = 0  # keyframes that planned no candidate: MAX_QUEUED_JOBS were waiting
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -573,7 +585,8 @@ class LoopCloser:
     def _plan(self, ctx: BackendContext, i: int) -> None:
         """Queue the candidates of keyframe i: first where a pending closure predicts the robot
         to be, then up to ``max_candidates`` in all (``max_candidates_idle`` when nothing is
-        queued: the work keeps up with the budget)."""
+        queued: the work keeps up with the budget; none but that check while
+        ``MAX_QUEUED_JOBS`` wait)."""
         cfg = self.config
         limit = max(cfg.max_candidates, cfg.max_candidates_idle) if self.idle else cfg.max_candidates
         # pending closures too old when the previous plan was done
@@ -583,9 +596,11 @@ class LoopCloser:
             cfg.redundant_travel_with_plan if ctx.graph.has_priors() else cfg.redundant_travel
         )
         est = ctx.graph.estimates()
-        cands: list[tuple[int, float, float, np.ndarray | None]] = [
-            (c, r, w, None) for c, r, w in self._candidates(est, i, limit)
-        ]
+        cands: list[tuple[int, float, float, np.ndarray | None]] = []
+        if len(self._jobs) < MAX_QUEUED_JOBS:
+            cands = [(c, r, w, None) for c, r, w in self._candidates(est, i, limit)]
+        else:
+            self.stats.plans_skipped += 1
         hyp = self._hypothesis(est, i)
         if hyp is not None and self._tied(i)[hyp[0]]:
             # the graph already ties keyframe i to the predicted place by a recent verified
