@@ -255,8 +255,7 @@ class GraphConfig(_Section):
         description="forced relinearising iSAM2 steps after a floor-plan prior within 5 cm and 1 deg of the estimate (others get 10; each a few ms on a large graph); larger = slower, settles more",
     )
     factorization: Literal["QR", "CHOLESKY"] = Field(
-        "CHOLESKY",
-        description="iSAM2 linear solver: CHOLESKY (half the memory of QR on a long recording) or QR (stabler)",
+        "QR", description="iSAM2 linear solver: QR (stabler) or CHOLESKY (faster)"
     )
     batch_relative_tolerance: float = Field(
         1e-6,

@@ -371,29 +371,3 @@ def test_batch_runs_after_isam_is_freed(monkeypatch):
     np.testing.assert_array_equal(out, g.estimates())
     g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
     assert len(g.estimates()) == 81
-
-
-def _revisiting_graph(factorization: str) -> PoseGraph:
-    """Twelve laps of a 16-keyframe square, each keyframe closed on the same corner of every
-    earlier lap (a place passed often: iSAM2's separators grow with the laps)."""
-    g = PoseGraph(GraphConfig(factorization=factorization))
-    g.add_first()
-    cov = np.diag([0.02**2, 0.02**2, np.deg2rad(1.0) ** 2])
-    rng = np.random.default_rng(4)
-    step = np.array([1.0, 0.0, np.pi / 8.0])
-    for i in range(1, 12 * 16):
-        g.add_keyframe(step + rng.normal(0.0, [0.02, 0.02, 0.005]), cov)
-        if i >= 16 and i % 4 == 0:
-            noise = gtsam.noiseModel.Gaussian.Covariance(cov)
-            g.add_factor(gtsam.BetweenFactorPose2(key(i % 16), key(i), gtsam.Pose2(), noise), 1)
-    return g
-
-
-def test_isam2_factorises_by_cholesky_by_default_with_the_estimates_of_qr():
-    """CHOLESKY by default: on a long recording its factorisation holds half of QR's memory
-    (tools/README.md, "Memory of a long recording"); the estimates are the same."""
-    assert PoseGraph()._new_isam().params().getFactorization() == "CHOLESKY"
-    chol, qr = _revisiting_graph("CHOLESKY"), _revisiting_graph("QR")
-    assert chol._isam.params().getFactorization() == "CHOLESKY"
-    assert qr._isam.params().getFactorization() == "QR"
-    np.testing.assert_allclose(chol.estimates(), qr.estimates(), atol=1e-6)
