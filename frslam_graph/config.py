@@ -506,11 +506,6 @@ class LoopClosureConfig(_Section):
     redundant_turn_deg: float = Field(
         90.0, ge=0.0, description="deg; ... and at most this much turning on that path"
     )
-    closure_spacing: float = Field(
-        0.0,
-        ge=0.0,
-        description="m; a verified closure with a small correction is not added while the graph ties its two keyframes by a path of at most this travel (closures count zero): fewer factors where a place is passed often, less iSAM2 fill-in; 0 = every one added",
-    )
     # submaps (points in the keyframe's frame)
     max_point_range: float = Field(
         15.0, gt=0.0, description="m; scan points farther from their keyframe are left out of submaps"

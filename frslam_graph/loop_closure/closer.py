@@ -27,13 +27,6 @@ the fewer closures let aliased ones weigh more); once floor-plan priors are in t
 ``redundant_travel_with_plan`` applies: the priors hold the map to the plan, and most closures of
 a robot re-traversing the plan's rooms would only repeat what the priors already say.
 
-Where a place is passed often, verified closures with a small correction pile up between the
-same stretches of the graph: with ``closure_spacing`` > 0 one is not added while the graph
-already ties its two keyframes by a path that short (accepted closures counting as zero length;
-``loop_rejected`` with reason ``redundant``). Each closure factor there widens the separators of
-iSAM2's factorisation: on the long simulated recording its size grew with the square of the
-keyframes (tools/README.md, "Memory of a long recording").
-
 Each candidate is verified by :func:`~frslam_graph.loop_closure.submap_matching.match_scan`: the *query* submap (the points of the last
 ``QUERY_TRAVEL`` metres of keyframes, in q's frame) is matched against the *reference* submap (the
 points of c's neighbouring keyframes, in c's frame). A correlative grid search over (x, y, theta)
@@ -426,18 +419,6 @@ class LoopCloser:
         d_rel, r_rel = (d[2], d[3]) if d and d[:2] == (i, len(self.closures)) else self._graph_distances(i)
         return (d_rel <= self._redundant_travel) & (r_rel <= np.deg2rad(cfg.redundant_turn_deg))
 
-    def _spaced(self, i: int, c: int) -> bool:
-        """Whether the graph already ties keyframes i and c closely: a path of at most
-        ``closure_spacing`` metres of travel and ``redundant_turn_deg`` of turning (accepted
-        closures counting as zero). Another closure with a small correction between them would
-        add little, and every closure factor at a place passed often widens iSAM2's separators
-        there (tools/README.md, "Memory of a long recording")."""
-        cfg = self.config
-        if cfg.closure_spacing <= 0.0 or not self.closures:
-            return False
-        d_rel, r_rel = self._graph_distances(i)
-        return bool(d_rel[c] <= cfg.closure_spacing and r_rel[c] <= np.deg2rad(cfg.redundant_turn_deg))
-
     def _eligible(self, i: int) -> np.ndarray:
         """Mask over keyframes 0..i-MIN_KEYFRAME_GAP far enough back (travel or turn)."""
         n = i - MIN_KEYFRAME_GAP + 1
@@ -674,9 +655,6 @@ class LoopCloser:
             self._reject(ctx, i, c, "low_inliers", **data)
             return []
         if small:
-            if self._spaced(i, c):
-                self._reject(ctx, i, c, "redundant", **data)
-                return []
             yield from self._add(ctx, [lc], settle=False)
             return [lc]
         if partner is None:
