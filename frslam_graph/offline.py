@@ -158,6 +158,31 @@ def _odometry_in_worker(slam: FRSlam, recording: Iterable[Any], worker) -> Itera
 
 #: scans between two returns of freed heap memory to the system during :func:`run_recording`
 TRIM_EVERY_SCANS = 200
+#: bytes; blocks from this size up are mapped and unmapped one by one (glibc's M_MMAP_THRESHOLD,
+#: pinned by :func:`_pin_mmap_threshold`; the trim threshold at twice it)
+MMAP_THRESHOLD = 256 * 1024
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt(3) parameters (malloc.h)
+
+
+def _pin_mmap_threshold() -> bool:
+    """Pin glibc's mmap threshold at :data:`MMAP_THRESHOLD` for this process (and the odometry
+    worker forked from it); False without glibc.
+
+    glibc raises its threshold to the size of the largest mapped block freed so far (up to
+    32 MB): afterwards iSAM2's and numpy's temporaries of that size come from the heap, and the
+    heap grew between two trims by what they left behind (on the long simulated recording,
+    peak RSS - trimmed RSS: 35 MB at 4,000 scans, 119 MB at 16,000). Pinned, such blocks go back
+    to the system when freed: 11 and 29 MB. It moves no live object: results are unchanged."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
+        mallopt(_M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD)
+    )
 
 
 def _heap_trimmer() -> Callable[[], object] | None:
@@ -202,9 +227,12 @@ def run_recording(
     ``progress(i)`` is called after each scan is read. ``parallel``: odometry in a worker process
     (same results; None = where possible, see :func:`process`). Every
     :data:`TRIM_EVERY_SCANS` scans the heap memory freed meanwhile goes back to the system
-    (:func:`_heap_trimmer`). Scans are streamed: none is kept after the backend took it.
+    (:func:`_heap_trimmer`), and large blocks go back as soon as they are freed (the process's
+    mmap threshold is pinned: :func:`_pin_mmap_threshold`). Scans are streamed: none is kept
+    after the backend took it.
     """
     slam = FRSlam(config=config, floor_plan=floor_plan)
+    _pin_mmap_threshold()
     trim = _heap_trimmer()
 
     def scans():

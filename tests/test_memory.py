@@ -9,6 +9,8 @@ below. Loop closure is off (its caches are bounded separately: an LRU of referen
 from __future__ import annotations
 
 import gc
+import subprocess
+import sys
 import tracemalloc
 
 import numpy as np
@@ -136,3 +138,63 @@ def test_finish_frees_isam_and_a_later_scan_rebuilds_it():
     assert len(slam.keyframe_array()) == len(slam.graph)
     assert len(slam.graph) > keyframes and slam.graph.incremental  # rebuilt by a new keyframe
     np.testing.assert_allclose(slam.trajectory()[:n, 1:3], done[:, 1:3], atol=0.05)
+
+
+_FREED_BLOCKS_KEPT = """
+import ctypes, sys
+import numpy as np
+from frslam_graph import offline
+
+class Info(ctypes.Structure):  # glibc's struct mallinfo2
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                                 "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = Info
+if sys.argv[1] == "pin":
+    assert offline._pin_mmap_threshold()
+big = np.ones(8 << 20, np.uint8)  # a large temporary, mapped and freed (glibc then raises its threshold)
+del big
+before = libc.mallinfo2().arena
+blocks = [np.ones(2 << 20, np.uint8) for _ in range(4)]
+del blocks
+print(libc.mallinfo2().arena - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+@pytest.mark.parametrize("pinned", [True, False])
+def test_pinned_mmap_threshold_returns_freed_large_blocks_at_once(pinned):
+    """After a large temporary was freed, glibc serves blocks up to its size from the heap and
+    keeps them when freed; with the threshold pinned (as ``run_recording`` does) they are
+    unmapped at once: the heap does not grow (a fresh process, counted by glibc's mallinfo2)."""
+    out = subprocess.run(
+        [sys.executable, "-c", _FREED_BLOCKS_KEPT, "pin" if pinned else "default"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    kept = int(out.stdout.strip())
+    if pinned:
+        assert kept < (1 << 20), kept
+    else:  # what the pin prevents (glibc's default dynamic threshold)
+        assert kept >= (4 << 20), kept
+
+
+def test_run_recording_pins_the_mmap_threshold(monkeypatch):
+    from frslam_graph import offline
+
+    calls = []
+    monkeypatch.setattr(offline, "_pin_mmap_threshold", lambda: calls.append(1) or True)
+    world = room_world()
+    pose = np.array([4.0, 2.0, 0.3])
+
+    class _Scan:
+        def __init__(self, i):
+            r, amin, inc = cast(world, pose, n_beams=180, rng=np.random.default_rng(i))
+            ang = amin + inc * np.arange(len(r))
+            self.stamp, self.odom, self.sensor_offset = 0.1 * i, tuple(pose), (0.0, 0.0, 0.0)
+            self.points = np.column_stack((r * np.cos(ang), r * np.sin(ang)))
+
+    offline.run_recording([_Scan(i) for i in range(3)], config=_config(), parallel=False)
+    assert calls == [1]
