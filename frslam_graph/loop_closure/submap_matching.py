@@ -280,24 +280,19 @@ class ReferenceSubmap:
         return self._free
 
     def prepare_icp(self) -> None:
-        """Build what ICP needs now (nearest-point map, k-d tree, normals)."""
+        """Build what ICP and its inlier test need now (k-d tree, normals, nearest-point map)."""
         self.nearest  # noqa: B018
         self._normals_quality()
-
-    def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
-        """(indices into ``points`` with a reference point within max_distance, those reference
-        points' indices): nearest neighbours by a cell look-up (exact up to one cell)."""
-        sel, j, _, _ = self._nearest_offsets(points, max_distance)
-        return sel, j
 
     def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """As :meth:`_nearest_offsets` with the exact nearest reference point (k-d tree): ICP's
-        correspondences. The cell look-up's answer is the one point kept for the nearest
-        occupied cell, which on a noisy wall (a band of cells) sits on the band's edge facing
-        the query with ties broken in raster order: a bias of a few millimetres along the
-        grid's axes. Scan-to-local-map odometry accumulates it (simulated 3 cm noise: 2 mm per
+        """ICP's correspondences: (indices into ``points`` with a reference point within
+        max_distance, the exact nearest reference point's index (k-d tree), those points, and
+        their offsets ``points[sel] - self.points[j]``). The cell look-up of
+        :meth:`nearest_points` answers with the one point kept for the nearest occupied cell,
+        which on a noisy wall (a band of cells) sits on the band's edge facing the query, with
+        ties broken in raster order: a bias of a few millimetres along the grid's axes. Scan-to-local-map odometry accumulates it (simulated 3 cm noise: 2 mm per
         scan even standing still, metres over a run); the exact neighbour has none."""
         tree = self.tree
         if tree is None or len(points) == 0:
@@ -309,10 +304,10 @@ class ReferenceSubmap:
         ps = points[sel]
         return sel, j, ps, ps - self.points[j]
 
-    def _nearest_offsets(
-        self, points: np.ndarray, max_distance: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`nearest_points`, ``points[sel]`` and the offsets ``points[sel] - self.points[j]``."""
+    def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """(indices into ``points`` with a reference point within max_distance, those reference
+        points' indices): nearest neighbours by a cell look-up (exact up to one cell; for
+        counting inliers, not for ICP's correspondences: see :meth:`exact_nearest_offsets`)."""
         h, w = self.shape
         ix = np.floor((points[:, 0] - self.origin[0]) / self.resolution).astype(np.int64)
         iy = np.floor((points[:, 1] - self.origin[1]) / self.resolution).astype(np.int64)
@@ -325,7 +320,7 @@ class ReferenceSubmap:
         j = self.nearest[flat]
         off = ps - self.points[np.maximum(j, 0)]
         ok = np.flatnonzero((j >= 0) & (np.hypot(off[:, 0], off[:, 1]) <= max_distance))
-        return sel[ok], j[ok], ps[ok], off[ok]
+        return sel[ok], j[ok]
 
     def dilated(self, cells: int) -> np.ndarray:
         """The likelihood field max-filtered over a (2·cells + 1)² window (flattened)."""
