@@ -1,8 +1,10 @@
 """Trajectory files: TUM trajectories and relations files (text, one record per line).
 
-A TUM file holds one pose per line, ``stamp x y z qx qy qz qw``; we write z = 0 and a yaw-only
-quaternion and read the yaw back (roll / pitch are ignored), as an (N, 4) ``stamp, x, y, theta``
-array (seconds, metres, radians). A relations file (Kümmerle et al. 2009) lists reference
+A TUM file holds one pose per line, ``stamp x y z qx qy qz qw``, in time order (evo refuses
+stamps that are not ascending); we write z = 0 and a yaw-only quaternion, rows sorted by stamp
+(a log whose stamps go backwards, such as Intel's, keeps every pose: only the rows' order is
+time's, not the log's), and read the yaw back (roll / pitch are ignored), as an (N, 4) ``stamp,
+x, y, theta`` array (seconds, metres, radians). A relations file (Kümmerle et al. 2009) lists reference
 relative poses ``t1 t2 x y z roll pitch yaw`` between scan stamps. '#' starts a comment; commas
 count as spaces.
 """
@@ -67,11 +69,11 @@ def load_tum(path: str | Path) -> np.ndarray:
         raise TrajectoryError(
             f"quaternion norm {norm[bad[0]]:.6f} (expected 1)", source=path, where=f"line {lines[bad[0]]}"
         )
-    back = np.flatnonzero(np.diff(a[:, 0]) <= 0.0)
+    back = np.flatnonzero(np.diff(a[:, 0]) < 0.0)
     if back.size:  # unsorted rows were matched to the wrong poses without a word
         k = back[0] + 1
         raise TrajectoryError(
-            f"stamp {a[k, 0]:.9g} is not after the previous row's {a[k - 1, 0]:.9g} (expected increasing stamps)",
+            f"stamp {float(a[k, 0])!r} is before the previous row's {float(a[k - 1, 0])!r} (expected stamps in time order)",
             source=path,
             where=f"line {lines[k]}",
         )
@@ -80,9 +82,11 @@ def load_tum(path: str | Path) -> np.ndarray:
 
 
 def save_tum(path: str | Path, trajectory: np.ndarray) -> None:
-    """Write an (N, 4) ``stamp, x, y, theta`` trajectory as TUM (z = 0, yaw-only quaternion),
-    atomically (:func:`~frslam_graph.atomic.atomic_write`)."""
+    """Write an (N, 4) ``stamp, x, y, theta`` trajectory as TUM (z = 0, yaw-only quaternion), rows
+    in time order (a stable sort by stamp: every row is kept), atomically
+    (:func:`~frslam_graph.atomic.atomic_write`)."""
     traj = as_trajectory(trajectory, "trajectory")
+    traj = traj[np.argsort(traj[:, 0], kind="stable")]
     half = traj[:, 3] / 2.0
     zeros = np.zeros(len(traj))
     out = np.column_stack(
