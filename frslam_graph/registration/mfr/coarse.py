@@ -8,6 +8,12 @@ walls) × wall recall (map walls explained by plan walls) × exit agreement × d
 plausibility, all vectorised over the hypotheses (cv2.remap lookups). A poor best fit triggers a
 scale/shift search (:func:`local_search`).
 
+The moments assume the map's footprint is the union of whole plan rooms. Real maps break that
+(rooms seen in part, corridors, walls, free space outside the building) and put the moment-fitted
+scales 10-40 % off, beyond the refinement's basin (about ±5 %): :func:`wide_search` then searches
+each axis's scale (×0.6 to ×1.75) and shift from the best placements, scored on the rooms each
+trial places on the footprint, and finally at twice the gate's tolerance.
+
 Placements are 3 × 3 matrices from plan units to the map's grid frame (metres).
 """
 
@@ -56,6 +62,8 @@ class Hypothesis:
     refined: RefineResult | None = None
     key: float = 0.0  # coarse IoU x structure precision x recall
     quick: float = 0.0  # the same after the screening refinement
+    placed_iou: float = 0.0  # IoU of the rooms the screened placement puts on the footprint
+    placed_rooms: int = 0  # how many rooms it puts there
     score: float = 0.0
     rooms: tuple[int, ...] = ()
 
@@ -234,6 +242,28 @@ def coarse_scores(
     return iou, key
 
 
+def same_placement(m1: np.ndarray, m2: np.ndarray, obs: MapObservation, within: float | None = None) -> bool:
+    """True when two plan -> map matrices place the plan nearly the same on the observed area:
+    the same handedness and the observed area's corners moved by less than ``within`` metres
+    (default 15 % of its size)."""
+    if (np.linalg.det(m1[:2, :2]) > 0) != (np.linalg.det(m2[:2, :2]) > 0):
+        return False
+    h, w = obs.frame.shape
+    res = obs.frame.resolution
+    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
+    d = (m1 @ np.linalg.solve(m2, corners) - corners)[:2]
+    return bool(np.max(np.hypot(d[0], d[1])) < (0.15 * math.sqrt(obs.area) if within is None else within))
+
+
+def _placed_mask(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, min_cover: float) -> int:
+    """Bit mask of the rooms the placement ``matrix`` puts on the coarse footprint (at least
+    ``min_cover`` of each room's interior grid points)."""
+    x, y = apply_affine(matrix[None, :2, :2], matrix[None, :2, 2], pm.inner)
+    on = lookup(obs.coarse_footprint_u8, x, y, obs.coarse_frame.resolution, (0.0, 0.0), 0)
+    frac = (on.astype(np.float32) @ pm.inner_onehot)[0] / np.maximum(pm.inner_onehot.sum(axis=0), 1.0)
+    return sum(1 << int(i) for i in np.flatnonzero(frac >= min_cover))
+
+
 def _score_hypotheses(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], door_width_m=None) -> None:
     """:func:`coarse_scores` for a list of hypotheses (sets ``coarse_iou`` and ``key``)."""
     iou, key = coarse_scores(
@@ -275,9 +305,12 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
                     h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
 
 
-def search(pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict) -> list[Hypothesis]:
+def search(
+    pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict
+) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
-    no subset fits the map's shape within the aspect bound).
+    no subset fits the map's shape within the aspect bound), and the seeds of
+    :func:`wide_search`: the best hypothesis of each (dihedral case, map wall direction), best first.
 
     The best ``pool_k`` by shape features, the best ``top_k`` of those by the key on
     ``first_pass_points`` points, then all of those on every point; a best IoU below
@@ -287,14 +320,36 @@ def search(pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict) ->
         pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
     )
     if len(pool["mask"]) == 0:
-        return []
-    if len(pool["mask"]) > opts["top_k"]:  # cheap first pass on a few points of each kind
-        _, key = coarse_scores(
-            pm, obs, pool["mats"], pool["mask"], opts["door_width_m"], points=opts["first_pass_points"]
+        return [], []
+    first_pass = len(pool["mask"]) > opts["top_k"]
+    iou, key = coarse_scores(  # a cheap first pass on a few points of each kind when many
+        pm,
+        obs,
+        pool["mats"],
+        pool["mask"],
+        opts["door_width_m"],
+        points=opts["first_pass_points"] if first_pass else None,
+    )
+    # the best of each (dihedral case, wall direction) in the whole pool: a rotation whose
+    # moment-fitted scales are far off ranks low on the key, but a wide search can still reach it
+    order = np.argsort(-key, kind="stable")
+    group = (pool["case"] * len(obs.angles) + pool["angle"])[order]
+    _, at = np.unique(group, return_index=True)
+    seeds = [
+        Hypothesis(
+            int(pool["mask"][i]),
+            *DIHEDRAL[pool["case"][i]],
+            pool["mats"][i],
+            float(pool["cost"][i]),
+            int(pool["angle"][i]),
+            key=float(key[i]),
         )
+        for i in order[np.sort(at)]
+    ]
+    if first_pass:
         keep = np.argsort(-key, kind="stable")[: opts["top_k"]]
         pool = {k: v[keep] for k, v in pool.items()}
-    iou, key = coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
+        iou, key = coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
     hyps = [
         Hypothesis(int(m), DIHEDRAL[c][0], DIHEDRAL[c][1], mat, float(cost), int(ai), float(i), key=float(k))
         for m, c, mat, cost, ai, i, k in zip(
@@ -306,4 +361,141 @@ def search(pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict) ->
         # the map holds area the plan lacks (or the reverse): the moment fit is off; search
         local_search(pm, obs, hyps[:2], opts)
         hyps.sort(key=lambda h: -h.key)
-    return hyps
+    return hyps, seeds
+
+
+# the wide search: per map axis, scale factors x shifts (fractions of the footprint's extent)
+WIDE_FACTORS = np.exp(np.linspace(math.log(0.6), math.log(1.75), 15))  # ~7.6 % apart
+WIDE_SHIFTS = np.linspace(-0.25, 0.25, 13)
+WIDE_AXES = (0, 1, 0)  # x, y, x again (the first x search ran with the y scale still off)
+WIDE_BEAM = 2  # distinct placements kept per round and per seed
+# polishing stages: (factor half-range, factors, shift half-range, shifts, tolerance / the gate's;
+# None: the coarse one), the first on ``first_pass_points``, the last on ``last_points``
+WIDE_POLISH = ((1.11, 9, 0.04, 7, None), (1.05, 9, 0.015, 7, 2.0))
+
+
+def _axis_trials(mat: np.ndarray, rm: np.ndarray, c: np.ndarray, ext: np.ndarray, axis: int, factors, shifts):
+    """(F·S, 3, 3) placements: ``mat`` scaled along one axis of the wall-aligned map frame
+    (``rm`` turns it to the grid frame) about the footprint's centroid ``c`` by each factor,
+    and shifted by each fraction of the footprint's extent ``ext`` (metres) along it."""
+    f, sh = np.meshgrid(factors, shifts, indexing="ij")
+    f, t = f.ravel(), c[axis] * (1.0 - f.ravel()) + sh.ravel() * ext[axis]
+    q = rm.T @ mat  # the placement in the wall-aligned frame: only its row ``axis`` changes
+    out = np.broadcast_to(q, (len(f), 3, 3)).copy()
+    out[:, axis, :] = f[:, None] * q[axis] + t[:, None] * q[2]
+    return rm[None] @ out
+
+
+def _aspect_ok(pm: PlanModel, mats: np.ndarray, max_aspect: float) -> np.ndarray:
+    """(H,) the scales along the plan's wall directions within the aspect bound."""
+    axes = rot(pm.angle)  # columns: the plan's wall directions
+    cols = np.linalg.norm(mats[:, :2, :2] @ axes[None], axis=1)  # (H, 2)
+    ratio = cols[:, 1] / np.maximum(cols[:, 0], 1e-12)
+    return (ratio <= max_aspect) & (ratio >= 1.0 / max_aspect)
+
+
+def _top_cells(key: np.ndarray, shape: tuple[int, int], n: int, radius: int = 2) -> list[int]:
+    """Flat indices of up to ``n`` local bests of ``key`` on the (factor, shift) grid ``shape``,
+    each at least ``radius`` + 1 cells from the others (non-maximum suppression)."""
+    grid = key.reshape(shape).copy()
+    out = []
+    for _ in range(n):
+        i = int(np.argmax(grid))
+        if not grid.flat[i] > 0.0:
+            break
+        out.append(i)
+        a, b = np.unravel_index(i, shape)
+        grid[max(0, a - radius) : a + radius + 1, max(0, b - radius) : b + radius + 1] = -np.inf
+    return out
+
+
+def wide_search(
+    pm: PlanModel,
+    obs: MapObservation,
+    seeds: list[Hypothesis],
+    opts: dict,
+    tol: float,
+    limit: int,
+    check: bool = False,
+) -> list[Hypothesis]:
+    """Placements found by searching each seed's scale and shift along each wall-aligned map axis
+    over a wide grid (x0.6 to x1.75, +-25 % of the footprint's extent), for maps whose footprint
+    is not a union of whole plan rooms (rooms partly seen, corridors, walls, space outside the
+    building), where the moment-fitted scales are 10-40 % off and the refinement's basin
+    (about +-5 %) does not reach the truth.
+
+    Per seed: a beam of ``WIDE_BEAM`` distinct placements through the axis rounds ``WIDE_AXES`` on
+    the coarse key of the rooms each trial places on the footprint (``first_pass_points``), then
+    the ``WIDE_POLISH`` rounds, the last on all points at twice the gate's tolerance ``tol``
+    (metres): that one tells a right placement from one stretched by a room. ``check``: a cheaper
+    check of an already refined placement (a beam of one, x and y once, shifts +-12.5 %, no
+    polish when the grid's best is the placement itself, the last polish on ``quick_points``). Returns up to ``limit`` distinct hypotheses, best first, each with its
+    coarse key (default tolerance) as ``key``.
+    """
+    door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
+    full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
+
+    def score(mats: np.ndarray, pts, tl=None) -> np.ndarray:
+        _, k = coarse_scores(pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover)
+        return np.where(_aspect_ok(pm, mats, opts["max_aspect"]), k, 0.0)
+
+    width = 1 if check else WIDE_BEAM
+    shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
+    last_points = opts["quick_points"] if check else None
+    found: list[tuple[float, np.ndarray, int]] = []
+    for si, seed in enumerate(seeds):
+        angle, bbox = obs.angles[seed.angle_index], obs.bboxes[seed.angle_index]
+        rm = np.eye(3)
+        rm[:2, :2] = rot(angle)
+        c = rot(-angle) @ obs.centroid
+        ext = bbox[2:] - bbox[:2]
+        beam = [(float(score(seed.matrix[None], points)[0]), seed.matrix)]
+        for axis in WIDE_AXES[:2] if check else WIDE_AXES:
+            grown = list(beam)
+            for _, m in beam:
+                mats = _axis_trials(m, rm, c, ext, axis, WIDE_FACTORS, shifts)
+                k = score(mats, points)
+                grown += [
+                    (float(k[i]), mats[i]) for i in _top_cells(k, (len(WIDE_FACTORS), len(shifts)), width)
+                ]
+            grown.sort(key=lambda t: -t[0])
+            beam = []
+            for k_, m in grown:
+                if not any(same_placement(m, b, obs) for _, b in beam):
+                    beam.append((k_, m))
+                if len(beam) >= width:
+                    break
+        if check and np.allclose(beam[0][1], seed.matrix):
+            continue  # no other scale or shift on the grid scores better: nothing to polish
+        for _, m in beam:
+            for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
+                factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
+                pts = last_points if stage == len(WIDE_POLISH) - 1 else points
+                tl = None if tmul is None else tmul * tol
+                for axis in (0, 1):
+                    mats = np.concatenate(
+                        [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
+                    )
+                    m = mats[int(np.argmax(score(mats, pts, tl)))]
+            found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
+    found.sort(key=lambda t: -t[0])
+    out: list[Hypothesis] = []
+    for k_, m, si in found:
+        if k_ <= 0.0 or any(same_placement(m, h.matrix, obs) for h in out):
+            continue
+        iou, key = coarse_scores(pm, obs, m[None], np.array([full]), door, matched_cover=cover)
+        out.append(
+            Hypothesis(
+                _placed_mask(pm, obs, m, cover),
+                0,
+                False,
+                m,
+                0.0,
+                seeds[si].angle_index,
+                coarse_iou=float(iou[0]),
+                key=float(key[0]),
+            )
+        )
+        if len(out) >= limit:
+            break
+    return out

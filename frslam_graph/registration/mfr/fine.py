@@ -155,7 +155,7 @@ def wall_precision_recall(
 
 def placement_test(mats: np.ndarray, obs: MapObservation):
     """A function ``same(m) -> (H,) bool``: which of the (H, 3, 3) placements ``mats`` place the
-    plan nearly as ``m`` does (see :func:`same_placement`)."""
+    plan nearly as ``m`` does (see :func:`coarse.same_placement`)."""
     h, w = obs.frame.shape
     res = obs.frame.resolution
     corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
@@ -169,18 +169,6 @@ def placement_test(mats: np.ndarray, obs: MapObservation):
         return (signs == (np.linalg.det(m[:2, :2]) > 0)) & (dist < thr)
 
     return same
-
-
-def same_placement(m1: np.ndarray, m2: np.ndarray, obs: MapObservation) -> bool:
-    """True when two plan -> map matrices place the plan nearly the same on the observed area:
-    the same handedness and the observed area's corners moved by less than 15 % of its size."""
-    if (np.linalg.det(m1[:2, :2]) > 0) != (np.linalg.det(m2[:2, :2]) > 0):
-        return False
-    h, w = obs.frame.shape
-    res = obs.frame.resolution
-    corners = np.array([[0.0, w * res, 0.0, w * res], [0.0, 0.0, h * res, h * res], [1.0, 1.0, 1.0, 1.0]])
-    d = (m1 @ np.linalg.solve(m2, corners) - corners)[:2]
-    return bool(np.max(np.hypot(d[0], d[1])) < 0.15 * math.sqrt(obs.area))
 
 
 def choose_distinct(
@@ -237,20 +225,26 @@ def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: d
     for h, q, b in zip(chosen, quick, bad, strict=True):
         h.quick = 0.0 if b or not np.isfinite(q) else float(q)
         if h.quick > 0.0:  # ranked by what the gate measures, not by the coarse grid's key
-            h.quick = structure_key(pm, obs, h.refined, opts, tol)
+            h.quick, h.placed_iou, h.placed_rooms = structure_key(pm, obs, h.refined, opts, tol)
     chosen.sort(key=lambda h: -h.quick)
 
 
-def structure_key(pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float) -> float:
+def structure_key(
+    pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float
+) -> tuple[float, float, int]:
     """The acceptance gate's measure of a refined placement: IoU of the rooms it places on the
     full-resolution footprint × wall precision × recall at its wall faces (``tol`` metres), times
-    the door-width plausibility of its scale. The coarse key (80-cell footprint, boundaries at
-    the wall centres) ranks a placement shifted by a wall or a room above the right one on maps
-    with partly seen rooms and thick walls."""
-    iou, _ = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    the door-width plausibility of its scale; and that IoU and the number of those rooms. The
+    coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement shifted by a
+    wall or a room above the right one on maps with partly seen rooms and thick walls."""
+    iou, rooms = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
     prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
     scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
-    return float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0])
+    return (
+        float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0]),
+        float(iou),
+        len(rooms),
+    )
 
 
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:

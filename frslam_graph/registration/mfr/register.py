@@ -23,6 +23,11 @@ Steps
    × wall precision (plan walls on the observed area that are map walls) × wall recall (map walls
    explained by plan walls) × exit agreement × door-width plausibility, all vectorised over the
    hypotheses (cv2.remap lookups). A poor best fit triggers a scale/shift search.
+   When the screened best (step 4) covers the footprint poorly (coarse IoU below
+   ``search_below_iou``) or fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
+   starts from its placement, and when it fails the gate also from the best placement of each of
+   the ``wide_seeds`` best (dihedral case, wall direction); its placements that cover the footprint
+   with plan rooms (IoU >= ``WIDE_MIN_IOU``) are screened with the others.
 4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored; the best
    is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
    two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
@@ -60,6 +65,7 @@ DEFAULTS: dict[str, Any] = {
     "top_k": 64,  # hypotheses scored on the coarse grid with all points
     "refine_k": 3,  # distinct hypotheses refined
     "search_below_iou": 0.85,  # search scales and shifts when the best coarse IoU is below this
+    "wide_seeds": 3,  # rotations (best first) searched over wide scales when no placement passes the gate; 0: no wide search
     "max_subsets_per_level": 3000,
     "coarse_px": 80,
     "sample_px": 1.5,  # boundary sample spacing in map cells (final stage)
@@ -79,6 +85,13 @@ DEFAULTS: dict[str, Any] = {
     "seed_rooms": None,  # room ids one of which the subset must contain (the robot's room)
     "door_width_m": (0.3, 4.0),  # plausible median door opening (m); None: no scale prior
 }
+
+
+# the least IoU of a wide-search placement's rooms with the observed footprint: its free scales
+# can stretch a few rooms of another building over part of a map (3 of the `--parts other` maps
+# of tools/bench_real.py were accepted without it); the right placements on Halmstad and PRBonn
+# reach 0.85-0.90
+WIDE_MIN_IOU = 0.8
 
 
 def register_mfr(plan, grid, **options: Any) -> Registration:
@@ -124,7 +137,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
     masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=opts["max_subsets_per_level"])
     # 3. coarse search
-    hyps = coarse.search(pm, obs, masks, opts)
+    hyps, best_rotations = coarse.search(pm, obs, masks, opts)
     if not hyps:
         return fail("no room subset fits the map's shape within the aspect bound")
     t_coarse = time.perf_counter()
@@ -132,6 +145,42 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     chosen, covered = fine.choose_distinct(hyps, obs, opts["refine_k"])
     tol_f = max(3.0 * obs.frame.resolution, 0.1)
     fine.screen(pm, obs, chosen, opts, tol_f)
+    n_wide, wide_searched = 0, False
+    top = chosen[0]
+    fails = top.quick < opts["min_score"]
+    if opts["wide_seeds"] > 0 and (fails or top.coarse_iou < opts["search_below_iou"]):
+        # the footprint is not the union of the placed rooms (or nothing passes the gate): the
+        # moment-fitted scales may be far off. Search the best placement's scales widely, and
+        # when nothing passes, the best rotations' too
+        own = Hypothesis(top.mask, top.k, top.flipped, top.refined.matrix, 0.0, top.angle_index)
+        wide_searched = True
+        if fails:
+            wide = coarse.wide_search(
+                pm, obs, [own, *best_rotations[: opts["wide_seeds"]]], opts, tol_f, opts["refine_k"]
+            )
+        else:
+            wide = coarse.wide_search(pm, obs, [own], opts, tol_f, 1, check=True)
+        # the placements not screened yet (within twice the gate's tolerance of a screened one)
+        wide = [
+            h
+            for h in wide
+            if not any(coarse.same_placement(h.matrix, c.refined.matrix, obs, 2.0 * tol_f) for c in chosen)
+        ]
+        if wide:
+            fine.screen(pm, obs, wide, opts, tol_f)
+            # its free scales can stretch a few rooms of another building over part of the map:
+            # a placement it finds must cover the footprint with two plan rooms or more, and beat
+            # the best so far by more than the ambiguity margin (else the two are alike and the
+            # one found with fewer free parameters stays)
+            wide = [
+                h
+                for h in wide
+                if h.placed_iou >= WIDE_MIN_IOU
+                and h.placed_rooms >= 2
+                and h.quick * opts["ambiguous_at"] > top.quick
+            ]
+            chosen, covered = _merge(chosen, wide, hyps, covered, obs)
+            n_wide = len(wide)
     best = chosen[0]
     r0 = best.refined
     best.refined = r = fine.refine_final(pm, obs, r0, opts)
@@ -165,6 +214,8 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         "observed_area_m2": obs.area,
         "n_subsets": int(len(masks)),
         "n_hypotheses": len(hyps),
+        "wide_searched": wide_searched,
+        "n_wide": n_wide,
         "coarse_iou": best.coarse_iou,
         "coarse_rooms": list(mask_ids(best.mask, pm.ids)),
         "time_map_s": t_map - t0,
@@ -198,6 +249,21 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     return reg
 
 
+def _merge(
+    chosen: list[Hypothesis], wide: list[Hypothesis], hyps: list[Hypothesis], covered: np.ndarray, obs
+) -> tuple[list[Hypothesis], np.ndarray]:
+    """The screened placements of both searches, best ``quick`` first, one per placement, and the
+    coarse hypotheses placing the plan as one of them (for :func:`_ambiguity`)."""
+    merged: list[Hypothesis] = []
+    for h in sorted(chosen + wide, key=lambda h: -h.quick):
+        if not any(coarse.same_placement(h.refined.matrix, g.refined.matrix, obs) for g in merged):
+            merged.append(h)
+    same_as = fine.placement_test(np.stack([h.matrix for h in hyps]), obs)
+    for h in wide:
+        covered = covered | same_as(h.matrix)
+    return merged, covered
+
+
 def _ambiguity(
     chosen: list[Hypothesis], hyps: list[Hypothesis], covered: np.ndarray, screened: np.ndarray, obs
 ) -> float:
@@ -206,7 +272,8 @@ def _ambiguity(
     screened key, at most 1 (1 when the best scored 0)."""
     best = chosen[0]
     second = max(
-        (h.quick for h in chosen[1:] if not fine.same_placement(h.refined.matrix, screened, obs)), default=0.0
+        (h.quick for h in chosen[1:] if not coarse.same_placement(h.refined.matrix, screened, obs)),
+        default=0.0,
     )
     rest = [h.key for h, c in zip(hyps, covered, strict=True) if not c]
     if rest:  # unrefined placements: their coarse key relative to the best's coarse key
@@ -224,7 +291,7 @@ def _alternatives(chosen: list[Hypothesis], screened: np.ndarray, obs, limit: in
     for h in chosen[1:]:
         if len(alternatives) >= limit or h.quick <= 0.0:
             break
-        if any(fine.same_placement(h.refined.matrix, m, obs) for m in placed):
+        if any(coarse.same_placement(h.refined.matrix, m, obs) for m in placed):
             continue
         placed.append(h.refined.matrix)
         alternatives.append({"relative_score": h.quick / best.quick, "matrix": obs.to_map @ h.refined.matrix})
