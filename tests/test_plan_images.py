@@ -15,7 +15,7 @@ import pytest
 from frslam_graph.cli import main
 from frslam_graph.errors import FloorPlanError
 from frslam_graph.floorplan import FloorPlan
-from frslam_graph.floorplan.plan_image import load_image_plan_detailed
+from frslam_graph.floorplan.plan_image import grey_fills, load_image_plan_detailed
 
 GREY, WHITE, BLACK = 128, 255, 0
 
@@ -62,6 +62,16 @@ def test_a_gap_wider_than_the_door_width_joins_the_rooms(tmp_path):
     path = write(tmp_path, "wide.png", two_rooms(door=60))
     assert len(FloorPlan.from_image(path, door_width=30).rooms) == 1
     assert len(FloorPlan.from_image(path, door_width=70).rooms) == 2
+
+
+def test_light_grey_fills_are_not_free_but_line_fringes_are():
+    img = np.full((60, 80), WHITE, np.float64)
+    img[10:50, 20:26] = 211  # a wall drawn as a 6 px light-grey fill
+    img[10:50, 50] = BLACK  # a dark line ...
+    img[10:50, 51] = 220  # ... with a one-pixel anti-aliased fringe
+    free = img > 205  # free by map_server's 0.196
+    fills = grey_fills(img, free)
+    assert fills[10:50, 20:26].all() and fills.sum() == 40 * 6
 
 
 def layout_row_of_rooms(gap: int = 34) -> np.ndarray:
@@ -190,6 +200,16 @@ def test_cli_show_and_convert_a_plan_image(tmp_path, capsys):
 
 
 IPA = "floorplans/ipa"
+
+
+def test_freiburg52_walls_drawn_as_grey_fills_are_not_rooms(shared_data):
+    # its walls are grey 211 between thin outlines: read as free they made a room of the whole
+    # wall network (area 7 % of its bounding box) and two of the corridor's wall stubs
+    plan = FloorPlan.load(shared_data / "floorplans" / "ipa" / "Freiburg52_scan.png")
+    assert len(plan.rooms) == 9  # 4 offices, the corridor, 4 large rooms
+    for r in plan.rooms:
+        x0, y0, x1, y1 = r.polygon.bounds
+        assert r.area >= 0.85 * (x1 - x0) * (y1 - y0), r.id
 
 
 @pytest.mark.parametrize("stem", ["lab_intel", "office_a"])

@@ -7,7 +7,11 @@ differ by a similarity without a flip (registration handles flips anyway). ``uni
 
 Grey levels are read as ROS map_server reads a map (colour averaged, alpha ignored; p = (255 -
 v) / 255): p < ``free_thresh`` is free space, p > ``occupied_thresh`` a wall (dark), anything
-between (grey outside, hatched or filled areas) is neither. Then:
+between (grey outside, hatched or filled areas) is neither. Light-grey fills that map_server's
+``free_thresh`` still counts as free (p >= 0.1, lighter than grey 205 but darker than 230, at
+least 3 px wide: walls drawn as grey fills between thin outlines, grey 211 on the IPA
+``Freiburg52_scan.png``, read as free made rooms of the walls) are neither too; the one-pixel
+anti-aliased fringe of dark lines stays free. Then:
 
 1. Furniture: blobs of non-free pixels smaller than ``furniture_size`` on both sides and not
    touching the image border (chairs, dots, small boxes) become free space.
@@ -48,6 +52,7 @@ from frslam_graph.occupancy import FREE, OCCUPIED, check_reading, image_to_occup
 MIN_DOOR_WIDTH_PX = 30.0
 DOOR_PER_WALL = 4.0  # default door width / wall thickness
 SEGMENTATION_SUFFIX = "_gt_segmentation"
+FILL_P = 0.1  # light grey below 230: a fill (wall, hatching) when 3 px wide, not a room
 _SATURATED = 30  # max - min channel above this: a colour, not a grey
 
 
@@ -98,14 +103,10 @@ def load_image_plan_detailed(
         ):
             raise FloorPlanError(f"expected a positive number of pixels, got {value!r}", src, field)
     check_reading(occupied_thresh, free_thresh, "trinary", src, FloorPlanError)
-    occ = image_to_occupancy(
-        grey_levels(read_image(path, FloorPlanError, "a floor-plan image")),
-        int(bool(negate)),
-        occupied_thresh,
-        free_thresh,
-        "trinary",
-    )
+    grey = grey_levels(read_image(path, FloorPlanError, "a floor-plan image"))
+    occ = image_to_occupancy(grey, int(bool(negate)), occupied_thresh, free_thresh, "trinary")
     free, dark = occ == FREE, occ == OCCUPIED
+    free &= ~grey_fills(grey, free, negate)
     if not free.any():
         raise FloorPlanError("no free space (light pixels): expected white rooms and dark walls", src)
     thickness = wall_thickness(dark)
@@ -154,6 +155,17 @@ def load_image_plan_detailed(
         source=src,
     )
     return ImagePlanResult(plan, dw, thickness, n_furniture, seg_path)
+
+
+def grey_fills(grey: np.ndarray, free: np.ndarray, negate: bool = False) -> np.ndarray:
+    """The light-grey areas of ``free`` (p = (255 - v) / 255 >= :data:`FILL_P`) at least 3 px
+    wide: filled walls or hatching, not rooms; the one-pixel anti-aliased fringe of lines is left
+    out (a 3x3 opening)."""
+    p = grey / 255.0 if negate else (255.0 - grey) / 255.0
+    light = (free & (p >= FILL_P)).astype(np.uint8)
+    if not light.any():
+        return np.zeros_like(free)
+    return cv2.morphologyEx(light, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
 
 
 def _core_count(dt: np.ndarray, door_width: float) -> int:
