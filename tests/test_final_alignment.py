@@ -210,3 +210,59 @@ def test_pairs_of_a_place_passed_many_times_need_memory_for_a_chunk_only():
                         break
         want |= {(min(c, k), max(c, k)) for c in chosen}
     assert set(map(tuple, pairs.tolist())) == want
+
+
+def _slipped_segment(angle_deg: float = 12.0):
+    """Two laps of a room (keyframes, 360° scans); in the estimate a stretch of the second lap
+    (about 3 m) is turned by ``angle_deg`` about its middle keyframe, as after an odometry slip in
+    a fast spin: (truth, estimate, points, origins, mask of the stretch)."""
+    truth, _, points, second = _two_laps()
+    k2 = np.flatnonzero(second)
+    mid = int(k2[len(k2) // 3])
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    seg = second & (np.abs(travel - travel[mid]) <= 1.5)
+    a = np.deg2rad(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    p = truth[mid, :2]
+    turn = np.array([*(p - np.array([[c, -s], [s, c]]) @ p), a])  # rotation about p
+    estimate = truth.copy()
+    estimate[seg] = np.array([compose(turn, q) for q in truth[seg]])
+    return truth, estimate, points, [np.zeros(2)] * len(points), seg
+
+
+def test_search_ties_a_stretch_the_icp_cannot_reach():
+    """A stretch of the second lap is 12° off (beyond the ICP's 5° gate and its reach): the ICP
+    alone ties none of its keyframes to the first lap; with the search (``origins`` given) they
+    are tied, and every searched constraint measures the true relative pose."""
+    truth, estimate, points, origins, seg = _slipped_segment(12.0)
+    icp = dense_constraints(estimate, truth, points, radius=2.0, max_range=15.0)
+    assert not any(seg[c.reference] or seg[c.query] for c in icp)
+    cons = dense_constraints(estimate, truth, points, radius=2.0, max_range=15.0, origins=origins)
+    found = [c for c in cons if c.searched]
+    assert [(c.reference, c.query) for c in cons if not c.searched] == [(c.reference, c.query) for c in icp]
+    assert len({c.query for c in found if seg[c.query]}) >= 3
+    assert all(seg[c.reference] or seg[c.query] for c in found)
+    err = np.array([c.relative - between(truth[c.reference], truth[c.query]) for c in found])
+    assert np.hypot(err[:, 0], err[:, 1]).max() < 0.03
+    assert np.degrees(np.abs(err[:, 2])).max() < 0.5
+
+
+def test_a_searched_constraint_counts_only_when_another_agrees():
+    """agreeing(): two constraints of keyframes whose query submaps share no keyframe and whose
+    implied poses keep the estimate's relative pose are kept; a lone one, one that disagrees
+    (another correction), and one of a neighbouring keyframe (shared submap) are not."""
+    poses = _line(0, 10, 0.0, 0.0, 21)
+    truth = poses.copy()
+    truth[10:] = np.array([compose(np.array([0.2, 0.1, np.deg2rad(8.0)]), q) for q in poses[10:]])
+
+    def con(c: int, k: int, pose_k: np.ndarray) -> fa.AlignmentConstraint:
+        return fa.AlignmentConstraint(c, k, between(poses[c], pose_k), np.eye(3) * 1e-4, 0.9, True)
+
+    a, b = con(0, 14, truth[14]), con(1, 18, truth[18])
+    assert fa.agreeing(poses, [a]) == []
+    assert fa.agreeing(poses, [a, b]) == [a, b]
+    other = con(2, 19, compose(np.array([-0.3, 0.0, np.deg2rad(-6.0)]), poses[19]))
+    assert fa.agreeing(poses, [a, other]) == []
+    assert fa.agreeing(poses, [a, b, other]) == [a, b]
+    near = con(3, 15, truth[15])  # its query submap shares keyframes with a's
+    assert fa.agreeing(poses, [a, near]) == []

@@ -51,6 +51,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import resource
 import statistics
 import sys
@@ -74,7 +75,7 @@ from frslam_graph.odometry.motion_model import between  # noqa: E402
 from frslam_graph.offline import process  # noqa: E402
 from frslam_graph.slam import FRSlam  # noqa: E402
 
-R2V_DIR = REPO.parent / "shared" / "data" / "floorplans" / "r2v"
+R2V_DIR = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "floorplans" / "r2v"
 WRONG_FRAC = 0.25
 # Regimes of section 2: simulator options (beyond beams / rate / route) and backend config.
 REGIMES = {

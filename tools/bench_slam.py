@@ -54,6 +54,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -67,7 +68,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_sweep.py, als
 from _sweep import Sweep, SweepError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+DATA = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
 # name -> (recording, relations) under DATA
 LOGS = {
     "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),

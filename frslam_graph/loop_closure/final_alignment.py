@@ -10,6 +10,18 @@ current estimate, of the keyframe's query submap (itself and its neighbours) ont
 reference submap. A match that converges with most points on the reference and moves the
 estimate by little is a between-factor under a Huber kernel; the graph is re-optimised (LM
 batch) and the constraints are computed again at the new estimate (``final_alignment_rounds``).
+
+A keyframe that no such ICP ties to another pass may lie beyond the ICP's reach: the online closer
+tied the place once, then the odometry slipped while the robot stayed there (ACES: KISS-ICP lost
+12° in the first second of a fast spin in place right after the return-to-start closure, and 5°
+more in a second spin; 40 s of keyframes 11-17° off, no online candidate (every region near was
+tried by the closure's keyframes), no ICP constraint (5° gate), relation error 0.85 m). For such a
+keyframe each of its pairs is searched as the closer searches (:func:`~frslam_graph.loop_closure.
+submap_matching.match_scan`: correlative search of ± ``SEARCH_WINDOW_XY`` / ``SEARCH_WINDOW_THETA``
+around the estimate, ICP, inliers, ambiguity, free space: :func:`searched_constraints`); a found
+constraint counts only when one of another keyframe agrees with it (the closer's pairwise
+consistency): one aliased match is not enough.
+
 This is the dense constraint set offline mappers end with (Cartographer's final optimisation,
 Karto's and GraphMapping's scan matching against all near poses). It runs only with loop
 closure on (``loop_closure.enabled``): these are loop closures too.
@@ -33,17 +45,19 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frslam_graph.backend.graph import key
+from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2
 from frslam_graph.loop_closure.submap_matching import (
     ReferenceSubmap,
+    match_scan,
     rigid_points,
+    transform_points,
     voxel_downsample,
 )
-from frslam_graph.se2 import between, between_many, wrap
+from frslam_graph.se2 import between, between_many, compose, wrap
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
-    from frslam_graph.config import LoopClosureConfig
 
 QUERY_SPAN = 1  # keyframes each side of the query keyframe in its submap
 REFERENCE_SPAN = 4  # ... and of the reference keyframe in its submap
@@ -65,6 +79,17 @@ COVARIANCE_FLOOR = np.diag([0.01**2, 0.01**2, np.deg2rad(0.2) ** 2])
 # redescending kernel (Cauchy 1 / 3) gave them too little pull against the stiff odometry chain
 # (FR079 relation error 0.057 / 0.049 m; Huber 3 0.048, none 0.047); Huber bounds a wrong one's pull.
 HUBER_SCALE = 3.0
+# Search of the keyframes no ICP constraint ties (searched_constraints): the closer's matcher in
+# this window around the estimate. The estimate has converged, so the window is the slip a
+# stretch of odometry can leave after a closure, not the drift of a whole loop: ACES 17° after two
+# spins in place (the closer's heading window after 300° of turning: 25°).
+SEARCH_WINDOW_XY = 0.5  # m
+SEARCH_WINDOW_THETA = np.deg2rad(30.0)
+# two searched constraints agree when the query poses they imply keep the estimate's relative
+# pose within this (the closer's CONSISTENCY_XY / _THETA_DEG: 0.3 m plus 2 % of the distance, 3°)
+AGREE_XY = 0.3
+AGREE_XY_PER_M = 0.02
+AGREE_THETA = np.deg2rad(3.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,6 +101,7 @@ class AlignmentConstraint:
     relative: np.ndarray
     covariance: np.ndarray
     inlier_fraction: float
+    searched: bool = False  # found by the correlative search (searched_constraints), not the ICP alone
 
 
 def field_of_view(points: list[np.ndarray]) -> float:
@@ -451,6 +477,86 @@ def _align_chunk(
     ]
 
 
+def _reference_scans(
+    poses: np.ndarray, local: list[np.ndarray], origins: list[np.ndarray], c: int, span: int
+) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Points of keyframes c-span..c+span (``local``: :func:`_in_range`) in keyframe c's frame, and
+    per keyframe (sensor origin, end points in beam order) in that frame (the free-space test)."""
+    scans = []
+    for j in range(max(0, c - span), min(len(local) - 1, c + span) + 1):
+        rel = between(poses[c], poses[j])
+        scans.append(
+            (
+                transform_points(rel, np.asarray(origins[j], dtype=np.float64)[None])[0],
+                transform_points(rel, local[j]),
+            )
+        )
+    return np.concatenate([e for _, e in scans]), scans
+
+
+def searched_constraints(
+    poses: np.ndarray,
+    points: list[np.ndarray],
+    origins: list[np.ndarray],
+    pairs: np.ndarray,
+    config: LoopClosureConfig,
+) -> list[AlignmentConstraint]:
+    """Constraints of ``pairs`` (P, 2: reference c, query k) found by the closer's matcher
+    (:func:`~frslam_graph.loop_closure.submap_matching.match_scan`) within ± ``SEARCH_WINDOW_XY`` /
+    ``SEARCH_WINDOW_THETA`` of the estimate ``poses`` (map): the ICP's submaps, the closer's
+    likelihood field, ambiguity and free-space tests (``config``), this module's inlier fraction;
+    then only those that another one agrees with (:func:`agreeing`). ``origins``: per keyframe
+    the sensor origin in base_link. One reference submap at a time (pairs sorted by reference)."""
+    cfg = config
+    local = _in_range(points, cfg.max_point_range)
+    margin = SEARCH_WINDOW_XY + 4.0 * cfg.likelihood_sigma + 1.5
+    found: list[AlignmentConstraint] = []
+    queries: dict[int, np.ndarray] = {}
+    ref, ref_c = None, -1
+    for c, k in pairs[np.argsort(pairs[:, 0], kind="stable")].tolist():
+        if c != ref_c:
+            pts, scans = _reference_scans(poses, local, origins, c, REFERENCE_SPAN)
+            ref_c = c
+            ref = ReferenceSubmap(
+                pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin
+            )
+        q = queries.get(k)
+        if q is None:
+            q = queries[k] = _submap(poses, local, k, QUERY_SPAN)
+        m = match_scan(ref, q, between(poses[c], poses[k]), SEARCH_WINDOW_XY, SEARCH_WINDOW_THETA, cfg)
+        if m is None or m.inlier_fraction < MIN_INLIER_FRACTION or m.ambiguity > cfg.max_ambiguity:
+            continue
+        if not m.free_violation <= cfg.max_free_violation:  # NaN: not measured (refused)
+            continue
+        found.append(AlignmentConstraint(c, k, m.pose.copy(), m.covariance.copy(), m.inlier_fraction, True))
+    return agreeing(poses, found)
+
+
+def agreeing(poses: np.ndarray, cons: list[AlignmentConstraint]) -> list[AlignmentConstraint]:
+    """The constraints that another one agrees with: a constraint of another query keyframe whose
+    query submap shares no keyframe with this one's (more than ``2 QUERY_SPAN`` keyframes apart),
+    such that the two query poses they imply in the map keep the estimate's relative pose within
+    ``AGREE_XY`` (+ ``AGREE_XY_PER_M`` per metre between them) and ``AGREE_THETA`` (the closer's
+    pairwise consistency). A lone match may be an aliased place; two independent ones that agree
+    are the evidence."""
+    if len(cons) < 2:
+        return []
+    q = np.array([c.query for c in cons])
+    implied = np.array([compose(poses[c.reference], c.relative) for c in cons])  # query in map
+    n = len(cons)
+    a, b = np.triu_indices(n, 1)
+    sep = np.abs(q[a] - q[b]) > 2 * QUERY_SPAN
+    a, b = a[sep], b[sep]
+    est = between_many(poses[q[a]], poses[q[b]])
+    d = between_many(between_many(implied[a], implied[b]), est)
+    ok = (np.hypot(d[:, 0], d[:, 1]) <= AGREE_XY + AGREE_XY_PER_M * np.hypot(est[:, 0], est[:, 1])) & (
+        np.abs(wrap(d[:, 2])) <= AGREE_THETA
+    )
+    keep = np.zeros(n, bool)
+    keep[a[ok]] = keep[b[ok]] = True
+    return [c for c, k in zip(cons, keep, strict=True) if k]
+
+
 def constraint_factor(con: AlignmentConstraint) -> gtsam.BetweenFactorPose2:
     """The constraint as a Huber-robust between-factor (covariance floored)."""
     noise = gtsam.noiseModel.Gaussian.Covariance(con.covariance + COVARIANCE_FLOOR)
@@ -466,20 +572,33 @@ def dense_constraints(
     max_range: float,
     per_keyframe: int = 3,
     processes: int = 1,
+    origins: list[np.ndarray] | None = None,
+    config: LoopClosureConfig | None = None,
 ) -> list[AlignmentConstraint]:
     """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel;
-    ``processes``: see :func:`align_pairs`."""
+    ``processes``: see :func:`align_pairs`. With ``origins`` (per keyframe the sensor origin in
+    base_link) the pairs of the keyframes no ICP constraint ties are searched too
+    (:func:`searched_constraints`, the closer's matcher settings from ``config``)."""
     steps = np.hypot(*np.diff(odom_poses[:, :2], axis=0).T)
     travel = np.concatenate(([0.0], np.cumsum(steps)))
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
-    return align_pairs(poses, points, pairs, max_range, processes)
+    cons = align_pairs(poses, points, pairs, max_range, processes)
+    if origins is None or not len(pairs):
+        return cons
+    tied = np.zeros(len(poses), bool)
+    tied[[c.reference for c in cons] + [c.query for c in cons]] = True
+    untied = pairs[~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]]
+    cfg = (config or LoopClosureConfig()).model_copy(update={"max_point_range": max_range})
+    return cons + searched_constraints(poses, points, origins, untied, cfg)
 
 
 def align_passes(ctx: BackendContext, config: LoopClosureConfig, processes: int = 1) -> None:
     """Dense constraints between passes at the converged estimate, re-optimised (LM batch),
     ``config.final_alignment_rounds`` times; each round's constraints replace the previous
-    round's. Logged as ``final_alignment`` per round."""
+    round's; the first round also searches the keyframes its ICP does not tie
+    (:func:`searched_constraints`). Logged as ``final_alignment`` per round (``searched``: how
+    many of its constraints the search found)."""
     graph = ctx.graph
     odom = ctx.store.odometry()
     factors: list = []
@@ -492,6 +611,10 @@ def align_passes(ctx: BackendContext, config: LoopClosureConfig, processes: int 
             config.final_alignment_radius,
             config.max_point_range,
             processes=processes,
+            # the search repairs what the ICP cannot reach once; the next rounds' ICP, started at
+            # the re-optimised estimate, holds it (ACES: 20 searched in round 1, none left in round 2)
+            origins=list(ctx.store.origins) if round_ == 0 else None,
+            config=config,
         )
         new = [constraint_factor(c) for c in cons]
         graph.replace_factors([i for i in graph.factor_indices(factors) if i >= 0], new)
@@ -502,6 +625,7 @@ def align_passes(ctx: BackendContext, config: LoopClosureConfig, processes: int 
             "final_alignment",
             f"round {round_ + 1}: {len(cons)} constraints between passes",
             constraints=len(cons),
+            searched=sum(c.searched for c in cons),
             error_before=before,
             error_after=graph.error(),
             seconds=time.perf_counter() - t0,
