@@ -39,7 +39,7 @@ import numpy as np
 from frslam_graph.config import OdometryConfig
 from frslam_graph.errors import RecordingError
 from frslam_graph.loop_closure.submap_matching import (
-    ReferenceSubmap,
+    LineMap,
     cell_means,
     icp_point_to_line,
     transform_points,
@@ -251,10 +251,10 @@ class ScanOdometry:
         self._kf_stamp = float("-inf")
         self._kf_pose = np.zeros(3)  # keyframe pose in odom (fused chain)
         self._kf_icp = np.zeros(3)  # keyframe pose in KISS-ICP's frame
-        # local map of the point-to-line refinement: recent committed scans (pose in KISS-ICP's
-        # frame, base_link points), rebuilt every _LOCAL_MAP_REBUILD commits
-        self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(cfg.local_map_scans, 1))
-        self._local_ref: ReferenceSubmap | None = None
+        # local map of the point-to-line refinement: the points of the recent committed scans in
+        # KISS-ICP's frame (each transformed once, at its commit), rebuilt every _LOCAL_MAP_REBUILD commits
+        self._recent: deque[np.ndarray] = deque(maxlen=max(cfg.local_map_scans, 1))
+        self._local_ref: LineMap | None = None
         self._since_rebuild = 0
         self._aligned_points = np.zeros((0, 2))
 
@@ -438,7 +438,7 @@ class ScanOdometry:
         else:
             self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
             if self.config.local_map_scans:
-                self._recent.append((from_matrix(self._icp.last_pose), _local_points(pts)))
+                self._recent.append(transform_points(from_matrix(self._icp.last_pose), _local_points(pts)))
         self._kf_icp = from_matrix(self._icp.last_pose)
         self._kf_index = 0
         self._kf_stamp = stamp
@@ -605,14 +605,12 @@ class ScanOdometry:
         icp.last_pose = new_pose
         n = self.config.local_map_scans
         if n:
-            self._recent.append((from_matrix(new_pose), self._aligned_points))
+            self._recent.append(transform_points(from_matrix(new_pose), self._aligned_points))
             self._since_rebuild += 1
             if self._since_rebuild >= _LOCAL_MAP_REBUILD and len(self._recent) >= min(n, 3):
-                pts = np.concatenate([transform_points(p, q) for p, q in self._recent])
+                pts = np.concatenate(self._recent)
                 pts = cell_means(pts, self.config.voxel_size)
-                self._local_ref = ReferenceSubmap(
-                    pts, _LOCAL_MAP_RESOLUTION, 0.1, _REFINE_MAX_DISTANCE, likelihood=False
-                )
+                self._local_ref = LineMap(pts, _LOCAL_MAP_RESOLUTION)
                 self._since_rebuild = 0
 
     def _resync_icp(self, u: np.ndarray) -> None:
