@@ -105,22 +105,18 @@ def _noisy_room(seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_line_map_answers_as_the_reference_submap_without_a_grid():
-    """The refinement's local map (LineMap: k-d tree, normals on first use, no distance
-    transform) gives the same points, exact nearest neighbours, normals and point-to-line ICP
-    result as the ReferenceSubmap it replaced (bit for bit), and exact inlier counts."""
-    from frslam_graph.loop_closure.submap_matching import (
-        LineMap,
-        ReferenceSubmap,
-        icp_point_to_line,
-        transform_points,
-    )
+    """The refinement's local map (LineMap: k-d tree, normals on first use, occupied cells, no
+    distance transform) gives the same points, exact nearest neighbours, normals, point-to-line
+    ICP result and inlier fractions as the ReferenceSubmap it replaced, bit for bit."""
+    from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap, icp_point_to_line
 
     local, scan = _noisy_room()
-    line = LineMap(local, 0.05)
+    line = LineMap(local, 0.05, 0.3)
     grid = ReferenceSubmap(local, 0.05, 0.1, 0.3, likelihood=False)
     np.testing.assert_array_equal(line.points, grid.points)
     # exact nearest neighbours within the distance (brute force)
-    q = np.random.default_rng(3).uniform(-0.5, 6.5, (400, 2))
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-0.5, 6.5, (400, 2))
     sel, j, p, off = line.exact_nearest_offsets(q, 0.3)
     d = np.hypot(*(q[:, None, :] - line.points[None]).transpose(2, 0, 1))
     np.testing.assert_array_equal(sel, np.flatnonzero(d.min(axis=1) < 0.3))
@@ -131,7 +127,7 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
     n, w = line.line_normals(some)
     np.testing.assert_array_equal(n, grid.normals[some])
     np.testing.assert_array_equal(w, grid.quality[some])
-    fresh = LineMap(local, 0.05)
+    fresh = LineMap(local, 0.05, 0.3)
     a = icp_point_to_line(fresh, scan, np.zeros(3), 6, 0.3, 0.05, 0.05)
     b = icp_point_to_line(grid, scan, np.zeros(3), 6, 0.3, 0.05, 0.05)
     np.testing.assert_array_equal(a[0], b[0])
@@ -141,11 +137,33 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
     all_n, all_w = fresh.line_normals(np.arange(len(fresh.points)))
     np.testing.assert_array_equal(all_n, grid.normals)
     np.testing.assert_array_equal(all_w, grid.quality)
-    # inlier fraction: the share of scan points with a map point closer than the distance
-    for pose in (np.zeros(3), a[0]):
-        moved = transform_points(pose, scan)
-        near = np.hypot(*(moved[:, None, :] - line.points[None]).transpose(2, 0, 1)).min(axis=1) < 0.05
-        assert line.inlier_fraction(scan, pose, 0.05) == near.mean()
+    # inlier fractions: the cell look-up's, at poses around the match (the refinement's test)
+    for pose in [a[0], np.zeros(3)] + list(a[0] + rng.normal(0.0, [0.03, 0.03, 0.02], (40, 3))):
+        for dist in (0.05, 0.03):
+            assert line.inlier_fraction(scan, pose, dist) == grid.inlier_fraction(scan, pose, dist)
+
+
+def test_line_map_breaks_ties_as_the_distance_transform():
+    """Every neighbourhood of an empty cell (255 patterns of occupied neighbours, each cell's
+    point at a random place in it): LineMap's cell look-up answers with the neighbour
+    cv2.distanceTransformWithLabels labels the cell with (the nearest, ties in the order its two
+    passes keep), so the inlier fractions are the grid's."""
+    from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap
+
+    rng = np.random.default_rng(5)
+    res = 0.05
+    around = np.array([(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)])
+    for pattern in range(1, 256):
+        cells = around[[(pattern >> b) & 1 == 1 for b in range(8)]] + 10
+        pts = (cells + rng.uniform(0.05, 0.95, cells.shape)) * res
+        far = np.array([[0.0, 0.0], [1.2, 1.3]])  # other points, so the grid is larger than the patch
+        pts = np.vstack((far[:1], pts, far[1:]))
+        line, grid = LineMap(pts, res, 0.3), ReferenceSubmap(pts, res, 0.1, 0.3, likelihood=False)
+        query = (10 + rng.uniform(0.0, 1.0, (200, 2))) * res  # in the empty middle cell
+        for dist in (0.05, 0.04, 0.02):
+            assert line.inlier_fraction(query, np.zeros(3), dist) == grid.inlier_fraction(
+                query, np.zeros(3), dist
+            )
 
 
 def test_refinement_builds_no_grid(monkeypatch):

@@ -104,13 +104,23 @@ def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
     normals fitted to nearest neighbours run across the wall and not along the noise."""
     if len(points) == 0:
         return np.zeros((0, 2))
-    ij = np.floor(points / cell).astype(np.int64)
-    ij -= ij.min(axis=0)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    inv, n = inv.ravel(), len(count)  # bincount adds in point order, as np.add.at did (3x faster)
-    sums = np.column_stack((np.bincount(inv, points[:, 0], n), np.bincount(inv, points[:, 1], n)))
-    return sums / count[:, None]
+    # column by column: numpy's axis-0 reductions of an (M, 2) array are ~50x slower
+    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    i, j = np.floor(x / cell).astype(np.int64), np.floor(y / cell).astype(np.int64)
+    i -= i.min()
+    j -= j.min()
+    key = i * (int(j.max()) + 1) + j
+    # np.unique(key, return_inverse=True, return_counts=True), a third cheaper
+    order = np.argsort(key)
+    ks = key[order]
+    first = np.empty(len(ks), bool)
+    first[0] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    inv = np.empty(len(ks), np.intp)
+    inv[order] = np.cumsum(first) - 1
+    count = np.diff(np.append(np.flatnonzero(first), len(ks)))
+    n = len(count)  # bincount adds in point order, as np.add.at did (same sums, 3x faster)
+    return np.column_stack((np.bincount(inv, x, n) / count, np.bincount(inv, y, n) / count))
 
 
 def _normals(
@@ -123,7 +133,10 @@ def _normals(
     q = points if at is None else points[at]
     _, nn = tree.query(q, k=k)
     nb = points[nn.reshape(len(q), k)]  # (N, k, 2)
-    d = nb - nb.mean(axis=1, keepdims=True)
+    m = nb[:, 0].copy()
+    for i in range(1, k):  # the neighbours' mean, summed in order as nb.mean(axis=1) (3x faster)
+        m += nb[:, i]
+    d = nb - (m / k)[:, None, :]
     sxx = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 0])
     syy = np.einsum("ij,ij->i", d[:, :, 1], d[:, :, 1])
     sxy = np.einsum("ij,ij->i", d[:, :, 0], d[:, :, 1])
@@ -374,22 +387,26 @@ def _exact_nearest_offsets(
 
 class LineMap:
     """Reference points (M, 2) with a k-d tree and line normals, no grid: for point-to-line ICP
-    (:func:`icp_point_to_line`) and exact inlier counts only. The odometry's local map, rebuilt
-    every scan (:class:`ReferenceSubmap` with ``likelihood=False`` spent most of its build on a
-    distance transform of a 30 m grid, and all its normals, for the few hundred points a scan
-    meets).
+    (:func:`icp_point_to_line`) and inlier counts only. The odometry's local map, rebuilt every
+    scan, where :class:`ReferenceSubmap` (``likelihood=False``) spent most of its build on a
+    distance transform of a ~30 m grid and on all its normals, for the few hundred points a scan
+    meets.
 
-    ``points`` are thinned as :class:`ReferenceSubmap` thins them (the first point per
-    ``resolution`` voxel); a point's normal is computed the first time ICP matches it, the same
-    as :class:`ReferenceSubmap`'s for that point; correspondences are exact nearest neighbours."""
+    The same answers as ``ReferenceSubmap(points, resolution, sigma, margin, likelihood=False)``:
+    the same points (the first per ``resolution`` voxel); correspondences by exact nearest
+    neighbours; a point's normal computed the first time ICP matches it (the same values);
+    :meth:`inlier_fraction` by the same cell look-up, on the occupied cells alone."""
 
-    def __init__(self, points: np.ndarray, resolution: float):
+    def __init__(self, points: np.ndarray, resolution: float, margin: float):
         self.points = pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
+        self.resolution = float(resolution)
+        self.margin = float(margin)
         self.tree: cKDTree | None = cKDTree(pts) if len(pts) else None
         self._normals = np.zeros((len(pts), 2))
         self._quality = np.zeros(len(pts))
         self._known = np.zeros(len(pts), bool)  # normal computed
         self._known[:] = len(pts) < 3  # too few points for a line: zero normals and quality
+        self._cells: tuple[np.ndarray, int, int, np.ndarray, np.ndarray] | None = None
 
     def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
@@ -406,12 +423,51 @@ class LineMap:
             self._known[new] = True
         return self._normals[j], self._quality[j]
 
+    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the sorted
+        flat indices of the occupied cells and the point each keeps (the last one in it)."""
+        if self._cells is None:
+            pts, res = self.points, self.resolution
+            lo, hi = point_bounds(pts)
+            lo, hi = lo - self.margin, hi + self.margin
+            w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
+            ij = np.floor((pts - lo) / res).astype(int)
+            flat = ij[:, 1] * w + ij[:, 0]
+            order = np.argsort(flat, kind="stable")
+            fs = flat[order]
+            last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
+            self._cells = (lo, w, h, fs[last], order[last])
+        return self._cells
+
     def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
-        """Share of ``query`` points (at ``pose``) within ``distance`` (m) of a reference point."""
-        if self.tree is None or len(query) == 0:
+        """Share of ``query`` points (at ``pose``) within ``distance`` of the point their cell
+        look-up answers with, as :meth:`ReferenceSubmap.inlier_fraction` (``distance`` at most
+        ``resolution``): its distance transform labels a cell with its nearest occupied cell,
+        itself, else an occupied side neighbour, else a corner one, ties broken as
+        ``_CELL_ORDER`` lists them; a farther cell's point is farther than ``resolution``."""
+        if len(self.points) == 0 or len(query) == 0:
             return 0.0
-        d, _ = self.tree.query(transform_points(pose, query), distance_upper_bound=distance)
-        return float(np.count_nonzero(np.isfinite(d))) / len(query)
+        lo, w, h, keys, owner = self._occupied()
+        p = transform_points(pose, query)
+        ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
+        iy = np.floor((p[:, 1] - lo[1]) / self.resolution).astype(np.int64)
+        cx = ix[None, :] + _CELL_ORDER[:, :1]  # (9, N) the cell and its neighbours, in look-up order
+        cy = iy[None, :] + _CELL_ORDER[:, 1:]
+        flat = cy * w + cx
+        pos = np.minimum(np.searchsorted(keys, flat), len(keys) - 1)
+        found = (keys[pos] == flat) & (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
+        found &= ((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[None, :]  # the query's cell in the grid
+        first = found.argmax(axis=0)
+        off = p - self.points[owner[pos[first, np.arange(len(p))]]]
+        hit = found.any(axis=0) & (np.hypot(off[:, 0], off[:, 1]) <= distance)
+        return int(np.count_nonzero(hit)) / len(query)
+
+
+# LineMap.inlier_fraction's cells (dx, dy; dy -1 = the previous grid row): the query's own, the
+# sides, the corners, in the order cv2.distanceTransformWithLabels (5×5 mask, one label per
+# pixel) breaks ties among equally near occupied cells (found by trying all 255 neighbourhoods:
+# tests/test_odometry_refine.py)
+_CELL_ORDER = np.array([(0, 0), (0, -1), (-1, 0), (0, 1), (1, 0), (-1, -1), (1, -1), (1, 1), (-1, 1)])
 
 
 # ----------------------------------------------------------------------------- matcher
