@@ -406,7 +406,7 @@ class LineMap:
         self._quality = np.zeros(len(pts))
         self._known = np.zeros(len(pts), bool)  # normal computed
         self._known[:] = len(pts) < 3  # too few points for a line: zero normals and quality
-        self._cells: tuple[np.ndarray, int, int, np.ndarray, np.ndarray] | None = None
+        self._grid_cells: tuple[np.ndarray, int, int, np.ndarray, np.ndarray] | None = None
 
     def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
@@ -426,7 +426,7 @@ class LineMap:
     def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
         """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the sorted
         flat indices of the occupied cells and the point each keeps (the last one in it)."""
-        if self._cells is None:
+        if self._grid_cells is None:
             pts, res = self.points, self.resolution
             lo, hi = point_bounds(pts)
             lo, hi = lo - self.margin, hi + self.margin
@@ -436,8 +436,8 @@ class LineMap:
             order = np.argsort(flat, kind="stable")
             fs = flat[order]
             last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
-            self._cells = (lo, w, h, fs[last], order[last])
-        return self._cells
+            self._grid_cells = (lo, w, h, fs[last], order[last])
+        return self._grid_cells
 
     def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
         """Share of ``query`` points (at ``pose``) within ``distance`` of the point their cell
