@@ -8,6 +8,7 @@ from frslam_graph.datasets import open_recording
 from frslam_graph.config import OdometryConfig
 from frslam_graph.evaluation.relations import relation_error
 from frslam_graph.evaluation.trajectory_io import load_relations
+from frslam_graph.odometry.motion_model import compose
 from frslam_graph.odometry.scan_odometry import ScanOdometry
 from frslam_graph.slam import body_points
 
@@ -88,3 +89,107 @@ def test_cell_means_keep_the_normals_of_a_noisy_wall_across_it():
     np.testing.assert_allclose(
         cell_means(np.array([[0.01, 0.0], [0.05, 0.04], [0.15, 0.0]]), 0.1), [[0.03, 0.02], [0.15, 0.0]]
     )
+
+
+_SCAN_OFFSET = np.array([0.03, -0.02, np.deg2rad(1.0)])  # x, y (m), theta (rad)
+
+
+def _noisy_room(seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(map points, scan points): twenty overlaid noisy scans of the room's walls thinned to
+    cell means (the refinement's local map) and one more scan, 3 cm off and 1 deg turned."""
+    from frslam_graph.loop_closure.submap_matching import cell_means, transform_points
+
+    scans = _room_scans(21, 0.03, seed)
+    local = cell_means(np.concatenate([p for _, p, _ in scans[:20]]), 0.1)
+    return local, transform_points(_SCAN_OFFSET, scans[20][1])
+
+
+def test_line_map_answers_as_the_reference_submap_without_a_grid():
+    """The refinement's local map (LineMap: k-d tree, normals on first use, occupied cells, no
+    distance transform) gives the same points, exact nearest neighbours, normals, point-to-line
+    ICP result and inlier fractions as the ReferenceSubmap it replaced, bit for bit."""
+    from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap, icp_point_to_line
+
+    local, scan = _noisy_room()
+    line = LineMap(local, 0.05, 0.3)
+    grid = ReferenceSubmap(local, 0.05, 0.1, 0.3, likelihood=False)
+    np.testing.assert_array_equal(line.points, grid.points)
+    # exact nearest neighbours within the distance (brute force)
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-0.5, 6.5, (400, 2))
+    sel, j, p, off = line.exact_nearest_offsets(q, 0.3)
+    d = np.hypot(*(q[:, None, :] - line.points[None]).transpose(2, 0, 1))
+    np.testing.assert_array_equal(sel, np.flatnonzero(d.min(axis=1) < 0.3))
+    np.testing.assert_array_equal(j, d[sel].argmin(axis=1))
+    np.testing.assert_array_equal(off, q[sel] - line.points[j])
+    # normals computed for the points asked, in any order and batch, equal the whole map's
+    some = np.array([5, 3, 5, len(line.points) - 1])
+    n, w = line.line_normals(some)
+    np.testing.assert_array_equal(n, grid.normals[some])
+    np.testing.assert_array_equal(w, grid.quality[some])
+    fresh = LineMap(local, 0.05, 0.3)
+    a = icp_point_to_line(fresh, scan, np.zeros(3), 6, 0.3, 0.05, 0.05)
+    b = icp_point_to_line(grid, scan, np.zeros(3), 6, 0.3, 0.05, 0.05)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    undone = compose(a[0], _SCAN_OFFSET)  # ICP finds the offset's inverse
+    assert np.hypot(*undone[:2]) < 0.005 and abs(undone[2]) < np.deg2rad(0.2)
+    all_n, all_w = fresh.line_normals(np.arange(len(fresh.points)))
+    np.testing.assert_array_equal(all_n, grid.normals)
+    np.testing.assert_array_equal(all_w, grid.quality)
+    # inlier fractions: the cell look-up's, at poses around the match (the refinement's test)
+    for pose in [a[0], np.zeros(3)] + list(a[0] + rng.normal(0.0, [0.03, 0.03, 0.02], (40, 3))):
+        for dist in (0.05, 0.03):
+            assert line.inlier_fraction(scan, pose, dist) == grid.inlier_fraction(scan, pose, dist)
+
+
+def test_line_map_breaks_ties_as_the_distance_transform():
+    """Every neighbourhood of an empty cell (255 patterns of occupied neighbours, each cell's
+    point at a random place in it): LineMap's cell look-up answers with the neighbour
+    cv2.distanceTransformWithLabels labels the cell with (the nearest, ties in the order its two
+    passes keep), so the inlier fractions are the grid's."""
+    from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap
+
+    rng = np.random.default_rng(5)
+    res = 0.05
+    around = np.array([(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)])
+    for pattern in range(1, 256):
+        cells = around[[(pattern >> b) & 1 == 1 for b in range(8)]] + 10
+        pts = (cells + rng.uniform(0.05, 0.95, cells.shape)) * res
+        far = np.array([[0.0, 0.0], [1.2, 1.3]])  # other points, so the grid is larger than the patch
+        pts = np.vstack((far[:1], pts, far[1:]))
+        line, grid = LineMap(pts, res, 0.3), ReferenceSubmap(pts, res, 0.1, 0.3, likelihood=False)
+        query = (10 + rng.uniform(0.0, 1.0, (200, 2))) * res  # in the empty middle cell
+        for dist in (0.05, 0.04, 0.02):
+            assert line.inlier_fraction(query, np.zeros(3), dist) == grid.inlier_fraction(
+                query, np.zeros(3), dist
+            )
+
+
+def test_refinement_builds_no_grid(monkeypatch):
+    """The refinement's local map, rebuilt every scan, is a LineMap: no ReferenceSubmap (a
+    distance transform over a 30 m grid per scan, two thirds of the refinement's time on ACES)."""
+    from frslam_graph.loop_closure import submap_matching
+
+    def no_grid(*a, **k):
+        raise AssertionError("the odometry built a ReferenceSubmap")
+
+    monkeypatch.setattr(submap_matching.ReferenceSubmap, "__init__", no_grid)
+    traj = _frontend(_room_scans(30, 0.03), 20)
+    assert np.hypot(*traj[-1, 1:3]) < 0.02
+
+
+def test_cell_means_sum_in_point_order():
+    """cell_means adds each cell's points in their order (np.bincount, as np.add.at did): the
+    local map is the same bit for bit."""
+    from frslam_graph.loop_closure.submap_matching import cell_means
+
+    pts = np.random.default_rng(4).normal(0.0, 2.0, (5000, 2))
+    ij = np.floor(pts / 0.1).astype(np.int64)
+    ij -= ij.min(axis=0)
+    _, inv, count = np.unique(
+        ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1], return_inverse=True, return_counts=True
+    )
+    sums = np.zeros((len(count), 2))
+    np.add.at(sums, inv.ravel(), pts)
+    np.testing.assert_array_equal(cell_means(pts, 0.1), sums / count[:, None])
