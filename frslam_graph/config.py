@@ -167,9 +167,9 @@ class OdometryConfig(_Section):
     )
     # wheel odometry noise: sigma_d = dist_frac * d, sigma_theta = rot_per_m * d + rot_frac * |dtheta|
     wheel_dist_frac: float = Field(
-        0.02,
+        0.08,
         gt=0.0,
-        description="translation sigma per metre travelled (fraction); larger = wheels trusted less",
+        description="translation sigma per metre travelled (fraction), of a wheel increment as paired with its scan; larger = wheels trusted less, the scan carries more of each step (tools/README.md, tuning history)",
     )
     wheel_rot_per_m_deg: float = Field(
         1.0, ge=0.0, description="deg per m travelled of heading sigma; larger = wheel heading trusted less"
@@ -180,7 +180,9 @@ class OdometryConfig(_Section):
         description="heading sigma per radian turned (fraction); larger = wheel turns trusted less",
     )
     wheel_sigma_floor_xy: float = Field(
-        0.002, gt=0.0, description="m; smallest wheel translation sigma per step"
+        0.008,
+        gt=0.0,
+        description="m; smallest wheel translation sigma per step (pairing a wheel reading with a scan: stamps, delays); larger = ICP carries each step where it sees structure",
     )
     wheel_correlation_length: float = Field(
         5.0,
