@@ -751,7 +751,8 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
     that drifted before any prior) is moved rigidly, with the scale refinement, so that the first
     keyframe's scan fits the plan at the graph's anchor: the plan ends within 2 cm of the true
     placement and the trajectory error falls to that of the right registration; without it the
-    offset stays and bends the trajectory near the start."""
+    offset stays and bends the trajectory near the start (less since the scans weigh more than
+    the wheels in the odometry)."""
     from frslam_graph.plan_checks import matrix_disagreement
 
     plan, run, m = sim
@@ -775,7 +776,9 @@ def test_plan_is_moved_so_that_the_first_scan_fits_at_the_anchor(sim):
             assert abs(np.rad2deg(moved[0].data["dtheta"]) + 2.0) < 0.3
         else:
             assert not moved and np.allclose(upd.registration.matrix, shifted)
-    assert errors[True] < 0.02 < errors[False]
+    # ATE 3.7 mm with, 5.7 mm without (over 2 cm before the wheel model of session 6: the scans
+    # now carry the odometry chain, which the offset priors bend less)
+    assert errors[True] < 0.02 and errors[True] < 0.75 * errors[False]
 
 
 def test_plan_within_matching_noise_of_the_start_is_not_moved(sim):
