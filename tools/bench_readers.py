@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import bz2
+import os
 import shutil
 import statistics
 import struct
@@ -88,7 +89,11 @@ def median_time(fn, runs: int) -> tuple[float, float, object]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data")),
+    )
     args = ap.parse_args()
     rows = []
     for name in ("intel", "fr079", "aces"):

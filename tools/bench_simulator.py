@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import time
 from pathlib import Path
@@ -32,7 +33,11 @@ from frslam_graph.datasets.simulator import (
 
 from frslam_graph.floorplan import FloorPlan
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "floorplans" / "r2v"
+SHARED = (
+    Path(os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    / "floorplans"
+    / "r2v"
+)
 
 
 def _houses(n: int, seed: int) -> list[tuple[str, House, np.ndarray]]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import json
+import os
 import resource
 import time
 from dataclasses import asdict
@@ -18,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(
+    os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
+)
 LOGS = {
     "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
     "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),

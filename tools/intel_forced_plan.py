@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -39,7 +40,11 @@ def main() -> None:
     from frslam_graph.slam import FRSlam
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path(os.environ.get("FRSLAM_SHARED_DATA", ROOT.parent / "shared" / "data")),
+    )
     ap.add_argument("--matrix", type=Path, default=None, help="JSON with a 'matrix' (plan -> map)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()

@@ -17,6 +17,7 @@ interior walls the map has seen through at margin 0.2 / 0.4 m, ``max_walls_in_fr
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -65,7 +66,11 @@ def main() -> None:
     from frslam_graph.registration.mfr.plan_side import prepare_plan
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path(os.environ.get("FRSLAM_SHARED_DATA", ROOT.parent / "shared" / "data")),
+    )
     ap.add_argument("--dir", type=Path, required=True, help="folder of the snapshot maps")
     ap.add_argument("--scans", type=int, nargs="*", default=[])
     ap.add_argument("--final", type=Path, default=None, help="a finished run's map.yaml")
