@@ -177,15 +177,23 @@ def _in_range(points: list[np.ndarray], max_range: float) -> list[np.ndarray]:
     return out
 
 
-def _submap(poses: np.ndarray, local: list[np.ndarray], i: int, span: int) -> np.ndarray:
-    """Points of keyframes i-span..i+span (``local``: :func:`_in_range`) in keyframe i's frame
-    (voxel-thinned); one transform for all (per point the products of ``transform_points``)."""
+def _stacked(
+    poses: np.ndarray, local: list[np.ndarray], i: int, span: int
+) -> tuple[range, list[np.ndarray], list[int], np.ndarray]:
+    """Keyframes i-span..i+span, their poses relative to keyframe i, their point counts, and their
+    points (``local``: :func:`_in_range`) in keyframe i's frame, in keyframe order; one transform
+    for all (per point the products of ``transform_points``)."""
     ks = range(max(0, i - span), min(len(local) - 1, i + span) + 1)
     rels = [between(poses[i], poses[j]) for j in ks]
     sizes = [len(local[j]) for j in ks]
     rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
-    pts = rigid_points(*rep.T, np.concatenate([local[j] for j in ks]))
-    return voxel_downsample(pts, RESOLUTION)
+    return ks, rels, sizes, rigid_points(*rep.T, np.concatenate([local[j] for j in ks]))
+
+
+def _submap(poses: np.ndarray, local: list[np.ndarray], i: int, span: int) -> np.ndarray:
+    """Points of keyframes i-span..i+span (``local``: :func:`_in_range`) in keyframe i's frame
+    (voxel-thinned)."""
+    return voxel_downsample(_stacked(poses, local, i, span)[3], RESOLUTION)
 
 
 class _ReferenceStack:
@@ -482,16 +490,13 @@ def _reference_scans(
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """Points of keyframes c-span..c+span (``local``: :func:`_in_range`) in keyframe c's frame, and
     per keyframe (sensor origin, end points in beam order) in that frame (the free-space test)."""
-    scans = []
-    for j in range(max(0, c - span), min(len(local) - 1, c + span) + 1):
-        rel = between(poses[c], poses[j])
-        scans.append(
-            (
-                transform_points(rel, np.asarray(origins[j], dtype=np.float64)[None])[0],
-                transform_points(rel, local[j]),
-            )
-        )
-    return np.concatenate([e for _, e in scans]), scans
+    ks, rels, sizes, pts = _stacked(poses, local, c, span)
+    ends = np.split(pts, np.cumsum(sizes)[:-1])
+    scans = [
+        (transform_points(r, np.asarray(origins[j], dtype=np.float64)[None])[0], e)
+        for j, r, e in zip(ks, rels, ends, strict=True)
+    ]
+    return pts, scans
 
 
 def searched_constraints(
