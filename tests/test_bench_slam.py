@@ -126,3 +126,22 @@ def test_markdown_tables(bench):
         "| intel | 0.0229 ± 0.0239 m / 0.453 ± 1.335° | 0.031 ± 0.026 m / 1.3 ± 4.7° | 0.0341 ± 0.0312 m / 0.591 ± 1.234° |"
     ]
     assert bench.markdown(["a"], [["x|y"]]).splitlines()[2] == "| x\\|y |"
+
+
+def test_a_config_file_reaches_every_frslam_run_and_a_bad_one_is_refused(bench, test_data, tmp_path, capsys):
+    logs = {"short": excerpts(test_data, tmp_path)["short"]}
+    cfg = tmp_path / "dense.yaml"
+    cfg.write_text("odometry: {keyframe_max_interval_s: 1.0}\n")  # a keyframe a second, standing still too
+    tasks = bench.make_tasks(logs, tmp_path / "out", baseline=True, config=cfg)
+    assert [t["config"] for t in tasks] == [str(cfg), None]  # the KISS-ICP baseline has none
+    dense = bench.child_frslam(tasks[0])
+    default = bench.child_frslam({**tasks[0], "config": None, "out": str(tmp_path / "default")})
+    assert dense["scans"] == default["scans"] == 30
+    assert dense["keyframes"] > default["keyframes"]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("odometry: {keyframe_distanc: 0.02}\n")
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--config", str(bad), "--logs", "aces"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--config" in err[0] and "keyframe_distanc" in err[0]

@@ -44,8 +44,11 @@ subprocess. The pipeline is deterministic: accuracy figures equal the sequential
 not (two runs share the machine's cores, each with its odometry worker: × real time is lower than
 a run alone).
 
+``--config FILE`` runs frslam with that configuration instead of the default (the baselines keep
+theirs): a candidate default is judged on every log, the same way as the default.
+
     .venv/bin/python tools/bench_slam.py --workers 2 [--logs aces intel fr079 intel.bag]
-        [--long] [--out DIR] [--csv FILE] [--no-baseline]
+        [--long] [--out DIR] [--csv FILE] [--no-baseline] [--config FILE]
 """
 
 from __future__ import annotations
@@ -122,7 +125,7 @@ def child_frslam(spec: dict) -> dict[str, Any]:
     relations = load_relations(spec["relations"]) if spec.get("relations") else None
     gt = rec.ground_truth() if getattr(rec, "ground_truth_path", None) is not None else None
     t0 = time.perf_counter()
-    run = run_recording(rec)
+    run = run_recording(rec, config=spec.get("config"))
     wall = time.perf_counter() - t0
     out = Path(spec["out"])
     write_outputs(run, out, gt, relations)
@@ -235,8 +238,11 @@ def run_task(task: dict) -> dict[str, Any]:
     return {**task, "result": run_child(task)}
 
 
-def make_tasks(logs: dict[str, tuple[Path, Path | None]], out: Path, baseline: bool) -> list[dict]:
-    """frslam tasks first (the longest), then the baselines; ``logs``: name -> (recording, relations)."""
+def make_tasks(
+    logs: dict[str, tuple[Path, Path | None]], out: Path, baseline: bool, config: Path | None = None
+) -> list[dict]:
+    """frslam tasks first (the longest), then the baselines; ``logs``: name -> (recording, relations);
+    ``config``: an FRSlamConfig file for the frslam runs (None: the default)."""
     tasks = []
     for kind in ("frslam", "kiss") if baseline else ("frslam",):
         for name, (recording, relations) in logs.items():
@@ -247,6 +253,7 @@ def make_tasks(logs: dict[str, tuple[Path, Path | None]], out: Path, baseline: b
                     "recording": str(recording),
                     "relations": str(relations) if relations is not None else None,
                     "out": str(out / name.replace("/", "_")),
+                    "config": str(config) if config is not None and kind == "frslam" else None,
                 }
             )
     return tasks
@@ -421,6 +428,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-baseline", action="store_true", help="skip the KISS-ICP / wheel-odometry runs")
     ap.add_argument("--long", action="store_true", help="add the simulated long recording (an hour or more)")
     ap.add_argument("--long-hours", type=float, default=2.0)
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="FRSlamConfig YAML/JSON for the frslam runs (default: the default configuration); "
+        "to compare a candidate default on every log",
+    )
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:  # one task, in its own process: print its JSON result
@@ -443,7 +457,16 @@ def main(argv: list[str] | None = None) -> None:
             print(f"skipping {name}: {rec} not found", file=sys.stderr)
             continue
         logs[name] = (rec, rel if rel.exists() else None)
-    tasks = make_tasks(logs, out, baseline=not args.no_baseline)
+    if args.config is not None:
+        from frslam_graph.config import FRSlamConfig
+        from frslam_graph.errors import FrslamError
+
+        try:
+            FRSlamConfig.load(args.config)
+        except FrslamError as exc:
+            print(f"error: --config: {exc}", file=sys.stderr)
+            sys.exit(2)
+    tasks = make_tasks(logs, out, baseline=not args.no_baseline, config=args.config)
     if args.long:
         name = f"simulated {args.long_hours:g} h"
         rec = out / "simulated"
@@ -456,6 +479,7 @@ def main(argv: list[str] | None = None) -> None:
                 "recording": str(rec),
                 "relations": None,
                 "out": str(out / "simulated_run"),
+                "config": str(args.config) if args.config is not None else None,
             },
         )
     t0 = time.perf_counter()
