@@ -445,6 +445,15 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(CHILDREN[spec["kind"]](spec), default=float))
         return
 
+    if args.config is not None:
+        from frslam_graph.config import FRSlamConfig
+        from frslam_graph.errors import FrslamError
+
+        try:
+            FRSlamConfig.load(args.config)
+        except FrslamError as exc:
+            print(f"error: --config: {exc}", file=sys.stderr)
+            sys.exit(2)
     tmp = None
     out = args.out
     if out is None:
@@ -457,15 +466,6 @@ def main(argv: list[str] | None = None) -> None:
             print(f"skipping {name}: {rec} not found", file=sys.stderr)
             continue
         logs[name] = (rec, rel if rel.exists() else None)
-    if args.config is not None:
-        from frslam_graph.config import FRSlamConfig
-        from frslam_graph.errors import FrslamError
-
-        try:
-            FRSlamConfig.load(args.config)
-        except FrslamError as exc:
-            print(f"error: --config: {exc}", file=sys.stderr)
-            sys.exit(2)
     tasks = make_tasks(logs, out, baseline=not args.no_baseline, config=args.config)
     if args.long:
         name = f"simulated {args.long_hours:g} h"
