@@ -550,7 +550,7 @@ class LoopClosureConfig(_Section):
         0.45,
         ge=0.0,
         le=1.0,
-        description="inlier fraction with which a match agreeing with a pending closure confirms it (alone it is rejected); = min_inlier_fraction: off",
+        description="inlier fraction with which a match agreeing with a pending closure confirms it (alone it is rejected) when that closure moves the robot at most search_window_xy; = min_inlier_fraction: off",
     )
     verify_back_travel: float = Field(
         2.0,

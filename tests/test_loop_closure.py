@@ -598,9 +598,10 @@ def _line_slam(n: int = 40, step: float = 0.5) -> FRSlam:
     return slam
 
 
-def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
-    """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with a large correction and
-    ``inliers``; with ``pending`` a closure of keyframe 37 on keyframe 0 agrees with it."""
+def _weak_match_job(monkeypatch, inliers: float, pending: bool, shift: float = 18.5, **cfg):
+    """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with ``inliers``, putting it
+    ``shift`` metres behind its estimate (a large correction); with ``pending`` a closure of
+    keyframe 37 on keyframe 0 agrees with it."""
     import frslam_graph.loop_closure.closer as lcm
     from frslam_graph.loop_closure.closer import _Job
     from frslam_graph.loop_closure.submap_matching import ScanMatch
@@ -612,12 +613,14 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
     closer = LoopCloser(FRSlamConfig.from_dict({"loop_closure": cfg}).loop_closure)
     for k in range(40):
         closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
-    m = ScanMatch(np.zeros(3), inliers, 0.3, np.eye(3) * 1e-5, 0.9, 100)
+    rel = np.array([18.5 - shift, 0.0, 0.0])  # keyframe 39 relative to keyframe 2 (or 37 to 0)
+    m = ScanMatch(rel, inliers, 0.3, np.eye(3) * 1e-5, 0.9, 100)
     monkeypatch.setattr(lcm, "match_scan_steps", lambda *a, **k: _ret(m))
     closer._query = (39, np.zeros((50, 2)))
     closer._reference = lambda slam, c, i: _ret(None)
     if pending:
-        closer._pending.append(LoopClosure(0, 37, np.zeros(3), np.eye(3) * 4e-4, m, np.zeros(3)))
+        corr = np.array([-shift, 0.0, 0.0])
+        closer._pending.append(LoopClosure(0, 37, rel.copy(), np.eye(3) * 4e-4, m, corr))
     out = run_steps(closer._job(slam, _Job(2, 39, 2.0, 0.2)))
     return closer, out
 
@@ -625,20 +628,38 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, **cfg):
 def test_weak_match_confirms_a_pending_closure_but_is_rejected_alone(monkeypatch):
     cfg = FRSlamConfig().loop_closure
     weak = 0.5 * (cfg.confirm_min_inlier_fraction + cfg.min_inlier_fraction)
+    within = 0.5 * cfg.search_window_xy  # the correction: within the search window
     # alone: rejected (and not even queued as pending)
-    closer, out = _weak_match_job(monkeypatch, weak, pending=False)
+    closer, out = _weak_match_job(monkeypatch, weak, pending=False, shift=within)
     assert out == [] and not closer._pending and closer.stats.reasons == {"low_inliers": 1}
     # agreeing with a pending closure: the pair enters the graph
-    closer, out = _weak_match_job(monkeypatch, weak, pending=True)
+    closer, out = _weak_match_job(monkeypatch, weak, pending=True, shift=within)
     assert [(c.reference, c.query) for c in out] == [(0, 37), (2, 39)]
     assert len(closer.closures) == 2 and not closer._pending
     # switched off (= min_inlier_fraction): rejected even with the pending closure
     off = {"confirm_min_inlier_fraction": cfg.min_inlier_fraction}
-    closer, out = _weak_match_job(monkeypatch, weak, pending=True, **off)
+    closer, out = _weak_match_job(monkeypatch, weak, pending=True, shift=within, **off)
     assert out == [] and closer.stats.reasons == {"low_inliers": 1}
     # below confirm_min_inlier_fraction: rejected
-    closer, out = _weak_match_job(monkeypatch, cfg.confirm_min_inlier_fraction - 0.05, pending=True)
+    low = cfg.confirm_min_inlier_fraction - 0.05
+    closer, out = _weak_match_job(monkeypatch, low, pending=True, shift=within)
     assert out == [] and closer.stats.reasons == {"low_inliers": 1}
+
+
+def test_weak_match_does_not_confirm_a_correction_beyond_the_search_window(monkeypatch):
+    """Two neighbouring keyframes in a corridor or a row of alike rooms match the same wrong place
+    alike (ACES at 850 s, FR079 at 2,040 s: 12 m and 3 m wrong pairs, each confirmed by a match of
+    inlier fraction 0.50 / 0.59). Beyond the search window the prediction was not searched:
+    the weak match's agreement is no evidence, and only a match acceptable alone confirms."""
+    cfg = FRSlamConfig().loop_closure
+    weak = 0.5 * (cfg.confirm_min_inlier_fraction + cfg.min_inlier_fraction)
+    for shift in (1.5 * cfg.search_window_xy, 18.5):
+        closer, out = _weak_match_job(monkeypatch, weak, pending=True, shift=shift)
+        assert out == [] and closer.stats.reasons == {"low_inliers": 1}
+        assert not closer.closures and len(closer._pending) == 1
+        # a match acceptable alone confirms it
+        closer, out = _weak_match_job(monkeypatch, 0.9, pending=True, shift=shift)
+        assert [(c.reference, c.query) for c in out] == [(0, 37), (2, 39)]
 
 
 def test_pending_closure_is_checked_from_the_keyframe_two_metres_back(monkeypatch):
