@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from frslam_graph.config import LoopClosureConfig
 from frslam_graph.loop_closure import final_alignment as fa
 from frslam_graph.loop_closure.final_alignment import candidate_pairs, dense_constraints, field_of_view
 from frslam_graph.loop_closure.submap_matching import ReferenceSubmap, icp_point_to_line
@@ -245,6 +246,24 @@ def test_search_ties_a_stretch_the_icp_cannot_reach():
     err = np.array([c.relative - between(truth[c.reference], truth[c.query]) for c in found])
     assert np.hypot(err[:, 0], err[:, 1]).max() < 0.03
     assert np.degrees(np.abs(err[:, 2])).max() < 0.5
+
+
+def test_search_in_two_processes_gives_the_same_constraints():
+    """searched_constraints with processes=2 matches the pairs of the second half of the
+    references in a forked process: the same constraints, bit for bit, in the same order."""
+    truth, estimate, points, origins, seg = _slipped_segment(12.0)
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    pairs = pairs[seg[pairs[:, 0]] | seg[pairs[:, 1]]]
+    cfg = LoopClosureConfig()
+    one = fa.searched_constraints(estimate, points, origins, pairs, cfg)
+    two = fa.searched_constraints(estimate, points, origins, pairs, cfg, processes=2)
+    assert len(one) >= 3
+    assert [(c.reference, c.query, c.searched) for c in two] == [(c.reference, c.query, True) for c in one]
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.relative, b.relative)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        assert a.inlier_fraction == b.inlier_fraction
 
 
 def test_a_searched_constraint_counts_only_when_another_agrees():

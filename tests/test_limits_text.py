@@ -75,6 +75,27 @@ def test_a_real_compressed_log_is_within_the_limits():
 
 
 # ---------------------------------------------------------------- small text inputs (JSON / YAML)
+@pytest.mark.parametrize("name", ["log.clf.gz", "log.clf.bz2"])
+def test_compressed_logs_are_read_ahead_in_a_thread_with_the_same_bytes(tmp_path, name, monkeypatch):
+    """open_binary decompresses in a thread (ReadAhead), in pieces: the same lines as the plain
+    stream, and closing the file part-way stops the thread."""
+    import threading
+
+    monkeypatch.setattr(limits, "READ_AHEAD_BYTES", 1000)  # many pieces, lines across them
+    text = b"".join(b"FLASER %d %s\n" % (i, b"1.5 " * (i % 97)) for i in range(3000))
+    opener = gzip.open if name.endswith(".gz") else bz2.open
+    with opener(tmp_path / name, "wb") as f:
+        f.write(text)
+    with limits.open_binary(tmp_path / name) as f:
+        lines = list(limits.bounded_lines(f, tmp_path / name, RecordingError))
+    assert b"".join(lines) == text and len(lines) == 3000
+    f = limits.open_binary(tmp_path / name)
+    assert isinstance(f.raw, limits.ReadAhead)
+    assert f.readline() == b"FLASER 0 \n"
+    f.close()
+    assert not any(t.name == "frslam-read-ahead" for t in threading.enumerate())
+
+
 def test_json_with_a_key_given_twice_is_refused(tmp_path):
     """The last value silently won ({"rooms": [], "rooms": [...]} read the second)."""
     from frslam_graph.errors import FloorPlanError

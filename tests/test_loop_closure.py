@@ -187,6 +187,51 @@ def test_loop_closure_config_is_validated():
         FRSlamConfig.from_dict({"loop_closure": {"no_such_field": 1}})
 
 
+def test_correlative_scores_are_the_per_offset_means():
+    """_grid_search gathers each point's window of offsets as one block; the scores equal the
+    per-pose, per-offset look-ups written out (float32 means of the same values in the same
+    order), and _score_poses those of single poses, off the grid included (the zero corner)."""
+    from frslam_graph.loop_closure import submap_matching as sm
+    from frslam_graph.steps import run_steps
+
+    world = room_world()
+    pts = to_points(*cast(world, np.array([2.0, 1.5, 0.3]), n_beams=360, max_range=15.0)[:3])
+    ref = ReferenceSubmap(pts, 0.05, 0.1, 5.9)
+    query = pts[::3] + 0.01
+    rng = np.random.default_rng(2)
+    for centre in (np.zeros(3), np.array([0.3, -0.2, 0.1]), np.array([9.0, 0.0, 0.0])):
+        poses, scores = run_steps(sm._grid_search(ref, query, centre, 2.0, 0.3, 0.6, 0.05, 5.0, 300_000))
+        cells = sm._dilation_cells(0.05, 0.6, 0.05, 5.0)
+        field = ref.dilated(cells).reshape(ref.shape)
+        h, w = ref.shape
+        lim = int(np.ceil(2.0 / 0.6)) * 12
+        for k in rng.choice(len(poses), 40, replace=False):
+            c, s_ = np.cos(poses[k, 2]), np.sin(poses[k, 2])
+            # the point's cell at the window's centre, then the offset (as the search steps)
+            px = c * query[:, 0] - s_ * query[:, 1] + centre[0]
+            py = s_ * query[:, 0] + c * query[:, 1] + centre[1]
+            bx = np.floor((px - ref.origin[0]) / 0.05).astype(np.int64)
+            by = np.floor((py - ref.origin[1]) / 0.05).astype(np.int64)
+            out = (bx < lim) | (bx >= w - lim) | (by < lim) | (by >= h - lim)
+            bx[out], by[out] = lim, lim
+            ox = int(round((poses[k, 0] - centre[0]) / 0.05))
+            oy = int(round((poses[k, 1] - centre[1]) / 0.05))
+            assert scores[k] == field[by + oy, bx + ox].mean(dtype=np.float32)
+        some = poses[rng.choice(len(poses), 30)] + rng.normal(0.0, 0.2, (30, 3))
+        some[:3, :2] += 50.0  # off the grid: the corner cell, zero
+        got = sm._score_poses(ref, query, some, 3)
+        f3 = ref.dilated(3).reshape(ref.shape)
+        for k, p in enumerate(some):
+            c, s_ = np.cos(p[2]), np.sin(p[2])
+            px = c * query[:, 0] - s_ * query[:, 1] + p[0]
+            py = s_ * query[:, 0] + c * query[:, 1] + p[1]
+            ix = np.floor((px - ref.origin[0]) / 0.05).astype(np.int64)
+            iy = np.floor((py - ref.origin[1]) / 0.05).astype(np.int64)
+            bad = (ix < 0) | (ix >= w) | (iy < 0) | (iy >= h)
+            ix[bad], iy[bad] = 0, 0
+            assert got[k] == f3[iy, ix].mean(dtype=np.float32)
+
+
 def test_transform_points_matches_compose():
     pose = np.array([1.0, -2.0, 0.7])
     pts = np.array([[0.5, 0.2], [-1.0, 3.0]])

@@ -138,9 +138,12 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
     np.testing.assert_array_equal(all_n, grid.normals)
     np.testing.assert_array_equal(all_w, grid.quality)
     # inlier fractions: the cell look-up's, at poses around the match (the refinement's test)
-    for pose in [a[0], np.zeros(3)] + list(a[0] + rng.normal(0.0, [0.03, 0.03, 0.02], (40, 3))):
-        for dist in (0.05, 0.03):
-            assert line.inlier_fraction(scan, pose, dist) == grid.inlier_fraction(scan, pose, dist)
+    poses = [a[0], np.zeros(3), np.array([40.0, 0.0, 0.0])]  # the last: off the grid
+    poses += list(a[0] + rng.normal(0.0, [0.03, 0.03, 0.02], (40, 3)))
+    for dist in (0.05, 0.03):
+        want = [grid.inlier_fraction(scan, pose, dist) for pose in poses]
+        assert [line.inlier_fraction(scan, pose, dist) for pose in poses] == want
+        assert line.inlier_fractions(scan, poses, dist).tolist() == want  # all poses at once
 
 
 def test_line_map_breaks_ties_as_the_distance_transform():

@@ -360,33 +360,50 @@ def align_pairs(
     Vectorised over pairs, in chunks of reference submaps (each built once; each query submap
     once): the start-overlap gate, the ICP (:func:`_icp_many`) and the final gates. The
     constraints come in the order of ``pairs`` sorted (stably) by reference. ``processes`` 2:
-    the pairs of the second half of the references are matched in a forked process (Linux
-    ``fork``; each pair's numbers do not depend on the others': the same constraints)."""
+    the pairs of the second half of the references are matched in a forked process
+    (:func:`_by_halves`: the same constraints)."""
     if len(pairs) == 0:
         return []
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     local = _in_range(points, max_range)
+    return _by_halves(pairs, lambda part: _align_refs(poses, local, part), processes)
+
+
+def _by_halves(
+    pairs: np.ndarray,
+    run: Callable[[np.ndarray], list[AlignmentConstraint]],
+    processes: int,
+) -> list[AlignmentConstraint]:
+    """``run(pairs)`` (``pairs`` sorted by reference), with ``processes`` 2 the pairs of the
+    second half of the references in a forked process (Linux ``fork``) while this one runs the
+    first half: each pair's numbers do not depend on the others', so the constraints and their
+    order are those of one ``run`` (a failed child: its half here)."""
     if processes < 2 or len(pairs) < 2 or "fork" not in mp.get_all_start_methods():
-        return _align_refs(poses, local, pairs)
+        return run(pairs)
     half = int(np.searchsorted(pairs[:, 0], pairs[len(pairs) // 2, 0]))  # whole references each
     if half == 0:
-        return _align_refs(poses, local, pairs)
-    second = _in_child(lambda: _constraint_rows(_align_refs(poses, local, pairs[half:])))
-    out = _align_refs(poses, local, pairs[:half])
+        return run(pairs)
+    second = _in_child(lambda: _constraint_rows(run(pairs[half:])))
+    out = run(pairs[:half])
     rows = second()
     if rows is None:  # the child failed: its half here
-        return out + _align_refs(poses, local, pairs[half:])
+        return out + run(pairs[half:])
     return out + [
-        AlignmentConstraint(int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]))
+        AlignmentConstraint(
+            int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]), bool(r[15])
+        )
         for r in rows
     ]
 
 
 def _constraint_rows(cons: list[AlignmentConstraint]) -> np.ndarray:
-    """Constraints as rows (reference, query, relative 3, covariance 9, inlier fraction)."""
+    """Constraints as rows (reference, query, relative 3, covariance 9, inlier fraction, searched)."""
     return np.array(
-        [[c.reference, c.query, *c.relative, *c.covariance.ravel(), c.inlier_fraction] for c in cons]
-    ).reshape(-1, 15)
+        [
+            [c.reference, c.query, *c.relative, *c.covariance.ravel(), c.inlier_fraction, c.searched]
+            for c in cons
+        ]
+    ).reshape(-1, 16)
 
 
 def _in_child(fn: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
@@ -505,20 +522,37 @@ def searched_constraints(
     origins: list[np.ndarray],
     pairs: np.ndarray,
     config: LoopClosureConfig,
+    processes: int = 1,
 ) -> list[AlignmentConstraint]:
     """Constraints of ``pairs`` (P, 2: reference c, query k) found by the closer's matcher
     (:func:`~frslam_graph.loop_closure.submap_matching.match_scan`) within ± ``SEARCH_WINDOW_XY`` /
     ``SEARCH_WINDOW_THETA`` of the estimate ``poses`` (map): the ICP's submaps, the closer's
     likelihood field, ambiguity and free-space tests (``config``), this module's inlier fraction;
     then only those that another one agrees with (:func:`agreeing`). ``origins``: per keyframe
-    the sensor origin in base_link. One reference submap at a time (pairs sorted by reference)."""
+    the sensor origin in base_link. One reference submap at a time (pairs sorted by reference);
+    ``processes`` 2: half of the references in a forked process (:func:`_by_halves`, the same
+    constraints)."""
     cfg = config
     local = _in_range(points, cfg.max_point_range)
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    found = _by_halves(pairs, lambda part: _searched(poses, local, origins, part, cfg), processes)
+    return agreeing(poses, found)
+
+
+def _searched(
+    poses: np.ndarray,
+    local: list[np.ndarray],
+    origins: list[np.ndarray],
+    pairs: np.ndarray,
+    cfg: LoopClosureConfig,
+) -> list[AlignmentConstraint]:
+    """The matches of :func:`searched_constraints` for ``pairs`` (sorted by reference; ``local``:
+    :func:`_in_range`) in this process, before the agreement test."""
     margin = SEARCH_WINDOW_XY + 4.0 * cfg.likelihood_sigma + 1.5
     found: list[AlignmentConstraint] = []
     queries: dict[int, np.ndarray] = {}
     ref, ref_c = None, -1
-    for c, k in pairs[np.argsort(pairs[:, 0], kind="stable")].tolist():
+    for c, k in pairs.tolist():
         if c != ref_c:
             pts, scans = _reference_scans(poses, local, origins, c, REFERENCE_SPAN)
             ref_c = c
@@ -534,7 +568,7 @@ def searched_constraints(
         if not m.free_violation <= cfg.max_free_violation:  # NaN: not measured (refused)
             continue
         found.append(AlignmentConstraint(c, k, m.pose.copy(), m.covariance.copy(), m.inlier_fraction, True))
-    return agreeing(poses, found)
+    return found
 
 
 def agreeing(poses: np.ndarray, cons: list[AlignmentConstraint]) -> list[AlignmentConstraint]:
@@ -595,7 +629,7 @@ def dense_constraints(
     tied[[c.reference for c in cons] + [c.query for c in cons]] = True
     untied = pairs[~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]]
     cfg = (config or LoopClosureConfig()).model_copy(update={"max_point_range": max_range})
-    return cons + searched_constraints(poses, points, origins, untied, cfg)
+    return cons + searched_constraints(poses, points, origins, untied, cfg, processes)
 
 
 def align_passes(ctx: BackendContext, config: LoopClosureConfig, processes: int = 1) -> None:

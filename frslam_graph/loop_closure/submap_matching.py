@@ -20,6 +20,7 @@ from typing import TypeVar
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 from scipy.spatial import cKDTree
 
 from frslam_graph.config import LoopClosureConfig
@@ -406,7 +407,7 @@ class LineMap:
         self._quality = np.zeros(len(pts))
         self._known = np.zeros(len(pts), bool)  # normal computed
         self._known[:] = len(pts) < 3  # too few points for a line: zero normals and quality
-        self._grid_cells: tuple[np.ndarray, int, int, np.ndarray, np.ndarray] | None = None
+        self._grid_cells: tuple[np.ndarray, int, int, np.ndarray] | None = None
 
     def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
@@ -423,9 +424,10 @@ class LineMap:
             self._known[new] = True
         return self._normals[j], self._quality[j]
 
-    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
-        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the sorted
-        flat indices of the occupied cells and the point each keeps (the last one in it)."""
+    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray]:
+        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, and per cell
+        (flat, raster order) the point it keeps (the last one in it, as ``owner[cells] =
+        arange`` keeps it), -1 where no point is."""
         if self._grid_cells is None:
             pts, res = self.points, self.resolution
             lo, hi = point_bounds(pts)
@@ -436,7 +438,9 @@ class LineMap:
             order = np.argsort(flat, kind="stable")
             fs = flat[order]
             last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
-            self._grid_cells = (lo, w, h, fs[last], order[last])
+            owner = np.full(w * h, -1, np.int32)
+            owner[fs[last]] = order[last]
+            self._grid_cells = (lo, w, h, owner)
         return self._grid_cells
 
     def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
@@ -445,22 +449,27 @@ class LineMap:
         ``resolution``): its distance transform labels a cell with its nearest occupied cell,
         itself, else an occupied side neighbour, else a corner one, ties broken as
         ``_CELL_ORDER`` lists them; a farther cell's point is farther than ``resolution``."""
+        return float(self.inlier_fractions(query, [pose], distance)[0])
+
+    def inlier_fractions(self, query: np.ndarray, poses: list[np.ndarray], distance: float) -> np.ndarray:
+        """:meth:`inlier_fraction` of ``query`` at each of ``poses``, in one look-up (the
+        refinement's test of its result against its start)."""
         if len(self.points) == 0 or len(query) == 0:
-            return 0.0
-        lo, w, h, keys, owner = self._occupied()
-        p = transform_points(pose, query)
+            return np.zeros(len(poses))
+        lo, w, h, grid = self._occupied()
+        p = np.concatenate([transform_points(pose, query) for pose in poses])
         ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
         iy = np.floor((p[:, 1] - lo[1]) / self.resolution).astype(np.int64)
         cx = ix[None, :] + _CELL_ORDER[:, :1]  # (9, N) the cell and its neighbours, in look-up order
         cy = iy[None, :] + _CELL_ORDER[:, 1:]
-        flat = cy * w + cx
-        pos = np.minimum(np.searchsorted(keys, flat), len(keys) - 1)
-        found = (keys[pos] == flat) & (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
-        found &= ((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[None, :]  # the query's cell in the grid
+        inside = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
+        inside &= ((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[None, :]  # the query's cell in the grid
+        who = grid[np.where(inside, cy * w + cx, 0)]
+        found = inside & (who >= 0)
         first = found.argmax(axis=0)
-        off = p - self.points[owner[pos[first, np.arange(len(p))]]]
+        off = p - self.points[np.maximum(who[first, np.arange(len(p))], 0)]
         hit = found.any(axis=0) & (np.hypot(off[:, 0], off[:, 1]) <= distance)
-        return int(np.count_nonzero(hit)) / len(query)
+        return np.count_nonzero(hit.reshape(len(poses), len(query)), axis=1) / len(query)
 
 
 # LineMap.inlier_fraction's cells (dx, dy; dy -1 = the previous grid row): the query's own, the
@@ -531,17 +540,26 @@ def _grid_search(
     out = (bx < lim) | (bx >= w - lim) | (by < lim) | (by >= h - lim)
     bx[out] = lim
     by[out] = lim
-    base = (by * w + bx).astype(np.int32)  # (T, M)
-    off = (oy * w + ox).astype(np.int32)  # (O,)
-    scores = np.empty((len(thetas), len(off)), np.float32)
-    chunk = max(1, int(max_lookups // max(1, len(off) * query.shape[0])))
+    # each point's window of offsets is a (n, n) block of the field with strides (s rows, s
+    # columns) whose first cell is (bx - lim, by - lim): gathered as whole blocks of a strided
+    # view (one index per point, not per point and offset), then laid out (t, O, M) as the
+    # per-offset gather was, so that the means are the same sums in the same order
+    n = 2 * n_xy + 1
+    corner = (by - lim) * w + (bx - lim)  # (T, M), each block inside the grid (see `out`)
+    scores = np.empty((len(thetas), n * n), np.float32)
+    chunk = max(1, int(max_lookups // max(1, n * n * query.shape[0])))
     for a in range(0, len(thetas), chunk):
-        cost = _MS_PER_LOOKUP * len(off) * query.shape[0] * min(chunk, len(thetas) - a)
+        cost = _MS_PER_LOOKUP * n * n * query.shape[0] * min(chunk, len(thetas) - a)
         yield cost + (_MS_PER_CELL_DILATE * h * w if cells not in ref._dilated else 0.0)
         field = ref.dilated(cells)
-        idx = base[a : a + chunk, None, :] + off[None, :, None]  # (t, O, M) flat cells
-        scores[a : a + chunk] = field[idx].mean(axis=2)
-    tt = np.repeat(thetas, len(off))
+        step = field.strides[0]
+        blocks = as_strided(
+            field, shape=(field.size - 2 * lim * (w + 1), n, n), strides=(step, step * s * w, step * s)
+        )
+        g = blocks[corner[a : a + chunk]]  # (t, M, n, n): offset (oy, ox) at [.., iy, ix]
+        g = np.ascontiguousarray(g.reshape(len(g), -1, n * n).transpose(0, 2, 1))  # (t, O, M)
+        scores[a : a + chunk] = g.mean(axis=2)
+    tt = np.repeat(thetas, n * n)
     poses = np.column_stack(
         (np.tile(centre[0] + ox * res, len(thetas)), np.tile(centre[1] + oy * res, len(thetas)), tt)
     )
@@ -549,18 +567,34 @@ def _grid_search(
 
 
 def _score_poses(ref: ReferenceSubmap, query: np.ndarray, poses: np.ndarray, cells: int) -> np.ndarray:
-    """Mean (max-filtered) likelihood of ``query`` at each of ``poses`` (P, 3)."""
+    """Mean (max-filtered) likelihood of ``query`` at each of ``poses`` (P, 3).
+
+    Each (P, M) array is computed in place, with the same operations in the same order as
+    ``floor((c qx - s qy + x - origin) / resolution)`` written out (the same cells)."""
     field = ref.dilated(cells)
     h, w = ref.shape
     c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    px = c * query[None, :, 0] - s * query[None, :, 1] + poses[:, 0:1]
-    py = s * query[None, :, 0] + c * query[None, :, 1] + poses[:, 1:2]
-    bx = np.floor((px - ref.origin[0]) / ref.resolution).astype(np.int64)
-    by = np.floor((py - ref.origin[1]) / ref.resolution).astype(np.int64)
-    out = (bx < 0) | (bx >= w) | (by < 0) | (by >= h)
-    bx[out] = 0
-    by[out] = 0  # the corner cell lies in the zero margin
-    return field[by * w + bx].mean(axis=1)
+    qx, qy = query[None, :, 0], query[None, :, 1]
+    px = c * qx
+    tmp = s * qy
+    px -= tmp
+    px += poses[:, 0:1]
+    py = np.multiply(s, qx, out=tmp)
+    py += c * qy  # s qx + c qy: the same sum in either order
+    py += poses[:, 1:2]
+    for p, o in ((px, ref.origin[0]), (py, ref.origin[1])):
+        p -= o
+        p /= ref.resolution
+        np.floor(p, out=p)
+    bx, flat = px.astype(np.int64), py.astype(np.int64)
+    # outside the grid (negative indices too, seen as huge unsigned ones): the corner cell, in
+    # the zero margin
+    out = bx.view(np.uint64) >= w
+    out |= flat.view(np.uint64) >= h
+    flat *= w
+    flat += bx
+    flat[out] = 0
+    return np.take(field, flat).mean(axis=1)
 
 
 def _coarse_search(

@@ -590,10 +590,8 @@ class ScanOdometry:
         refined = compose(start, d)
         # a refinement that fits fewer points to the map than KISS-ICP's pose converged wrongly
         # (seen while rotating in place at 10-20 deg per scan: a few degrees off)
-        ref = self._local_ref
-        if ref.inlier_fraction(points, refined, _REFINE_INLIER) < ref.inlier_fraction(
-            points, start, _REFINE_INLIER
-        ):
+        fit_refined, fit_start = self._local_ref.inlier_fractions(points, [refined, start], _REFINE_INLIER)
+        if fit_refined < fit_start:
             return pose
         return to_matrix4(refined)
 

@@ -1,0 +1,278 @@
+"""Where one real log's CPU seconds go, stage by stage, and which stages make the slow scans.
+
+    .venv/bin/python tools/dev_stages.py fr079                 # as `frslam run`: odometry in a worker
+    .venv/bin/python tools/dev_stages.py fr079 --serial        # everything here: the worker's stages too
+    .venv/bin/python tools/dev_stages.py intel --json /tmp/intel_stages.json
+
+Each stage is a function of the library wrapped here (nothing in the library changes) and charged
+its *exclusive* process CPU time (time.process_time, minus the wrapped calls inside it), so the
+rows add up to the process's CPU. Offline (default) the odometry runs in a forked worker: its CPU
+is one figure (``RUSAGE_CHILDREN``, with the final alignment's forked half); ``--serial`` runs it
+here, which splits it into stages and gives the per-scan CPU of a streaming ``add_scan``
+(odometry + backend). The per-scan table shows the stages of the scans above the 99th
+percentile and of the ten slowest. CPU, not wall: comparable on a loaded machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import resource
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DATA = Path(
+    os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
+)
+TESTS = Path(__file__).resolve().parents[1] / "tests" / "data"
+LOGS = {
+    "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
+    "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),
+    "fr079": ("carmen/fr079.clf.bz2", "carmen/fr079.relations"),
+    "intel.bag": ("bags/intel.bag", "carmen/intel.relations"),
+    # 250 scans of FR079 in the repository: a check of this script in seconds
+    "fr079_250": (TESTS / "fr079_250.clf.bz2", TESTS / "fr079_250.relations"),
+}
+
+
+class Stages:
+    """Exclusive CPU seconds per stage label; per-scan deltas between :meth:`mark` calls."""
+
+    def __init__(self) -> None:
+        self.total: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._stack: list[list[Any]] = []  # [label, start, child seconds]
+        self._scan: dict[str, float] = {}
+        self.per_scan: list[dict[str, float]] = []
+
+    def _charge(self, label: str, seconds: float) -> None:
+        self.total[label] = self.total.get(label, 0.0) + seconds
+        self._scan[label] = self._scan.get(label, 0.0) + seconds
+
+    def wrap(self, owner: Any, name: str, label: str) -> None:
+        """Replace ``owner.name`` (a function or method) by a timed one."""
+        fn = getattr(owner, name)
+        if isinstance(fn, staticmethod):  # pragma: no cover - accessed through the class already
+            fn = fn.__func__
+
+        @functools.wraps(fn)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            frame = [label, time.process_time(), 0.0]
+            self._stack.append(frame)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._stack.pop()
+                spent = time.process_time() - frame[1]
+                self._charge(label, spent - frame[2])
+                self.calls[label] = self.calls.get(label, 0) + 1
+                if self._stack:
+                    self._stack[-1][2] += spent
+
+        if isinstance(owner.__dict__.get(name), staticmethod):
+            setattr(owner, name, staticmethod(timed))
+        else:
+            setattr(owner, name, timed)
+
+    def wrap_gen(self, owner: Any, name: str, label: str) -> None:
+        """Replace the generator function ``owner.name`` by one whose steps are timed."""
+        fn = getattr(owner, name)
+        st = self
+
+        @functools.wraps(fn)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            gen = fn(*args, **kwargs)
+            value = None
+            while True:
+                frame = [label, time.process_time(), 0.0]
+                st._stack.append(frame)
+                try:
+                    item = gen.send(value)
+                except StopIteration as stop:
+                    return stop.value
+                finally:
+                    st._stack.pop()
+                    spent = time.process_time() - frame[1]
+                    st._charge(label, spent - frame[2])
+                    if st._stack:
+                        st._stack[-1][2] += spent
+                value = yield item
+
+        setattr(owner, name, timed)
+
+    def mark(self) -> None:
+        """End of one scan: keep its stage seconds."""
+        self.per_scan.append(self._scan)
+        self._scan = {}
+
+
+def instrument(st: Stages) -> None:
+    """Wrap the library's stages (coarse: one row per stage a reader can act on)."""
+    from frslam_graph import offline, slam
+    from frslam_graph.backend import context, graph, mapping
+    from frslam_graph.loop_closure import closer, final_alignment, submap_matching
+    from frslam_graph.odometry import scan_odometry
+
+    so = scan_odometry.ScanOdometry
+    st.wrap(so, "prepare", "odometry: prepare (voxels, geometry)")
+    st.wrap(so, "process", "odometry: process (EKF, keyframes)")
+    st.wrap(so, "_align", "odometry: KISS-ICP register")
+    st.wrap(so, "_refine", "odometry: point-to-line refinement")
+    st.wrap(so, "_local_map", "odometry: local map rebuild")
+    st.wrap(so, "_commit", "odometry: commit (KISS-ICP map update)")
+    st.wrap(offline, "body_points", "reader: body points")
+    st.wrap(slam.FRSlam, "_record", "backend: per-scan glue")
+    pg = graph.PoseGraph
+    st.wrap(pg, "_isam_update", "graph: iSAM2 update")
+    st.wrap(pg, "_refresh_estimates", "graph: estimates refresh")
+    st.wrap(pg, "optimize_batch", "graph: LM batch")
+    st.wrap(pg, "_rebuild", "graph: iSAM2 rebuild")
+    st.wrap(pg, "error", "graph: error()")
+    lc = closer.LoopCloser
+    st.wrap(lc, "on_keyframe", "closer: glue")
+    st.wrap(lc, "on_scan", "closer: glue")
+    st.wrap(lc, "on_finish", "closer: glue")
+    st.wrap(lc, "_plan", "closer: plan (candidates)")
+    st.wrap(lc, "_submap", "closer: submap points")
+    st.wrap(lc, "_residual_chi2", "closer: prune residuals")
+    sm = submap_matching
+    st.wrap(sm.ReferenceSubmap, "__init__", "matcher: reference field build")
+    st.wrap(sm.ReferenceSubmap, "dilated", "matcher: field dilation")
+    st.wrap_gen(sm, "_grid_search", "matcher: correlative search")
+    st.wrap(sm, "_score_poses", "matcher: correlative search")
+    st.wrap(sm, "icp_point_to_line", "matcher: ICP")
+    st.wrap(sm.ReferenceSubmap, "_normals_quality", "matcher: normals + k-d tree")
+    st.wrap(sm.ReferenceSubmap, "free_violation", "matcher: free space")
+    st.wrap(sm.ReferenceSubmap, "inlier_fraction", "matcher: inliers")
+    fa = final_alignment
+    st.wrap(fa, "candidate_pairs", "final: pairs")
+    st.wrap(fa, "align_pairs", "final: ICP of pairs (this process's half)")
+    st.wrap(fa, "searched_constraints", "final: searched constraints")
+    st.wrap(fa, "align_passes", "final: glue")
+    st.wrap(slam.FRSlam, "finish", "finish: glue")
+    st.wrap(context.BackendContext, "occupancy_grid", "outputs: occupancy grid")
+    st.wrap(mapping, "endpoint_share", "outputs: endpoint share")
+    st.wrap(offline, "_run_metrics", "outputs: metrics")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("log", choices=sorted(LOGS))
+    ap.add_argument("--serial", action="store_true", help="odometry in this process (stages + streaming CPU)")
+    ap.add_argument("--json", type=Path, help="write the stage table and per-scan figures here")
+    args = ap.parse_args()
+
+    from frslam_graph.datasets import open_recording
+
+    from frslam_graph.evaluation.trajectory_io import load_relations
+    from frslam_graph.offline import run_recording, write_outputs
+
+    st = Stages()
+    instrument(st)
+    from frslam_graph import slam
+
+    record = slam.FRSlam._record  # already timed: mark a scan after it
+
+    def record_and_mark(self: Any, *a: Any, **k: Any) -> Any:
+        try:
+            return record(self, *a, **k)
+        finally:
+            st.mark()
+
+    slam.FRSlam._record = record_and_mark
+    path, rel_path = (DATA / p for p in LOGS[args.log])
+    rec = open_recording(path)
+
+    class Timed:  # the reader's iteration as a stage
+        stats = property(lambda _: getattr(rec, "stats", None))
+
+        def __iter__(self):
+            it = iter(rec)
+            while True:
+                frame = ["reader: records -> scans", time.process_time(), 0.0]
+                st._stack.append(frame)
+                try:
+                    scan = next(it)
+                except StopIteration:
+                    return
+                finally:
+                    st._stack.pop()
+                    spent = time.process_time() - frame[1]
+                    st._charge(frame[0], spent - frame[2])
+                    if st._stack:
+                        st._stack[-1][2] += spent
+                yield scan
+
+    c0, t0 = time.process_time(), time.perf_counter()
+    run = run_recording(Timed(), parallel=False if args.serial else None)
+    c_run, wall_run = time.process_time() - c0, time.perf_counter() - t0
+    write_outputs(run, Path("/tmp") / f"dev_stages_{args.log}", relations=load_relations(rel_path))
+    cpu_all = time.process_time() - c0
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    child = kids.ru_utime + kids.ru_stime
+    res = run.result
+    rel = run.metrics["relations"]
+    print(
+        f"{args.log}: {'serial' if args.serial else 'worker'}; {res.duration:.0f} s of log; run wall "
+        f"{wall_run:.1f} s ({res.duration / wall_run:.1f}x RT), run CPU here {c_run:.1f} s, with "
+        f"outputs {cpu_all:.1f} s; children (worker + forked alignment half) {child:.1f} s; "
+        f"relations {rel.trans_mean:.4f} m / {rel.rot_mean:.3f} deg"
+    )
+    total = sum(st.total.values())
+    print("\n| stage | CPU s | share | calls |\n|---|---:|---:|---:|")
+    for label, sec in sorted(st.total.items(), key=lambda kv: -kv[1]):
+        print(f"| {label} | {sec:.2f} | {100 * sec / max(cpu_all, 1e-9):.1f} % | {st.calls.get(label, '')} |")
+    print(f"| (unwrapped: imports, glue) | {cpu_all - total:.2f} | | |")
+    # per scan: CPU of add_scan (serial) or of the backend's part (worker)
+    scans = st.per_scan
+    per = np.array([sum(s.values()) for s in scans]) * 1e3
+    lat = res.latencies * 1e3
+    print(
+        f"\nper scan CPU ms (median / p99 / max): {np.median(per):.2f} / {np.percentile(per, 99):.1f} / "
+        f"{per.max():.0f} ({'odometry + backend' if args.serial else 'backend only'}); "
+        f"run's latency (wall) {np.median(lat):.2f} / {np.percentile(lat, 99):.1f} / {lat.max():.0f}"
+    )
+    top = per >= np.percentile(per, 99)
+    labels = sorted({k for s in scans for k in s})
+    share = {k: sum(s.get(k, 0.0) for s, t in zip(scans, top, strict=True) if t) for k in labels}
+    tot = sum(share.values())
+    print(
+        "scans at or above p99: CPU by stage: "
+        + ", ".join(
+            f"{k} {100 * v / tot:.0f} %"
+            for k, v in sorted(share.items(), key=lambda kv: -kv[1])
+            if v > 0.02 * tot
+        )
+    )
+    print("slowest ten scans (index: ms, stages over 10 %):")
+    for i in np.argsort(per)[::-1][:10]:
+        parts = ", ".join(
+            f"{k} {1e3 * v:.0f}"
+            for k, v in sorted(scans[i].items(), key=lambda kv: -kv[1])
+            if v * 1e3 > 0.1 * per[i]
+        )
+        print(f"  {i}: {per[i]:.0f} ms: {parts}")
+    if args.json:
+        args.json.write_text(
+            json.dumps(
+                {
+                    "log": args.log,
+                    "serial": args.serial,
+                    "stages": st.total,
+                    "cpu_run": c_run,
+                    "cpu_all": cpu_all,
+                    "children": child,
+                    "wall_run": wall_run,
+                    "per_scan_ms": per.tolist(),
+                }
+            )
+        )
+
+
+if __name__ == "__main__":
+    main()
