@@ -262,3 +262,34 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
         iterations=opts["iterations"],
     )
     return r if plausible(r, opts) else screened
+
+
+def face_distances(
+    pm: PlanModel, obs: MapObservation, matrix: np.ndarray, delta: float, max_points: int = 1000
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distances :func:`wall_precision_recall` thresholds, in metres: (plan side) from each of
+    the plan's wall-face samples that land on the footprint to the nearest wall-side free cell of
+    the map; (map side) from each of the map's wall-side cells to the nearest plan wall face, less
+    one plan raster cell (so that ``mean(map_side < tol)`` is the recall at ``tol``)."""
+    res = obs.frame.resolution
+    pts = pm.samples
+    a, t = matrix[:2, :2], matrix[:2, 2]
+    det = abs(float(np.linalg.det(a)))
+    if len(pts) == 0 or len(obs.edge_points) == 0 or det <= 0:
+        return np.zeros(0), np.zeros(0)
+    stride = max(1, len(pts) // max_points)
+    q = pts[::stride] @ a.T + t
+    if delta:
+        nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
+        q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
+    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
+    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)[inside]
+    e = (obs.edge_points - t) @ np.linalg.inv(a).T
+    pf = pm.plan_frame
+    pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)
+    pr = np.floor((e[:, 1] - pf.origin[1]) / pf.resolution).astype(np.intp)
+    hp, wp = pm.plan_dt.shape
+    okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
+    dp = np.full(len(e), np.inf)
+    dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * math.sqrt(det)
+    return np.asarray(d, np.float64), np.abs(dp - abs(delta)) - pf.resolution * math.sqrt(det)
