@@ -302,24 +302,34 @@ def _drawing_gate(pm, obs, best, chosen, screened, final, tol_f: float, opts: di
     both as screened) and ``drawn_ok``."""
     tol = min(max(DRAWN_TOL_PER_RMS * final.rms, tol_f), DRAWN_TOL_MAX) if np.isfinite(final.rms) else tol_f
 
-    def measure(matrix: np.ndarray, delta: float) -> tuple[float, float, float, int]:
-        iou, rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, matrix, opts["min_cover"])
-        d_plan, d_map = fine.face_distances(pm, obs, matrix, delta)
-        prec = float(np.mean(d_plan < tol)) if len(d_plan) else 0.0
-        rec = float(np.mean(d_map < tol)) if len(d_map) else 0.0
-        rec_f = float(np.mean(d_map < tol_f)) if len(d_map) else 0.0
-        return iou * prec * rec, rec, rec_f, len(rooms)
+    def shares(matrix: np.ndarray, delta: float, tols: tuple[float, ...]) -> list[tuple[float, float]]:
+        """(precision, recall) at each of ``tols``."""
+        faces = fine.face_distances(pm, obs, matrix, 1000, delta)
+        if faces is None:
+            return [(0.0, 0.0)] * len(tols)
+        d_plan, dev, slack = faces
+        return [
+            (
+                float(np.mean(d_plan < t)) if len(d_plan) else 0.0,
+                float(np.mean(dev < t + slack)) if dev is not None and len(dev) else 0.0,
+            )
+            for t in tols
+        ]
 
-    d_plan, d_map = fine.face_distances(pm, obs, final.matrix, final.delta)
-    prec = float(np.mean(d_plan < tol)) if len(d_plan) else 0.0
-    rec = float(np.mean(d_map < tol)) if len(d_map) else 0.0
+    def measure(matrix: np.ndarray, delta: float) -> tuple[float, float, int]:
+        """IoU x precision x recall at ``tol``, the recall at the fixed tolerance, rooms placed."""
+        iou, rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, matrix, opts["min_cover"])
+        (prec, rec), (_, rec_f) = shares(matrix, delta, (tol, tol_f))
+        return iou * prec * rec, rec_f, len(rooms)
+
+    [(prec, rec)] = shares(final.matrix, final.delta, (tol,))
     quality = best.score * prec * rec
     own = measure(screened.matrix, screened.delta)[0]
     runner = 0.0
     for h in chosen[1:]:
         if coarse.same_placement(h.refined.matrix, screened.matrix, obs):
             continue
-        q, _, rec_f, n_rooms = measure(h.refined.matrix, h.refined.delta)
+        q, rec_f, n_rooms = measure(h.refined.matrix, h.refined.delta)
         if _determined(n_rooms, h.refined.n_points, rec_f):
             runner = max(runner, q)
     rel = runner / own if own > 0 else 1.0
