@@ -50,6 +50,52 @@ def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2
     of the wall pixel is free. Near 0 for a right registration, even on a map drifted by less
     than ``margin`` (the displaced real wall is occupied, or the space behind it unknown, within
     reach); a wrong registration draws walls across rooms seen empty."""
+    walls = _wall_pixels(relocaliser, grid, margin)
+    if walls is None:
+        return 0.0
+    _, _, observed, through = walls
+    return int(through.sum()) / max(int(observed.sum()), 1)
+
+
+def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> dict[str, tuple[int, int]]:
+    """Per room of the registered plan (``relocaliser.plan``, map metres): (its interior wall
+    pixels the map has observed, those the map has seen through), as
+    :func:`walls_through_free_space` counts them; a wall pixel counts for both rooms it
+    separates (the rooms found at its place and ``2 * wall_offset`` + a cell either side along
+    its normal). A room drawn where the building has open space (a corridor through a block the
+    plan draws closed) has most of its walls seen through; its neighbours only the shared part."""
+    from frslam_graph.raster import rasterise_polygons
+
+    plan = relocaliser.plan
+    walls = _wall_pixels(relocaliser, grid, margin)
+    out = {r.id: (0, 0) for r in plan.rooms}
+    if walls is None or not plan.rooms:
+        return out
+    xy, normal, observed, through = walls
+    f = relocaliser.field
+    labels = rasterise_polygons(
+        [r.polygon for r in plan.rooms], f.frame, values=list(range(1, len(plan.rooms) + 1))
+    )
+    h, w = labels.shape
+    reach = 2.0 * f.wall_offset + f.frame.resolution
+    n = len(plan.rooms)
+    hit = np.zeros((len(xy), n + 1), bool)
+    for s in (-reach, 0.0, reach):
+        c = np.floor(f.frame.to_pixel(xy + s * normal)).astype(np.intp)
+        col, row = c[:, 0], c[:, 1]
+        ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        lab = np.zeros(len(xy), np.intp)
+        lab[ok] = labels[row[ok], col[ok]]
+        hit[np.arange(len(xy)), lab] = True
+    hit = hit[:, 1:]
+    obs_n = (hit & observed[:, None]).sum(axis=0)
+    thr_n = (hit & (through & observed)[:, None]).sum(axis=0)
+    return {r.id: (int(obs_n[i]), int(thr_n[i])) for i, r in enumerate(plan.rooms)}
+
+
+def _wall_pixels(relocaliser: Relocaliser, grid, margin: float):
+    """The interior wall pixels of :func:`walls_through_free_space`: (centres (N, 2) in map
+    metres, unit normals (N, 2), observed by the map (N,), seen through (N,)); None without any."""
     f = relocaliser.field
     res = f.frame.resolution
     # interior walls only (between two rooms): an outer wall may legitimately have free space
@@ -59,7 +105,7 @@ def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2
     near_outside = cv2.dilate(deep, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))) > 0
     rows, cols = np.nonzero((f.sdf <= 0) & ~near_outside)
     if not len(rows):
-        return 0.0
+        return None
     if len(rows) > 20000:
         k = np.linspace(0, len(rows) - 1, 20000).round().astype(np.intp)
         rows, cols = rows[k], cols[k]
@@ -86,7 +132,7 @@ def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2
     steps = np.arange(-reach, reach + 1e-9, 0.5 * grid.resolution)
     pts = xy[:, None, :] + steps[None, :, None] * normal[:, None, :]
     through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(steps)).all(axis=1)
-    return int(through.sum()) / max(int(observed.sum()), 1)
+    return xy, normal, observed, through
 
 
 def fit_plan_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations: int = 15) -> np.ndarray:
@@ -187,4 +233,10 @@ def matrix_disagreement(plan, m1: np.ndarray, m2: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
-__all__ = ["fit_plan_scale", "matrix_disagreement", "occupied_points", "walls_through_free_space"]
+__all__ = [
+    "fit_plan_scale",
+    "matrix_disagreement",
+    "occupied_points",
+    "rooms_seen_through",
+    "walls_through_free_space",
+]

@@ -62,3 +62,19 @@ def test_read_points_skips_comments_and_the_column_row(tmp_path):
     p.write_text("# only a comment\n")
     with pytest.raises(ValueError, match="no annotated points"):
         bench_real.read_points(p)
+
+
+def test_intel_plan_drawn_off_its_map_is_accepted_at_the_drawing_tolerance(shared_data):
+    # lab_intel.png is drawn 0.5-1 m off intel_map.png in places and the map holds furniture the
+    # plan does not draw: the right placement scored IoU 0.65 x precision 0.43 x recall 0.53 = 0.15
+    # at the 0.15 m structure tolerance and was refused ("no match"); at a tolerance twice the fit's
+    # residual it explains the map's walls and beats every determined runner-up by the margin
+    name, plan_file, map_file, csv = bench_real.IPA_PAIRS[0]
+    assert name == "intel"
+    folder = shared_data / "floorplans" / "ipa"
+    if not (folder / plan_file).exists():
+        pytest.skip(f"{folder / plan_file} not in the shared data")
+    [row] = [r for r in bench_real.ipa_rows(shared_data) if r["case"] == "intel"]
+    assert row["ok"], row["reason"]
+    assert row["flip_ok"] and row["rot_err_deg"] < 2.0 and abs(row["scale_err"]) < 0.02
+    assert row["err_ratio"] < 2.0

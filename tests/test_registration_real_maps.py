@@ -209,3 +209,23 @@ def test_halmstad_apartment_sensor_map_registers_within_the_annotation_residual(
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0
     assert abs(row["scale_err"]) < 0.02
     assert row["err_ratio"] < 2.0
+
+
+def test_one_room_stretched_over_a_larger_map_is_refused_as_under_determined(test_data):
+    # a tango-style map (tools/bench_real.py) of 75 % of an R2V flat: the gate accepted one plan
+    # room scaled over the whole map (23 boundary points fitted, 58 % of the map's walls explained;
+    # flip and rotation wrong), as on the partial Intel maps; one room is under-determined
+    from conftest import load_tool
+    from frslam_graph.datasets.simulator import Distortion, House
+
+    from frslam_graph.floorplan import FloorPlan
+
+    bench = load_tool("bench_real")
+    plan = FloorPlan.load(test_data / "r2v" / "06fa9896fe36990fed86241e4f32dd53_0001.txt")
+    dist = Distortion.random(np.random.default_rng([0, 4, 0, 21]), rotation="step90", plan_bounds=plan.bounds)
+    grid, _, _ = bench.styled_map(
+        House.from_plan(plan, dist), "tango", 0.75, np.random.default_rng([0, 4, 0, 75, 1, 21])
+    )
+    reg = register(plan, grid)
+    assert not reg.ok and "under-determined" in reg.reason and len(reg.rooms) == 1
+    assert reg.placed  # the placement is kept, for a caller to draw

@@ -1022,3 +1022,48 @@ def test_with_none_accepted_the_complete_map_gets_one_registration_whatever_the_
     assert len(slam.graph.priors()) >= 5  # the backfill ran over the whole run
     acc = write_outputs(RunOutput(slam, res), tmp_path / "accepted").metrics["plan_accepted"]
     assert acc["at_end"] and acc["distance_m"] > 10.0 and 0.5 < acc["plan_seen"] <= 1.0
+
+
+def _split_bedroom(plan):
+    """The plan with its bedroom drawn as two rooms (a wall at x = 40 the house does not have, as
+    a drawing that closes a block the building leaves open): the simulated run, which maps the
+    bedroom, corridor and bathroom, sees through it."""
+    from frslam_graph.floorplan import Door
+
+    rooms = [r for r in plan.rooms if r.id != "bedroom"]
+    rooms += [Room("bed_a", "bedroom", sbox(0, 80, 40, 160)), Room("bed_b", "bedroom", sbox(40, 80, 80, 160))]
+    doors = []
+    for d in plan.doors:
+        side = "bed_a" if max(d.a[0], d.b[0]) <= 40 else "bed_b"
+        doors.append(Door(d.id, d.a, d.b, tuple(side if r == "bedroom" else r for r in d.rooms)))
+    return FloorPlan(rooms=rooms, doors=doors, units=plan.units, name="split-bedroom")
+
+
+def test_rooms_seen_through_are_dropped_and_the_rest_accepted(sim, baseline):
+    """Partial trust: a plan right everywhere but one wall drawn where the house has open space.
+    The walls-in-free-space check refused the whole registration; now the rooms whose walls the
+    map has seen through (the two halves of the bedroom) are dropped, the rest is accepted and
+    its priors come from the rooms kept only."""
+    from frslam_graph.localisation.relocalisation import Relocaliser
+    from frslam_graph.plan_checks import rooms_seen_through, walls_through_free_space
+
+    plan, run, m = sim
+    split = _split_bedroom(plan)
+    grid = run.grid
+    placed = Relocaliser(split.transformed(run.house.distortion.matrix, units="m"))
+    margin = CFG.updates.free_space_margin
+    assert walls_through_free_space(placed, grid, margin) > CFG.updates.max_walls_in_free_space
+    per = rooms_seen_through(placed, grid, margin)
+    shares = {k: t / max(s, 1) for k, (s, t) in per.items()}
+    assert shares["bed_a"] > 0.3 and shares["bed_b"] > 0.3
+    assert max(shares[k] for k in ("kitchen", "living", "corridor", "bathroom")) <= 0.1
+
+    upd = FloorPlanUpdater(split, CFG.updates, register_fn=fixed_source(m))
+    slam, res = run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind in ("register", "registration_retracted")]
+    assert any(e.accepted for e in reg)
+    kept = {r.id for r in upd.registered_plan.rooms}
+    assert kept == {"kitchen", "living", "corridor", "bathroom"}
+    assert len(slam.graph.priors()) >= 3
+    base = ate(baseline[1].trajectory, run.ground_truth)[0].rmse
+    assert ate(res.trajectory, run.ground_truth)[0].rmse <= 1.1 * base + 0.005

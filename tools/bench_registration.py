@@ -149,6 +149,14 @@ def _evaluate(plan: Any, reg: Any, truth: np.ndarray) -> dict[str, Any]:
     else:
         row.update(flip_est="", rot_est_deg="", rot_err_deg="", flip_ok=False, rot_ok=False, iou_a=0.0)
     row["wrong"] = bool(reg.ok and (not row["flip_ok"] or not row["rot_ok"] or row["iou_a"] < WRONG_IOU))
+    # the placement right (flip, rotation, IoU_a >= WRONG_IOU), accepted or refused by the gate
+    drot = (reg.rotation_deg - math.degrees(t_rot) + 180.0) % 360.0 - 180.0
+    row["placed_right"] = bool(
+        reg.placed
+        and bool(reg.flipped) == bool(t_flip)
+        and abs(drot) < ROT_TOL_DEG
+        and iou_a(plan, reg.matrix, truth) >= WRONG_IOU
+    )
     return row
 
 

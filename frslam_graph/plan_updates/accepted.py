@@ -19,5 +19,11 @@ class AcceptedPlan:
     relocaliser: Relocaliser
     map_fit: float
 
+    def trusted(self, plan: Any) -> Any:
+        """``plan`` (plan units) without the rooms the judge dropped from this registration (those
+        whose walls the map had seen through): the rooms the accepted plan in ``map`` holds."""
+        kept = [r.id for r in self.plan.rooms]
+        return plan if len(kept) == len(plan.rooms) else plan.subset(kept)
+
 
 __all__ = ["AcceptedPlan"]

@@ -24,7 +24,12 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
-from frslam_graph.plan_checks import matrix_disagreement, occupied_points, walls_through_free_space
+from frslam_graph.plan_checks import (
+    matrix_disagreement,
+    occupied_points,
+    rooms_seen_through,
+    walls_through_free_space,
+)
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.priors import INCONSISTENT_CHI2, gate_chi2
@@ -151,6 +156,13 @@ class RegistrationJudge:
             disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             nums["disagreement"] = disp
             if disp <= cfg.agree_tol:
+                if len(acc.plan.rooms) < len(self.plan.rooms):  # the rooms it trusts, no others
+                    try:
+                        relocaliser = Relocaliser(reg.apply(acc.trusted(self.plan)), self.params)
+                    except (FrslamError, ValueError) as exc:
+                        return self._reject(case, f"registered plan unusable: {exc}")
+                    plan_map, fit = relocaliser.plan, relocaliser.fit_points(occ, fit_tol)
+                    nums["map_fit"] = fit
                 return self._by_the_scans(case, reg, plan_map, relocaliser, occ, fit_tol, fit, disp)
         if fit < cfg.min_map_fit:
             return self._reject(
@@ -159,11 +171,14 @@ class RegistrationJudge:
         crossing = walls_through_free_space(relocaliser, case.grid, margin)
         nums["walls_in_free_space"] = crossing
         if crossing > cfg.max_walls_in_free_space:
-            return self._reject(
-                case,
-                f"{crossing:.0%} of the plan's observed walls cross free space in the map "
-                f"> {cfg.max_walls_in_free_space:.0%}",
-            )
+            trusted = self._trusted_part(case, reg, relocaliser, margin, occ, fit_tol)
+            if isinstance(trusted, str):
+                return self._reject(
+                    case,
+                    f"{crossing:.0%} of the plan's observed walls cross free space in the map "
+                    f"> {cfg.max_walls_in_free_space:.0%}{trusted}",
+                )
+            plan_map, relocaliser, fit = trusted
         if acc is not None:
             disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             old_fit = acc.relocaliser.fit_points(occ, fit_tol)
@@ -180,6 +195,42 @@ class RegistrationJudge:
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})",
                 )
         return self._on_the_scans(case, reg, plan_map, relocaliser, fit)
+
+    def _trusted_part(
+        self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
+    ) -> tuple[Any, Relocaliser, float] | str:
+        """A registration whose walls cross the map's free space: the plan without the rooms the
+        map has seen through (more than ``max_walls_in_free_space`` of a room's observed interior
+        walls; a plan drawn differently from the building as built, e.g. a block drawn closed
+        where the building has a corridor). Returns that plan in ``map``, its relocaliser and its
+        map fit when those rooms are fewer than half of the rooms the registration matched and the
+        rest passes the map checks (no prior then comes from a dropped room); else why not (text
+        appended to the rejection)."""
+        cfg, nums = self.config, case.nums
+        per = rooms_seen_through(relocaliser, case.grid, margin)
+        drop = [rid for rid, (seen, through) in per.items() if through > cfg.max_walls_in_free_space * seen]
+        # the rooms the registration placed on the map, or whose walls the map observed
+        matched = set(reg.rooms) | {rid for rid, (seen, _) in per.items() if seen > 0}
+        nums["rooms_seen_through"] = len(drop)
+        if not drop:
+            return ""
+        if 2 * len(drop) >= len(matched):
+            return f"; the rooms seen through ({', '.join(drop)}) are not a minority of the {len(matched)} matched"
+        kept = [r.id for r in self.plan.rooms if r.id not in set(drop)]
+        try:
+            part = Relocaliser(reg.apply(self.plan.subset(kept)), self.params)
+        except (FrslamError, ValueError) as exc:
+            return f"; the plan without the rooms seen through is unusable: {exc}"
+        crossing = walls_through_free_space(part, case.grid, margin)
+        fit = part.fit_points(occ, fit_tol)
+        nums.update(walls_in_free_space_kept=crossing, map_fit_kept=fit)
+        if crossing > cfg.max_walls_in_free_space:
+            return f"; still {crossing:.0%} without the rooms seen through ({', '.join(drop)})"
+        if fit < cfg.min_map_fit:
+            return (
+                f"; without the rooms seen through ({', '.join(drop)}) its walls explain {fit:.0%} of the map"
+            )
+        return part.plan, part, fit
 
     def _by_the_scans(
         self,

@@ -134,7 +134,7 @@ class PlanRefiner:
             m @ fix, score=reg.score, ambiguity=reg.ambiguity, method=f"{reg.method}+scale", rooms=reg.rooms
         )
         try:
-            plan_map = new.apply(self.plan)
+            plan_map = new.apply(acc.trusted(self.plan))
             relocaliser = Relocaliser(plan_map, self.params)
         except (FrslamError, ValueError) as exc:
             return kept(f"scale: refined plan unusable: {exc}", **nums)
@@ -218,7 +218,7 @@ class PlanRefiner:
             rooms=reg.rooms,
         )
         try:
-            plan_map = new.apply(self.plan)
+            plan_map = new.apply(acc.trusted(self.plan))
             relocaliser = Relocaliser(plan_map, self.params)
         except (FrslamError, ValueError) as exc:
             return Refinement(f"start: moved plan unusable: {exc}", nums)

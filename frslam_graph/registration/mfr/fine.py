@@ -122,35 +122,15 @@ def wall_precision_recall(
     near a boundary of any plan room. A room stretched over several observed rooms explains
     the outline but not the inner walls: its recall is low.
     """
-    res = obs.frame.resolution
-    pts = pm.samples
-    if len(pts) == 0 or len(obs.edge_points) == 0:
+    faces = face_distances(pm, obs, matrix, max_points, delta)
+    if faces is None:
         return 0.0, 0.0
-    stride = max(1, len(pts) // max_points)
-    pts = pts[::stride]
-    a, t = matrix[:2, :2], matrix[:2, 2]
-    q = pts @ a.T + t
-    if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
-        nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
-        q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
-    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
-    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)
-    precision = float(np.sum((d < tol) & inside) / max(int(inside.sum()), 1))
-    det = abs(float(np.linalg.det(a)))
-    if det <= 0:
+    d_plan, dev, slack = faces
+    precision = float(np.sum(d_plan < tol) / max(len(d_plan), 1))
+    if dev is None:
         return precision, 0.0
-    ainv = np.linalg.inv(a)
-    e = (obs.edge_points - t) @ ainv.T
-    pf = pm.plan_frame
-    pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)
-    pr = np.floor((e[:, 1] - pf.origin[1]) / pf.resolution).astype(np.intp)
-    hp, wp = pm.plan_dt.shape
-    okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
-    dp = np.full(len(e), np.inf, np.float32)
-    dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
     # a map wall cell lies |delta| from the plan's boundary (its wall face), within tol
-    recall = float(np.mean(np.abs(dp - abs(delta)) < tol + pf.resolution * math.sqrt(det)))
-    return precision, recall
+    return precision, float(np.mean(dev < tol + slack))
 
 
 def placement_test(mats: np.ndarray, obs: MapObservation):
@@ -262,3 +242,39 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
         iterations=opts["iterations"],
     )
     return r if plausible(r, opts) else screened
+
+
+def face_distances(
+    pm: PlanModel, obs: MapObservation, matrix: np.ndarray, max_points: int = 1000, delta: float = 0.0
+) -> tuple[np.ndarray, np.ndarray | None, float] | None:
+    """What :func:`wall_precision_recall` thresholds, for any tolerance: (metres from each of the
+    plan's wall-face samples landing on the footprint to the nearest wall-side free cell; metres
+    between each of the map's wall-side cells and the nearest plan wall face, None for a singular
+    placement; the slack added to the tolerance there, one plan raster cell in metres). None
+    without plan samples or map walls."""
+    res = obs.frame.resolution
+    pts = pm.samples
+    if len(pts) == 0 or len(obs.edge_points) == 0:
+        return None
+    stride = max(1, len(pts) // max_points)
+    pts = pts[::stride]
+    a, t = matrix[:2, :2], matrix[:2, 2]
+    q = pts @ a.T + t
+    if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
+        nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
+        q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
+    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
+    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)[inside]
+    det = abs(float(np.linalg.det(a)))
+    if det <= 0:
+        return d, None, 0.0
+    ainv = np.linalg.inv(a)
+    e = (obs.edge_points - t) @ ainv.T
+    pf = pm.plan_frame
+    pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)
+    pr = np.floor((e[:, 1] - pf.origin[1]) / pf.resolution).astype(np.intp)
+    hp, wp = pm.plan_dt.shape
+    okp = (pc >= 0) & (pr >= 0) & (pc < wp) & (pr < hp)
+    dp = np.full(len(e), np.inf, np.float32)
+    dp[okp] = pm.plan_dt[pr[okp], pc[okp]] * np.float32(math.sqrt(det))
+    return d, np.abs(dp - abs(delta)), pf.resolution * math.sqrt(det)
