@@ -81,6 +81,15 @@ def between_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.column_stack((c * dx + s * dy, -s * dx + c * dy, wrap(b[:, 2] - a[:, 2])))
 
 
+def compose_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a[i] ⊕ b[i] for (N, 3) arrays a and b (vectorised, row by row)."""
+    a, b = np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(b, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack(
+        (a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1], wrap(a[:, 2] + b[:, 2]))
+    )
+
+
 def compose_jacobians(a: Pose, b: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of compose(a, b) w.r.t. the vectors a and b (additive perturbations)."""
     c, s = np.cos(a[2]), np.sin(a[2])

@@ -306,18 +306,12 @@ class FRSlam:
         return np.column_stack((store.stamps(), self.graph.estimates()))
 
     def trajectory(self) -> np.ndarray:
-        """(N, 4) stamp, x, y, theta in map of every accepted scan."""
-        scans = self.context.store.scans
-        if not len(scans):
+        """(N, 4) stamp, x, y, theta in map of every accepted scan (between two keyframes the
+        map <- odom correction blended from one to the next: :meth:`KeyframeStore.scan_poses`)."""
+        store = self.context.store
+        if not len(store.scans):
             return np.zeros((0, 4))
-        est = self.graph.estimates()
-        rel = scans.relative
-        base = est[scans.keyframe]
-        c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
-        x = base[:, 0] + c * rel[:, 0] - s * rel[:, 1]
-        y = base[:, 1] + s * rel[:, 0] + c * rel[:, 1]
-        th = (base[:, 2] + rel[:, 2] + np.pi) % (2 * np.pi) - np.pi
-        return np.column_stack((scans.stamps, x, y, th))
+        return np.column_stack((store.scans.stamps, store.scan_poses(self.graph.estimates())))
 
     def odometry_trajectory(self) -> np.ndarray:
         """(N, 4) stamp, x, y, theta in odom (the fused odometry, never corrected)."""

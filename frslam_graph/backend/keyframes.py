@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from frslam_graph.errors import RecordingError
+from frslam_graph.se2 import between_many, compose_rows
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,12 +147,44 @@ class KeyframeStore:
         """(K, 3) keyframe poses in odom."""
         return np.array([k.pose_odom for k in self._kfs])
 
+    def scan_poses(self, estimates: np.ndarray) -> np.ndarray:
+        """(N, 3) every scan's pose in ``map`` at these keyframe estimates (K, 3).
+
+        A keyframe's estimate against its odometry pose is the ``map`` <- ``odom`` correction
+        there. A scan takes its odometry pose moved by its keyframe's correction blended linearly
+        into the next keyframe's, by its place among the scans between the two (scan order:
+        stamps may go backwards), so the trajectory has no step where a keyframe's correction
+        differs from the next one's (drift corrected along the way, as it accrued). Scans after
+        the last keyframe take its correction: the latest pose is ``estimate ⊕ relative``.
+        """
+        scans = self.scans
+        n = len(scans)
+        if n == 0 or not len(self._kfs):
+            return np.zeros((0, 3))
+        est = np.asarray(estimates, dtype=np.float64).reshape(-1, 3)
+        kf_odom = self.odometry()
+        # correction map <- odom at each keyframe: est ⊕ odom⁻¹ = (odom ⊖ est)⁻¹ in frame map
+        corr = compose_rows(est, _inverse_rows(kf_odom))
+        first = np.array([k.scan_index for k in self._kfs], dtype=np.float64)
+        k = scans.keyframe
+        nxt = np.minimum(k + 1, len(self._kfs) - 1)
+        span = first[nxt] - first[k]
+        alpha = np.where(span > 0, (np.arange(n) - first[k]) / np.where(span > 0, span, 1.0), 0.0)
+        step = between_many(corr[k], corr[nxt]) * np.clip(alpha, 0.0, 1.0)[:, None]
+        return compose_rows(compose_rows(corr[k], step), scans.odometry)
+
     def infos(self, estimates: np.ndarray) -> list[KeyframeInfo]:
         """Every keyframe as a :class:`KeyframeInfo` at these map estimates (K, 3)."""
         return [
             KeyframeInfo(i, k.stamp, k.scan_index, estimates[i], k.pose_odom.copy())
             for i, k in enumerate(self._kfs)
         ]
+
+
+def _inverse_rows(a: np.ndarray) -> np.ndarray:
+    """a[i]⁻¹ for an (N, 3) array of poses."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack((-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], -a[:, 2]))
 
 
 __all__ = ["KeyframeInfo", "KeyframeStore", "Rows", "ScanTrack", "StoredKeyframe"]
