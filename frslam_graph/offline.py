@@ -67,6 +67,9 @@ class SlamResult:
     wall_time: float  # seconds for the whole run (incl. the batch)
     duration: float  # recording time span, seconds
     parallel: bool = False  # odometry ran in a worker process (latencies: sum of both stages)
+    # (N,) CPU seconds per scan of the threads that did its work (odometry + backend stage): the
+    # latency on a core of its own, whatever else loads the machine
+    cpu_latencies: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def realtime_factor(self) -> float:
@@ -83,7 +86,8 @@ def process(
     cores). None = whenever possible: a fresh instance (no scans yet) where
     :func:`~frslam_graph.odometry.worker.available` holds. Afterwards ``slam`` takes no more
     scans (its own odometry did not run). ``SlamResult.latencies`` are then the sum of both
-    stages' seconds per scan (what ``add_scan`` would take).
+    stages' seconds per scan (what ``add_scan`` would take); ``cpu_latencies`` the same in CPU
+    seconds of the threads that did the work.
     """
     with slam.guard("process"):
         can = (
@@ -96,7 +100,7 @@ def process(
                 where="parallel",
             )
         parallel = can if parallel is None else parallel
-        lat = Rows()
+        lat = Rows(2)  # wall, CPU seconds per scan
         t_start = time.perf_counter()
         first = last = None
         with contextlib.ExitStack() as stack:
@@ -106,10 +110,10 @@ def process(
                 staged = _odometry_in_worker(slam, recording, worker)
             else:
                 staged = _odometry_here(slam, recording)
-            for stamp, res, pts, off, odometry_s in staged:
-                t0 = time.perf_counter()
+            for stamp, res, pts, off, odometry_s, odometry_cpu in staged:
+                t0, c0 = time.perf_counter(), time.thread_time()
                 slam.add_odometry(res, pts, off)
-                lat.append(odometry_s + time.perf_counter() - t0)
+                lat.append((odometry_s + time.perf_counter() - t0, odometry_cpu + time.thread_time() - c0))
                 first = stamp if first is None else first
                 last = stamp
             if parallel:
@@ -125,22 +129,24 @@ def process(
             np.asarray(slam.map_to_odom()),
             slam.stats,
             slam.log,
-            lat.array.copy(),
+            lat.array[:, 0].copy(),
             wall,
             float(last - first) if first is not None else 0.0,
             bool(parallel),
+            lat.array[:, 1].copy(),
         )
 
 
 def _odometry_here(slam: FRSlam, recording: Iterable[Any]) -> Iterator[tuple]:
-    """(stamp, odometry result, base_link points, sensor offset, seconds) per scan, in-process."""
+    """(stamp, odometry result, base_link points, sensor offset, seconds, CPU seconds) per scan,
+    in-process."""
     for scan in recording:
         slam.check_own_odometry()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         stamp = stream_input.finite_number(scan.stamp, "stamp")
         pts, off = body_points(scan.points, scan.sensor_offset)
         res = slam.odometry.process(stamp, pts, scan.odom)
-        yield scan.stamp, res, pts, off, time.perf_counter() - t0
+        yield scan.stamp, res, pts, off, time.perf_counter() - t0, time.thread_time() - c0
 
 
 def _odometry_in_worker(slam: FRSlam, recording: Iterable[Any], worker) -> Iterator[tuple]:
@@ -152,8 +158,8 @@ def _odometry_in_worker(slam: FRSlam, recording: Iterable[Any], worker) -> Itera
             pts, off = body_points(scan.points, scan.sensor_offset)
             yield scan.stamp, pts, scan.odom, off
 
-    for (stamp, pts, _, off), res, seconds in worker.run(inputs(), slam.odometry.prepare):
-        yield stamp, res, pts, off, seconds
+    for (stamp, pts, _, off), res, seconds, cpu_seconds in worker.run(inputs(), slam.odometry.prepare):
+        yield stamp, res, pts, off, seconds, cpu_seconds
 
 
 #: scans between two returns of freed heap memory to the system during :func:`run_recording`
@@ -310,6 +316,11 @@ def write_outputs(
     return run
 
 
+def _spread(ms: np.ndarray) -> dict[str, float]:
+    """Median, 99th percentile and maximum of per-scan milliseconds."""
+    return {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
+
+
 def _run_metrics(
     run: RunOutput, grid: OccupancyGrid | None, ground_truth: np.ndarray | None, relations: np.ndarray | None
 ) -> dict[str, Any]:
@@ -318,6 +329,7 @@ def _run_metrics(
     res = run.result
     map_metrics = _map_metrics(run.slam, grid) if grid is not None else {}
     lat = res.latencies * 1e3 if len(res.latencies) else np.zeros(1)
+    cpu = res.cpu_latencies * 1e3 if len(res.cpu_latencies) else np.zeros(1)
     kinds: dict[str, int] = {}
     removed = dict.fromkeys(PRIOR_REMOVAL_CAUSES, 0)
     for ev in res.log:
@@ -332,11 +344,10 @@ def _run_metrics(
         "realtime_factor": res.realtime_factor,
         # with the odometry in a worker process a latency is the sum of both stages' times
         "odometry_in_worker": res.parallel,
-        "latency_ms": {
-            "median": float(np.median(lat)),
-            "p99": float(np.percentile(lat, 99)),
-            "max": float(lat.max()),
-        },
+        "latency_ms": _spread(lat),
+        # the same in CPU time of the threads that did each scan's work: the latency on a core of
+        # its own, whatever else loads the machine
+        "latency_cpu_ms": _spread(cpu),
         "map_to_odom": res.map_to_odom,
         "odometry_stats": res.stats,
         "decisions": kinds,

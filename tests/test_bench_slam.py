@@ -30,7 +30,15 @@ def excerpts(test_data, tmp_path):
     return {"head": (head, None), "short": (short, None)}
 
 
-TIMING = {"wall_s", "xrt", "latency_ms", "peak_rss_mb", "peak_rss_backend_mb", "peak_rss_worker_mb"}
+TIMING = {
+    "wall_s",
+    "xrt",
+    "latency_ms",
+    "latency_cpu_ms",
+    "peak_rss_mb",
+    "peak_rss_backend_mb",
+    "peak_rss_worker_mb",
+}
 
 
 def test_workers_give_the_sequential_results(bench, test_data, tmp_path):
@@ -79,6 +87,7 @@ RUN = {
     "wall_s": 100.0,
     "xrt": 26.91,
     "latency_ms": {"median": 1.234, "p99": 12.34, "max": 456.7},
+    "latency_cpu_ms": {"median": 1.1, "p99": 9.87, "max": 123.4},
     "endpoints_on_wall": None,
     "closures": 42,
     "peak_rss_mb": 512.4,
@@ -98,6 +107,7 @@ def test_table_rows_from_fixed_numbers(bench):
         "n/a",
         "26.9",
         "1.23 / 12.3 / 457",
+        "1.10 / 9.9 / 123",
         "512",
         "42",
         "0.5000 ± 0.2500",

@@ -224,9 +224,9 @@ def test_prepare_placement_gives_the_same_results(faulty_recording, schedule, mo
         }[schedule]
         monkeypatch.setattr(worker, "_prepare_here", place)
         got = []
-        for item, res, seconds in worker.run(inputs, prepare):
+        for item, res, seconds, cpu_seconds in worker.run(inputs, prepare):
             got.append((item[3], res))
-            assert seconds > 0.0
+            assert seconds > 0.0 and cpu_seconds > 0.0
     assert [k for k, _ in got] == list(range(len(scans)))
     for (_, a), b in zip(got, expected, strict=True):
         np.testing.assert_array_equal(a.pose, b.pose)
@@ -255,3 +255,27 @@ def test_prepare_goes_to_the_lighter_stage():
     assert worker._prepare_here()
     worker._odometry_s, worker._caller_s = 1e-3, 1e-2  # heavy backend
     assert not worker._prepare_here()
+
+
+@pytest.mark.parametrize("parallel", [False, pytest.param(True, marks=needs_worker)])
+def test_cpu_latency_counts_the_work_of_a_scan_not_the_waits(faulty_recording, monkeypatch, parallel):
+    """``cpu_latencies`` are CPU seconds of the threads that did each scan's work: a backend
+    stage that waits (here a 30 ms sleep on every 10th scan, as a busy machine would make it
+    wait) shows in the wall latency and not in the CPU one."""
+    slam = FRSlam(FRSlamConfig.from_dict({**CFG, "loop_closure": {"enabled": False}}))
+    add = slam.add_odometry
+    calls = iter(range(10**9))
+
+    def waiting_add(*args, **kwargs):
+        if next(calls) % 10 == 0:
+            time.sleep(0.03)
+        return add(*args, **kwargs)
+
+    monkeypatch.setattr(slam, "add_odometry", waiting_add)
+    res = process(slam, faulty_recording[:200], parallel=parallel)
+    assert res.parallel is parallel
+    assert res.cpu_latencies.shape == res.latencies.shape == (200,)
+    assert np.all(res.cpu_latencies > 0.0)
+    slept = np.arange(200) % 10 == 0
+    assert np.all(res.latencies[slept] >= 0.03)
+    assert np.all(res.cpu_latencies[slept] < res.latencies[slept] - 0.02)

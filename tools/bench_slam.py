@@ -13,7 +13,10 @@ peak RSS is that log's. One row per log:
 - × real time of the whole run: log duration / wall time of ``run_recording`` (reading the log,
   odometry, backend, final batch; not ``write_outputs``);
 - per-scan latency median / p99 / max (ms, ``metrics.json["latency_ms"]``: with the odometry
-  worker the sum of both stages' times per scan);
+  worker the sum of both stages' wall times per scan), and the same in CPU time of the threads
+  that did each scan's work (``latency_cpu_ms``: what a scan takes on a core of its own, the
+  streaming ``add_scan`` latency on a quiet machine; the wall figure also holds the waits of two
+  processes and the reader's thread sharing two cores);
 - peak RSS (MB), backend + odometry worker: ``ru_maxrss`` of the run's process (the backend,
   reading the log, the final batch and ``write_outputs``) and that of its children (the odometry
   worker, joined at the end of the run). The worker is forked from the backend, so its figure
@@ -137,6 +140,7 @@ def child_frslam(spec: dict) -> dict[str, Any]:
         "wall_s": wall,
         "xrt": res.duration / wall,
         "latency_ms": metrics["latency_ms"],
+        "latency_cpu_ms": metrics["latency_cpu_ms"],
         "endpoints_on_wall": (metrics.get("map") or {}).get("endpoints_on_wall"),
         "closures": metrics["decisions"].get("loop_closure", 0),
         "keyframes": metrics["keyframes"],
@@ -301,6 +305,7 @@ MAIN_HEAD = [
     "endpoints on wall",
     "× real time",
     "latency median / p99 / max (ms)",
+    "CPU per scan median / p99 / max (ms)",
     "peak RSS backend + worker (MB)",
     "loop closures",
     "KISS-ICP trans err mean ± std (m)",
@@ -316,7 +321,6 @@ def main_row(name: str, run: dict, base: dict | None) -> list[str]:
     cells = _rel_cells(run.get("relations"))
     if "ate_rmse" in run and not run.get("relations"):
         cells[0] = f"ATE RMSE {run['ate_rmse']:.4f} (simulated, {run['duration_s'] / 3600:.2f} h)"
-    lat = run["latency_ms"]
     wall = run.get("endpoints_on_wall")
     row = [
         name,
@@ -324,7 +328,8 @@ def main_row(name: str, run: dict, base: dict | None) -> list[str]:
         *cells,
         _share(wall),
         f"{run['xrt']:.1f}",
-        f"{lat['median']:.2f} / {lat['p99']:.1f} / {lat['max']:.0f}",
+        _lat_cell(run["latency_ms"]),
+        _lat_cell(run.get("latency_cpu_ms")),
         _rss_cell(run),
         str(run["closures"]),
     ]
@@ -338,6 +343,11 @@ def main_row(name: str, run: dict, base: dict | None) -> list[str]:
             f"{run['wall_s'] / base['wall_s']:.2f}",
         ]
     return row
+
+
+def _lat_cell(ms: dict | None) -> str:
+    """median / p99 / max of per-scan milliseconds ("—" for a result from before they existed)."""
+    return "—" if ms is None else f"{ms['median']:.2f} / {ms['p99']:.1f} / {ms['max']:.0f}"
 
 
 def _rss_cell(run: dict) -> str:

@@ -85,15 +85,15 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
         if chunk is None:
             outbox.put(("done", odometry.stats))
             return
-        results: list[tuple[OdometryResult, float, float]] = []
+        results: list[tuple[OdometryResult, float, float, float]] = []
         try:
             for stamp, points, odom in chunk:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 if not isinstance(points, PreparedScan):  # what process() would do first
                     points = odometry.prepare(points)
                 t1 = time.perf_counter()
                 res = odometry.process(stamp, points, odom)
-                results.append((res, time.perf_counter() - t0, t1 - t0))
+                results.append((res, time.perf_counter() - t0, t1 - t0, time.thread_time() - c0))
         except FrslamError as exc:  # bad input: the caller raises it after the earlier results
             outbox.put(("results", results))
             outbox.put(("error", exc))
@@ -108,10 +108,10 @@ def _serve(config: OdometryConfig, inbox, outbox, parent: int, poll_s: float = 1
 class OdometryWorker:
     """A ScanOdometry in a forked process (see module docstring); use as a context manager.
 
-    ``run(items, prepare)`` yields ``(item, result, seconds)`` for each ``item`` of ``items`` (a
-    ScanInput followed by anything the caller wants back with it), in order, keeping at most
-    ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on it
-    (its prepare included, wherever it ran). ``stats`` holds the worker's
+    ``run(items, prepare)`` yields ``(item, result, seconds, cpu_seconds)`` for each ``item`` of
+    ``items`` (a ScanInput followed by anything the caller wants back with it), in order, keeping
+    at most ``chunk * window`` scans in flight; ``seconds`` is the wall time the odometry took on
+    it and ``cpu_seconds`` its thread's CPU time (its prepare included, wherever it ran). ``stats`` holds the worker's
     :class:`OdometryStats` once ``run`` is exhausted; ``prepared_here`` / ``prepared_there``
     count the scans whose prepare ran in the caller / in the worker.
     """
@@ -178,12 +178,13 @@ class OdometryWorker:
 
     def run(
         self, items: Iterable[tuple[Any, ...]], prepare: Callable[[np.ndarray], Any] | None = None
-    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult, float]]:
+    ) -> Iterator[tuple[tuple[Any, ...], OdometryResult, float, float]]:
         """See the class docstring. ``prepare``: the odometry's stateless preparation of an item's
         points (``ScanOdometry.prepare``), run in this process while the worker is the slower
         stage; None = always in the worker."""
         source = iter(items)
-        waiting: deque[tuple[tuple[Any, ...], float]] = deque()  # (item, prepare s) sent, not yielded
+        # (item, prepare wall s, prepare CPU s) sent, not yielded
+        waiting: deque[tuple[tuple[Any, ...], float, float]] = deque()
         in_flight, exhausted = 0, False
         while True:
             while not exhausted and in_flight < self.window:
@@ -191,12 +192,12 @@ class OdometryWorker:
                 here = prepare is not None and self._prepare_here()
                 for item in source:
                     stamp, points, odom = item[:3]
-                    prepare_s = 0.0
+                    prepare_s = prepare_cpu = 0.0
                     if here:
-                        t0 = time.perf_counter()
+                        t0, c0 = time.perf_counter(), time.thread_time()
                         points = prepare(points)
-                        prepare_s = time.perf_counter() - t0
-                    waiting.append((item, prepare_s))
+                        prepare_s, prepare_cpu = time.perf_counter() - t0, time.thread_time() - c0
+                    waiting.append((item, prepare_s, prepare_cpu))
                     chunk.append((stamp, points, odom))
                     if len(chunk) == self.chunk:
                         break
@@ -214,11 +215,11 @@ class OdometryWorker:
                 break
             results = self._receive()
             in_flight -= 1
-            for result, seconds, worker_prepare_s in results:
-                item, prepare_s = waiting.popleft()
+            for result, seconds, worker_prepare_s, cpu_s in results:
+                item, prepare_s, prepare_cpu = waiting.popleft()
                 self._odometry_s = _average(self._odometry_s, seconds - worker_prepare_s)
                 t0 = time.perf_counter()
-                yield item, result, seconds + prepare_s
+                yield item, result, seconds + prepare_s, cpu_s + prepare_cpu
                 self._caller_s = _average(self._caller_s, time.perf_counter() - t0)
         self.stats = self._receive()  # or the error that ended the last chunk after its results
 
