@@ -90,6 +90,13 @@ def compose_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+def inverse_rows(a: np.ndarray) -> np.ndarray:
+    """a[i]⁻¹ for an (N, 3) array of poses (vectorised, row by row)."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack((-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], wrap(-a[:, 2])))
+
+
 def compose_jacobians(a: Pose, b: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of compose(a, b) w.r.t. the vectors a and b (additive perturbations)."""
     c, s = np.cos(a[2]), np.sin(a[2])

@@ -10,8 +10,12 @@ import pytest
 
 from frslam_graph.se2 import (
     between_many,
+    compose,
     compose_increments,
+    compose_rows,
     interpolate_poses,
+    inverse,
+    inverse_rows,
     relative_motion,
     wrap,
     wrap_atan2,
@@ -49,3 +53,14 @@ def test_interpolated_heading_takes_the_short_way_round():
     mid = interpolate_poses(stamps, poses, np.array([0.5]))[0]
     assert mid[:2] == pytest.approx([0.5, 1.0])
     assert abs(mid[2]) == pytest.approx(math.pi)
+
+
+def test_row_by_row_compose_and_inverse_equal_the_single_pose_ones():
+    rng = np.random.default_rng(3)
+    a = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], (20, 3))
+    b = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], (20, 3))
+    np.testing.assert_allclose(
+        compose_rows(a, b), [compose(x, y) for x, y in zip(a, b, strict=True)], atol=1e-12
+    )
+    np.testing.assert_allclose(inverse_rows(a), [inverse(x) for x in a], atol=1e-12)
+    np.testing.assert_allclose(compose_rows(a, inverse_rows(a)), np.zeros((20, 3)), atol=1e-12)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from frslam_graph.errors import RecordingError
-from frslam_graph.se2 import between_many, compose_rows
+from frslam_graph.se2 import between_many, compose_rows, inverse_rows
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,7 +164,7 @@ class KeyframeStore:
         est = np.asarray(estimates, dtype=np.float64).reshape(-1, 3)
         kf_odom = self.odometry()
         # correction map <- odom at each keyframe: est ⊕ odom⁻¹ = (odom ⊖ est)⁻¹ in frame map
-        corr = compose_rows(est, _inverse_rows(kf_odom))
+        corr = compose_rows(est, inverse_rows(kf_odom))
         first = np.array([k.scan_index for k in self._kfs], dtype=np.float64)
         k = scans.keyframe
         nxt = np.minimum(k + 1, len(self._kfs) - 1)
@@ -179,12 +179,6 @@ class KeyframeStore:
             KeyframeInfo(i, k.stamp, k.scan_index, estimates[i], k.pose_odom.copy())
             for i, k in enumerate(self._kfs)
         ]
-
-
-def _inverse_rows(a: np.ndarray) -> np.ndarray:
-    """a[i]⁻¹ for an (N, 3) array of poses."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack((-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], -a[:, 2]))
 
 
 __all__ = ["KeyframeInfo", "KeyframeStore", "Rows", "ScanTrack", "StoredKeyframe"]
