@@ -13,6 +13,7 @@ records as an (M, 4) array ``stamp, x, y, theta`` of ``base_link`` in ``odom`` (
 
 from __future__ import annotations
 
+import math
 import warnings
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -135,3 +136,51 @@ class PoseInterpolator:
             float(np.interp(stamp, t, self.y)),
             wrap_atan2(heading),
         )
+
+
+#: Seconds of later messages that bound each message's acquisition time in
+#: :func:`acquisition_times`: longer than a recording's delivery bursts (Intel: most within 2 s).
+ACQUISITION_WINDOW = 3.0
+
+
+def stream_period(stamps: np.ndarray, span: float = 5.0) -> float:
+    """Typical period (s) of a message stream from its stamps in publish order: the median over
+    windows of about ``span`` seconds of (stamp difference / messages), so bursts (delivery
+    delays) and drops barely move it. NaN for fewer than two stamps."""
+    a = np.asarray(stamps, dtype=np.float64)
+    if a.size < 2:
+        return float("nan")
+    mean = (a[-1] - a[0]) / (a.size - 1)
+    k = int(np.clip(round(span / mean), 1, a.size - 1)) if mean > 0 else a.size - 1
+    return float(np.median((a[k:] - a[:-k]) / k))
+
+
+def acquisition_times(stamps: np.ndarray, window: float = ACQUISITION_WINDOW) -> np.ndarray | None:
+    """Acquisition times (s) of a steady message stream stamped on arrival, or None when the
+    stamps already follow a steady clock.
+
+    ``stamps`` are in publish order (ROS ``header.seq``, a log's file order). A sensor publishing
+    every ``T`` seconds whose messages reach the stamping process late and in bursts (stamps are
+    arrival times) took message ``i`` at most ``stamps[j] - (j - i) T`` for every later ``j``:
+    delays are never negative, and a dropped message between ``i`` and ``j`` only loosens the
+    bound. The estimate is the tightest such bound over the next ``window`` seconds (Olson's
+    passive synchronisation, "A passive solution to the sensor synchronization problem", IROS
+    2010, with the message count as the sensor clock). ``T`` is :func:`stream_period`.
+
+    None (keep the stamps) when the median delay this finds is under a quarter period: the stamps
+    are then acquisition times up to jitter. The Intel recording (``intel.clf``, ``intel.bag``) is
+    the bursty case: ODOM at 10 Hz stamped with a median gap of 0.9 ms, a median delay of 2.5
+    periods and delays up to 3.4 s.
+    """
+    a = np.asarray(stamps, dtype=np.float64)
+    period = stream_period(a)
+    if a.size < 3 or not period > 0.0:
+        return None
+    k = max(1, math.ceil(window / period))
+    idx = np.arange(a.size)
+    bound = a - idx * period  # stamps[j] - j T
+    padded = np.concatenate([bound, np.full(k, np.inf)])
+    earliest = np.lib.stride_tricks.sliding_window_view(padded, k + 1).min(axis=1) + idx * period
+    if np.median(a - earliest) < 0.25 * period:
+        return None
+    return earliest
