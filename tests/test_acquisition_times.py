@@ -55,11 +55,13 @@ def test_a_bursty_stream_is_retimed_to_its_steady_clock():
     assert stream_period(arrival) == pytest.approx(0.1, rel=0.05)
 
 
-def test_steady_stamps_are_kept():
+def test_steady_or_varying_stamps_are_kept():
     rng = np.random.default_rng(2)
     stamps = np.arange(500) * 0.05 + rng.normal(0.0, 0.002, 500)  # 20 Hz, 2 ms jitter
     stamps = np.delete(stamps, [40, 41, 200])  # drops do not make a stream bursty
     assert acquisition_times(stamps) is None
+    varying = np.cumsum(rng.uniform(0.5, 1.9, 500) * 0.17)  # ACES: a varying rate, not bursts
+    assert acquisition_times(varying) is None
     assert acquisition_times(np.array([0.0, 0.1])) is None
 
 
