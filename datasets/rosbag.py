@@ -29,7 +29,7 @@ written in each FLASER line) in a turn. Each stream whose stamps are bursty is t
 from its own message count (:func:`~frslam_graph.datasets.recording.acquisition_times`: a steady
 publisher stamped late, never early), the odometry in ``header.seq`` order with all its records,
 and the scans are paired at their acquisition times; ``Scan.stamp`` stays the message's stamp.
-Steady stamps (jitter under a quarter period) are used as they are. On ``intel.bag`` (heading
+Stamps without bursts (ACES, FR079, simulator output) are used as they are. On ``intel.bag`` (heading
 step against the FLASER lines' poses, mean / p99 / max): 0.53° / 11.5° / 51° interpolated at the
 stamps, 0.26° / 1.9° / 8.4° re-timed. Its LaserScan states 180 beams over 180° (``angle_increment``
 π/179) where the CARMEN reader uses CARMEN's 1° steps; the message is read as stated (the angles
