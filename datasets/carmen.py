@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
-from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats
+from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats, acquisition_times
 from frslam_graph.datasets.scan import Scan
 
 from frslam_graph.errors import OptionError, RecordingError
@@ -52,6 +52,7 @@ OTHER_TYPES = frozenset(
 KNOWN_TYPES = OTHER_TYPES | set(FRONT + REAR)
 CARMEN_MAX_RANGE = 80.0  # carmen_string_to_robot_laser_message_orig's maximum_range
 SATURATION_SAMPLE = 300  # laser lines inspected for a saturation value
+BURSTY = "recording stamped on arrival in bursts (ODOM records paired at estimated acquisition times)"
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 
 
@@ -162,7 +163,9 @@ class CarmenLog(Recording):
         path: ``.clf`` / ``.log`` file, optionally ``.gz`` / ``.bz2``.
         laser: ``"front"`` (FLASER, ROBOTLASER1; default), ``"rear"`` or ``"all"``.
         odom: ``"laser"`` takes the robot pose written in each laser line (default); ``"odom"``
-            interpolates the ODOM records at the scan stamps; ``"none"`` attaches none;
+            interpolates the ODOM records at the scan stamps (both re-timed from their message
+            counts when the log stamps them on arrival in bursts, as Intel does:
+            :func:`~frslam_graph.datasets.recording.acquisition_times`); ``"none"`` attaches none;
             ``"auto"`` interpolates when the log shows that the laser lines' poses are stale and
             the stamps can be trusted, else takes the laser lines' poses (see
             :attr:`odom_source`, :attr:`odom_reason`; not the default yet: on ACES it sharpens the
@@ -217,6 +220,7 @@ class CarmenLog(Recording):
         self.counts: Counter = Counter()  # record type -> lines, from the first pass
         self._len = 0
         self._odom = np.zeros((0, 4))
+        self._odom_in_file_order = np.zeros((0, 4))
         self._first_stamp = self._last_stamp = float("nan")
         sample_max, sample_hits, sample_beams, param_max = self._index()
         if self._len == 0:
@@ -287,6 +291,8 @@ class CarmenLog(Recording):
     # ---------------------------------------------------------------- first pass
     def _index(self) -> tuple[float, int, int, float | None]:
         odom_rows: list[tuple[float, float, float, float]] = []
+        # stamps of the laser lines counted in self._len, file order (nan: unreadable)
+        laser_stamps: list[float] = []
         sample_max, sample_hits, sample_beams, sampled = 0.0, 0, 0, 0
         param_max: float | None = None
         stamps_first = stamps_last = float("nan")
@@ -315,7 +321,9 @@ class CarmenLog(Recording):
                 try:
                     stamp = float(line.rsplit(None, 3)[1])
                 except (ValueError, IndexError):
+                    laser_stamps.append(math.nan)
                     continue
+                laser_stamps.append(stamp)
                 if not math.isfinite(stamps_first):
                     stamps_first = stamp
                 stamps_last = stamp
@@ -365,11 +373,13 @@ class CarmenLog(Recording):
                     pass
         self._first_stamp, self._last_stamp = stamps_first, stamps_last
         self._pose_check = (stale, checked, backwards)
+        self._laser_stamps = np.array(laser_stamps, dtype=np.float64)
         if odom_rows:
             table = np.array(odom_rows, dtype=np.float64)
             keep = np.ones(len(table), dtype=bool)  # drop records stamped before their predecessor
             keep[1:] = table[1:, 0] > np.maximum.accumulate(table[:, 0])[:-1]
             self._odom = table[keep]
+            self._odom_in_file_order = table
         return sample_max, sample_hits, sample_beams, param_max
 
     def __len__(self) -> int:
@@ -389,13 +399,37 @@ class CarmenLog(Recording):
         """(M, 4) ODOM records ``stamp, x, y, theta`` with increasing stamps (others dropped)."""
         return self._odom.copy()
 
+    def _odom_track(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """What ``odom="odom"`` interpolates, and at which times: the ODOM table, or all ODOM records
+        in file order at their acquisition times when their stamps are arrival times of a bursty
+        stream (:func:`acquisition_times`); the laser lines' acquisition times (in the first
+        pass's order), or None when their stamps follow a steady clock."""
+        track = self._odom
+        acquired = acquisition_times(self._odom_in_file_order[:, 0])
+        if acquired is not None:
+            track = np.column_stack((acquired, self._odom_in_file_order[:, 1:]))
+            ok = np.ones(len(track), dtype=bool)  # the bound may tie or step back: keep it increasing
+            ok[1:] = track[1:, 0] > np.maximum.accumulate(track[:, 0])[:-1]
+            track = track[ok]
+        stamps = self._laser_stamps.copy()
+        good = np.isfinite(stamps)
+        scans = acquisition_times(stamps[good])
+        if scans is None:
+            return track, None
+        stamps[good] = scans
+        return track, stamps
+
     # ---------------------------------------------------------------- iteration
     def _scans(self, stats: RecordingStats) -> Iterator[Scan]:
         angles_cache: dict[tuple[int, float, float], np.ndarray] = {}
         last_stamp = -math.inf
         name = self.path.name
         use_odom_table = self.odom_source == "odom"
-        odom_at = PoseInterpolator(self._odom, self.odom_tolerance)
+        track, acquired = self._odom_track() if use_odom_table else (self._odom, None)
+        odom_at = PoseInterpolator(track, self.odom_tolerance)
+        if acquired is not None or track is not self._odom:
+            stats.flag(BURSTY, name)  # once: says how the poses were paired
+        line_index = -1  # laser lines passing the field check, as counted by the first pass
         for lineno, line in _lines(self.path, stats):
             tok = line.split()
             if not tok or tok[0].startswith("#"):
@@ -417,6 +451,7 @@ class CarmenLog(Recording):
                     problem = "laser record cut short at end of file"
                 stats.skip(problem, where)
                 continue
+            line_index += 1
             try:
                 rec = _parse_laser(kind, tok)
             except ValueError:
@@ -462,7 +497,14 @@ class CarmenLog(Recording):
             if self.odom_source == "laser":
                 odom = (rx, ry, rth)
             elif use_odom_table:
-                odom = odom_at(rec.stamp)
+                at = rec.stamp
+                if (
+                    acquired is not None
+                    and line_index < acquired.size
+                    and math.isfinite(acquired[line_index])
+                ):
+                    at = float(acquired[line_index])
+                odom = odom_at(at)
                 if odom is None:
                     stats.flag("scans outside the ODOM records (odom None)", where)
             else:
