@@ -146,7 +146,8 @@ class RegistrationJudge:
         case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
         case.drawing_tol = drawing_tolerance(reg)
         case.alternatives = [
-            np.asarray(a["matrix"], float) for a in (reg.details or {}).get("alternatives", [])
+            np.asarray(a["matrix"], float)
+            for a in (getattr(reg, "details", None) or {}).get("alternatives", [])
         ]
         if case.drawing_tol > 0.0:
             case.nums["drawing_tol"] = case.drawing_tol
