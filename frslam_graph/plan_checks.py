@@ -57,6 +57,42 @@ def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2
     return int(through.sum()) / max(int(observed.sum()), 1)
 
 
+#: m; side of the tiles that cut the plan's interior walls into pieces for the per-piece check
+#: (:func:`wall_pieces_seen_through`); about a door's width: finer than a room, coarser than the
+#: drawing error (0.5-1 m on the IPA plans)
+WALL_PIECE_M = 1.0
+
+
+def wall_pieces_seen_through(
+    relocaliser: Relocaliser, grid, margin: float, max_share: float
+) -> tuple[np.ndarray, float, float]:
+    """The plan's interior walls cut into pieces (the wall pixels of :func:`walls_through_free_space`
+    in one ``WALL_PIECE_M`` tile with one of four normal directions): a piece the map has seen
+    through on more than ``max_share`` of its observed pixels disagrees with the building (a wall
+    drawn where it has a corridor, a door the plan does not draw, a block drawn narrower).
+    Returns (the pixels of the disagreeing pieces (K, 2) in map metres, their share of the
+    observed wall pixels, the share of the other pieces' observed pixels seen through)."""
+    walls = _wall_pixels(relocaliser, grid, margin)
+    if walls is None:
+        return np.zeros((0, 2)), 0.0, 0.0
+    xy, normal, observed, through = walls
+    tile = np.floor(xy / WALL_PIECE_M).astype(np.int64)
+    # a wall's normal up to its sign, in four bins of 45 deg: the walls meeting at a corner differ
+    angle = np.mod(np.arctan2(normal[:, 1], normal[:, 0]), np.pi)
+    direction = np.minimum((angle / (np.pi / 4)).astype(np.int64), 3)
+    _, piece = np.unique(np.column_stack((tile, direction)), axis=0, return_inverse=True)
+    piece = piece.reshape(-1)
+    seen = np.bincount(piece, weights=observed)
+    thr = np.bincount(piece, weights=through & observed)
+    bad = thr > max_share * seen  # never true for a piece the map has not observed
+    drop = bad[piece]
+    n_obs = max(float(observed.sum()), 1.0)
+    dropped = float((observed & drop).sum()) / n_obs
+    kept = observed & ~drop
+    rest = float((through & kept).sum()) / max(float(kept.sum()), 1.0)
+    return xy[drop], dropped, rest
+
+
 def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> dict[str, tuple[int, int]]:
     """Per room of the registered plan (``relocaliser.plan``, map metres): (its interior wall
     pixels the map has observed, those the map has seen through), as
@@ -238,5 +274,6 @@ __all__ = [
     "matrix_disagreement",
     "occupied_points",
     "rooms_seen_through",
+    "wall_pieces_seen_through",
     "walls_through_free_space",
 ]

@@ -1039,6 +1039,75 @@ def _split_bedroom(plan):
     return FloorPlan(rooms=rooms, doors=doors, units=plan.units, name="split-bedroom")
 
 
+def _split_at(plan, room_id, x):
+    """The plan with room ``room_id`` drawn as two rooms split at ``x`` (plan units): a wall the
+    house does not have; each door goes to the half it lies in."""
+    from frslam_graph.floorplan import Door
+
+    room = plan.room(room_id)
+    x0, y0, x1, y1 = room.polygon.bounds
+    a, b = f"{room_id}_a", f"{room_id}_b"
+    rooms = [r for r in plan.rooms if r.id != room_id]
+    rooms += [Room(a, room.type, sbox(x0, y0, x, y1)), Room(b, room.type, sbox(x, y0, x1, y1))]
+    doors = []
+    for d in plan.doors:
+        side = a if max(d.a[0], d.b[0]) <= x else b
+        doors.append(Door(d.id, d.a, d.b, tuple(side if r == room_id else r for r in d.rooms)))
+    return FloorPlan(rooms=rooms, doors=doors, units=plan.units, name=f"split-{room_id}")
+
+
+def _pieces_dropped_on(upd, matrix, cuts):
+    """The accepted relocaliser ignores wall pieces, all on the walls at x = ``cuts`` (plan
+    units) that the house does not have."""
+    ignored = upd.accepted.relocaliser.ignored
+    assert ignored is not None
+    pts = ignored[0]
+    plan_xy = (pts - matrix[:2, 2]) @ np.linalg.inv(matrix[:2, :2]).T
+    near = np.min(np.abs(plan_xy[:, :1] - np.asarray(cuts)[None, :]), axis=1)
+    return float(np.mean(near < 3.0))  # within 3 plan units (0.15 m) of a cut
+
+
+def drawn_off_source(matrix, tol=0.2):
+    """A registration source whose registrations say the plan is drawn off the building: MFR
+    accepted them at a drawing tolerance of ``tol`` metres (its fixed gate refused them)."""
+
+    def register(plan, grid):
+        details = {"drawn_ok": True, "drawn_tol_m": tol, "alternatives": []}
+        return Registration.from_matrix(matrix, score=0.9, ambiguity=0.2, method="fake", details=details)
+
+    return register
+
+
+@pytest.mark.parametrize("room, cut", [("bedroom", 40.0), ("living", 60.0)])
+def test_wall_pieces_seen_through_are_dropped_and_the_rest_accepted(sim, baseline, room, cut):
+    """Partial trust by wall piece, for a plan drawn off the building (its registration needed
+    the drawing tolerance): a wall drawn where the house has open space (the bedroom or the
+    living room split in two). The living room's wall is seen through only after the
+    registration is accepted: the recheck retracted it (0 priors). Now the wall pieces the map
+    has seen through are dropped from the plan the priors use, at acceptance or at a recheck,
+    every room stays, and the trajectory is no worse than without the plan."""
+    from frslam_graph.localisation.relocalisation import Relocaliser
+    from frslam_graph.plan_checks import walls_through_free_space
+
+    plan, run, m = sim
+    split = _split_at(plan, room, cut)
+    placed = Relocaliser(split.transformed(run.house.distortion.matrix, units="m"))
+    margin = CFG.updates.free_space_margin
+    if room == "bedroom":  # seen through on the map of the run's first part (the living room not)
+        assert walls_through_free_space(placed, run.grid, margin) > CFG.updates.max_walls_in_free_space
+
+    upd = FloorPlanUpdater(split, CFG.updates, register_fn=drawn_off_source(m))
+    slam, res = run_slam(run, upd)
+    assert not [e for e in upd.log if e.kind == "registration_retracted"]
+    if room == "living":  # dropped when a recheck of the accepted registration saw through it
+        assert any(e.kind == "plan_refined" and "pieces seen through" in e.message for e in upd.log)
+    assert {r.id for r in upd.registered_plan.rooms} == {r.id for r in split.rooms}
+    assert _pieces_dropped_on(upd, np.asarray(upd.registration.matrix, float), (cut,)) >= 0.9
+    assert len(slam.graph.priors()) >= 3
+    base = ate(baseline[1].trajectory, run.ground_truth)[0].rmse
+    assert ate(res.trajectory, run.ground_truth)[0].rmse <= 1.1 * base + 0.005
+
+
 def test_rooms_seen_through_are_dropped_and_the_rest_accepted(sim, baseline):
     """Partial trust: a plan right everywhere but one wall drawn where the house has open space.
     The walls-in-free-space check refused the whole registration; now the rooms whose walls the
@@ -1067,3 +1136,18 @@ def test_rooms_seen_through_are_dropped_and_the_rest_accepted(sim, baseline):
     assert len(slam.graph.priors()) >= 3
     base = ate(baseline[1].trajectory, run.ground_truth)[0].rmse
     assert ate(res.trajectory, run.ground_truth)[0].rmse <= 1.1 * base + 0.005
+
+
+@pytest.mark.parametrize("wrong", [{"angle": np.pi / 2}, {"shift": (1.2, -0.8)}], ids=["rotated", "shifted"])
+def test_wrong_placements_of_a_plan_drawn_off_are_still_refused(sim, baseline, wrong):
+    """A registration at the drawing tolerance (the wall-piece check, the relative scan check)
+    placed wrongly: most of its wall pieces are seen through or the rest explains little of the
+    map, so it gives no prior and the trajectory is the one without the plan."""
+    plan, run, m = sim
+    upd = FloorPlanUpdater(
+        plan, CFG.updates, register_fn=drawn_off_source(rotated_about_centre(plan, m, **wrong))
+    )
+    slam, res = run_slam(run, upd)
+    assert [e for e in upd.log if e.kind == "register"]
+    assert upd.registered_plan is None and not slam.graph.priors()
+    assert np.allclose(res.trajectory, baseline[1].trajectory)

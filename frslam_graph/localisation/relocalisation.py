@@ -28,6 +28,7 @@ uses for ``PriorFactorPose2`` up to the rotation of the translation block, see
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -42,6 +43,8 @@ from frslam_graph.raster import RasterFrame, rasterise_polygons
 from frslam_graph.se2 import wrap
 
 _CHI2_3_99 = 11.345
+#: m; the field's distance where it holds no information (:meth:`Relocaliser.ignoring`)
+IGNORED = 10.0
 
 
 # --------------------------------------------------------------------------- distance field
@@ -239,6 +242,35 @@ class Relocaliser:
         self.plan = plan
         self.field = PlanField.from_plan(plan, p.resolution, p.wall_offset)
         self._padded: tuple[float, np.ndarray] | None = None
+        #: (points (K, 2) in map metres, radius m) whose surroundings the field ignores, or None
+        self.ignored: tuple[np.ndarray, float] | None = None
+
+    def ignoring(self, points: np.ndarray, radius: float) -> Relocaliser:
+        """A copy whose field holds no information within ``radius`` metres of ``points`` ((K, 2)
+        in map metres; e.g. plan walls the map has seen through): the distance there is
+        :data:`IGNORED` with a zero gradient, so a scan or map point there is an outlier (Tukey
+        weight 0, soft score 0, no wall in the searches and fits) and no wall is counted there.
+        ``self`` when ``points`` is empty; ``ignored`` of the copy adds ``points`` to this one's."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if not len(pts):
+            return self
+        f = self.field
+        h, w = f.frame.shape
+        c = np.floor(f.frame.to_pixel(pts)).astype(np.intp)
+        ok = (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h)
+        mask = np.zeros((h, w), np.uint8)
+        mask[c[ok, 1], c[ok, 0]] = 1
+        k = max(int(np.ceil(radius / f.frame.resolution)), 0)
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))) > 0
+        data = f.data.copy()
+        data[mask] = (IGNORED, 0.0, 0.0)
+        out = copy.copy(self)
+        out.field = PlanField(f.frame, data, f.wall_offset)
+        out._padded = None
+        if self.ignored is not None:  # the pieces ignored before stay ignored
+            pts, radius = np.vstack((self.ignored[0], pts)), max(self.ignored[1], float(radius))
+        out.ignored = (pts, float(radius))
+        return out
 
     # ------------------------------------------------------------------ public
     def relocalise(

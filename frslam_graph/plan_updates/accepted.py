@@ -5,19 +5,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from frslam_graph.localisation.relocalisation import Relocaliser
+import numpy as np
+
+from frslam_graph.localisation.relocalisation import Relocaliser, RelocaliserParams
 
 
 @dataclass
 class AcceptedPlan:
     """An accepted registration (``id`` tags its priors ``reloc:reg<id>``), the plan it puts in
-    ``map`` (metres), the relocaliser on that plan and the share of the map its walls explained."""
+    ``map`` (metres), the relocaliser on that plan (which ignores the wall pieces the judge found
+    seen through, ``relocaliser.ignored``), the share of the map its walls explained and
+    ``drawing_tol`` (m): how far the plan may be drawn off the building (the registration's
+    own drawing tolerance; 0 for a plan accepted at the fixed structure tolerance)."""
 
     id: int
     registration: Any
     plan: Any  # FloorPlan in map metres
     relocaliser: Relocaliser
     map_fit: float
+    drawing_tol: float = 0.0
+
+    def relocaliser_on(self, registration: Any, plan: Any, params: RelocaliserParams) -> Relocaliser:
+        """The relocaliser of ``registration`` (a refinement of this one: plan -> map) of
+        ``plan`` (plan units) with the rooms it trusts, ignoring the same wall pieces, moved
+        with the plan."""
+        rel = Relocaliser(registration.apply(self.trusted(plan)), params)
+        if self.relocaliser.ignored is None:
+            return rel
+        pts, radius = self.relocaliser.ignored
+        move = np.asarray(registration.matrix, float) @ np.linalg.inv(
+            np.asarray(self.registration.matrix, float)
+        )
+        return rel.ignoring(pts @ move[:2, :2].T + move[:2, 2], radius)
 
     def trusted(self, plan: Any) -> Any:
         """``plan`` (plan units) without the rooms the judge dropped from this registration (those

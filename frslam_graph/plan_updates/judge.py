@@ -6,12 +6,18 @@ succeeded, is not doubted by its method (``doubt``: the paper-faithful MFR flags
 matches) and scores ``min_score``; an ambiguous one (``max_ambiguity``) before any is accepted
 is disambiguated with MFR's runner-up placements on the keyframe scans; the plan's walls
 explain ``min_map_fit`` of the map's occupied cells and cross at most
-``max_walls_in_free_space`` of its free space; against an accepted registration it refines it
+``max_walls_in_free_space`` of its free space (else partial trust: the wall pieces, or for an
+accurately drawn plan the rooms, the map has seen through are dropped when they are a minority
+and the rest passes); against an accepted registration it refines it
 (agrees within ``agree_tol`` and explains the data as well or better, ``refine_by``), is kept
 out, or replaces it (``SWITCH_MARGIN`` better); the current scan relocalises on it
 (``reloc_min_score``), the keyframe scans fit it (``min_scan_fit``); a first registration passes
 the chi² gate against the trajectory and, after ``confirm_after_m`` metres without a prior, needs a
 second one that agrees. Distances in metres (map frame), fits as shares of cells or scans.
+
+A registration that says its plan is drawn off the building (MFR's drawing tolerance,
+:func:`drawing_tolerance`) is judged at that tolerance (map fit, free-space margin), by wall
+piece, and on the scans relative to its runner-up placements (:data:`SCAN_FIT_FLOOR`).
 """
 
 from __future__ import annotations
@@ -28,11 +34,13 @@ from frslam_graph.plan_checks import (
     matrix_disagreement,
     occupied_points,
     rooms_seen_through,
+    wall_pieces_seen_through,
     walls_through_free_space,
 )
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.priors import INCONSISTENT_CHI2, gate_chi2
+from frslam_graph.registration import Registration
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
 # m per m travelled since the last accepted prior (uncorrected drift) added to map_fit_distance and
@@ -41,6 +49,10 @@ CHECK_GROWTH_PER_M = 0.01
 # map-fit gain needed for a new registration to replace the accepted one; larger = switches less
 SWITCH_MARGIN = 0.05
 REFINE_SCAN_MARGIN = 0.005  # scan fits closer than this (mean soft score) are a tie (the map decides)
+# a registration drawn off the building (drawing_tol > 0) below min_scan_fit passes on the scans
+# when its fit is at least SCAN_FIT_FLOOR (mean soft score: the scans nearer its walls than not)
+# and beats every runner-up placement by disambiguate_margin (the disambiguation's rule)
+SCAN_FIT_FLOOR = 0.5
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -69,13 +81,22 @@ class Verdict:
     pending: Any = KEEP
 
 
-def tolerances(config: UpdatesConfig, drift: float) -> tuple[float, float]:
+def tolerances(config: UpdatesConfig, drift: float, drawing_tol: float = 0.0) -> tuple[float, float]:
     """(map-fit distance, free-space margin) in metres, grown with ``drift``, the distance
-    travelled since the last accepted prior: how far the map may have drifted from the plan."""
+    travelled since the last accepted prior: how far the map may have drifted from the plan;
+    at least ``drawing_tol`` (m, :func:`drawing_tolerance`): how far the plan is drawn off."""
     grow = CHECK_GROWTH_PER_M * max(drift, 0.0)
     fit = min(config.map_fit_distance + grow, max(config.map_fit_distance_max, config.map_fit_distance))
     margin = min(config.free_space_margin + grow, max(config.free_space_margin_max, config.free_space_margin))
-    return fit, margin
+    return max(fit, drawing_tol), max(margin, drawing_tol)
+
+
+def drawing_tolerance(reg: Any) -> float:
+    """How far (m) the registration says its plan is drawn off the building: the structure
+    tolerance at which MFR accepted it when its fixed gate refused it (``drawn_tol_m``: twice
+    the fit's RMS, at most 0.35 m; a plan drawn 0.5-1 m off in places), else 0."""
+    details = getattr(reg, "details", None) or {}
+    return float(details.get("drawn_tol_m", 0.0)) if details.get("drawn_ok") else 0.0
 
 
 @dataclass
@@ -90,6 +111,12 @@ class _Case:
     pending: Any
     drift: float  # metres since the last accepted prior
     n_keyframes: int
+    drawing_tol: float = 0.0  # m, the registration's (drawing_tolerance)
+    alternatives: list = field(default_factory=list)  # its runner-up placements' matrices (plan -> map)
+
+    def tolerances(self, config: UpdatesConfig) -> tuple[float, float]:
+        """(map-fit distance, free-space margin) in metres for this case (:func:`tolerances`)."""
+        return tolerances(config, self.drift, self.drawing_tol)
 
 
 class RegistrationJudge:
@@ -117,6 +144,13 @@ class RegistrationJudge:
         start its numbers; ``pending``: a registration awaiting confirmation; ``drift``: metres
         since the last accepted prior; ``n_keyframes``: keyframes seen by the updater."""
         case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
+        case.drawing_tol = drawing_tolerance(reg)
+        case.alternatives = [
+            np.asarray(a["matrix"], float)
+            for a in (getattr(reg, "details", None) or {}).get("alternatives", [])
+        ]
+        if case.drawing_tol > 0.0:
+            case.nums["drawing_tol"] = case.drawing_tol
         cfg = self.config
         if not reg.ok:
             return self._reject(case, f"registration failed: {reg.reason or 'no match'}")
@@ -149,16 +183,16 @@ class RegistrationJudge:
         """The map checks, against the accepted registration when there is one."""
         cfg, nums, acc = self.config, case.nums, case.accepted
         occ = occupied_points(case.grid)
-        fit_tol, margin = tolerances(cfg, case.drift)
+        fit_tol, margin = case.tolerances(cfg)
         fit = relocaliser.fit_points(occ, fit_tol)
         nums["map_fit"] = fit
         if acc is not None and cfg.refine_on_agreement and cfg.refine_by == "scans":
             disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             nums["disagreement"] = disp
             if disp <= cfg.agree_tol:
-                if len(acc.plan.rooms) < len(self.plan.rooms):  # the rooms it trusts, no others
-                    try:
-                        relocaliser = Relocaliser(reg.apply(acc.trusted(self.plan)), self.params)
+                if len(acc.plan.rooms) < len(self.plan.rooms) or acc.relocaliser.ignored is not None:
+                    try:  # the rooms and wall pieces it trusts, no others
+                        relocaliser = acc.relocaliser_on(reg, self.plan, self.params)
                     except (FrslamError, ValueError) as exc:
                         return self._reject(case, f"registered plan unusable: {exc}")
                     plan_map, fit = relocaliser.plan, relocaliser.fit_points(occ, fit_tol)
@@ -171,7 +205,12 @@ class RegistrationJudge:
         crossing = walls_through_free_space(relocaliser, case.grid, margin)
         nums["walls_in_free_space"] = crossing
         if crossing > cfg.max_walls_in_free_space:
-            trusted = self._trusted_part(case, reg, relocaliser, margin, occ, fit_tol)
+            # a plan known to be drawn off the building loses its wall pieces seen through; an
+            # accurately drawn one its rooms seen through (a wall piece masked there could be the
+            # one wall that tells a near-symmetric plan's mirror from the right placement)
+            trusted = (self._trusted_part if case.drawing_tol > 0.0 else self._trusted_rooms)(
+                case, reg, relocaliser, margin, occ, fit_tol
+            )
             if isinstance(trusted, str):
                 return self._reject(
                     case,
@@ -196,7 +235,7 @@ class RegistrationJudge:
                 )
         return self._on_the_scans(case, reg, plan_map, relocaliser, fit)
 
-    def _trusted_part(
+    def _trusted_rooms(
         self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
     ) -> tuple[Any, Relocaliser, float] | str:
         """A registration whose walls cross the map's free space: the plan without the rooms the
@@ -229,6 +268,36 @@ class RegistrationJudge:
         if fit < cfg.min_map_fit:
             return (
                 f"; without the rooms seen through ({', '.join(drop)}) its walls explain {fit:.0%} of the map"
+            )
+        return part.plan, part, fit
+
+    def _trusted_part(
+        self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
+    ) -> tuple[Any, Relocaliser, float] | str:
+        """A registration whose walls cross the map's free space: the plan without the wall
+        pieces the map has seen through (:func:`~frslam_graph.plan_checks.wall_pieces_seen_through`;
+        a plan drawn differently from the building as built, e.g. a block drawn closed where the
+        building has a corridor, or a wall drawn a metre off). Returns the plan in ``map``, its
+        relocaliser ignoring those pieces (no prior is pulled by them) and its map fit when they
+        are a minority of the plan's observed walls and the rest explains ``min_map_fit`` of the
+        map; else why not (text appended to the rejection). A wrong placement draws walls across
+        rooms seen empty nearly everywhere: most of its pieces are seen through."""
+        cfg, nums = self.config, case.nums
+        pts, dropped, rest = wall_pieces_seen_through(
+            relocaliser, case.grid, margin, cfg.max_walls_in_free_space
+        )
+        nums.update(wall_pieces_dropped=dropped, walls_in_free_space_kept=rest)
+        if dropped >= 0.5:
+            return f"; the wall pieces seen through hold {dropped:.0%} of its observed walls: not a minority"
+        # the band the seen-through test looked in, at least the matcher's reach
+        radius = max(2.0 * relocaliser.field.wall_offset + margin, relocaliser.params.truncation)
+        part = relocaliser.ignoring(pts, radius)
+        fit = part.fit_points(occ, fit_tol)
+        nums["map_fit_kept"] = fit
+        if fit < cfg.min_map_fit:
+            return (
+                f"; without the wall pieces seen through ({dropped:.0%} of its observed walls) its walls "
+                f"explain {fit:.0%} of the map"
             )
         return part.plan, part, fit
 
@@ -294,7 +363,7 @@ class RegistrationJudge:
                 else self.evidence.fit(case.ctx, relocaliser, case.n_keyframes)
             )
             nums["scan_fit"] = q
-            if q < cfg.min_scan_fit:
+            if q < cfg.min_scan_fit and not self._clearly_best_on_the_scans(case, q):
                 return self._reject(
                     case,
                     f"the keyframe scans do not fit the registered plan ({q:.1%} < {cfg.min_scan_fit:.0%})",
@@ -323,6 +392,29 @@ class RegistrationJudge:
                     )
         return Verdict("accept", "accepted", nums, reg, plan_map, relocaliser, reloc, fit, pending=None)
 
+    def _clearly_best_on_the_scans(self, case: _Case, q: float) -> bool:
+        """A plan drawn off the building (``drawing_tol`` > 0) in a cluttered building cannot fit
+        the keyframe scans to ``min_scan_fit``: each scan's furniture and the walls drawn up to
+        ``drawing_tol`` away score little whatever the placement. Its scan fit ``q`` then passes
+        as in the disambiguation, against the registration's runner-up placements
+        (``alternatives``): at least :data:`SCAN_FIT_FLOOR` instead of ``min_scan_fit``, and
+        ``disambiguate_margin`` over each of them (a plan of another building fits every
+        placement alike). ``runner_up_scan_fit`` in the numbers."""
+        margin = self.config.disambiguate_margin
+        if case.drawing_tol <= 0.0 or margin <= 0.0 or q < SCAN_FIT_FLOOR or not case.alternatives:
+            return False
+        runner = 0.0
+        for m in case.alternatives:
+            try:
+                rel = Relocaliser(Registration.from_matrix(m).apply(self.plan), self.params)
+            except (FrslamError, ValueError):
+                continue
+            runner = max(runner, self.evidence.fit(case.ctx, rel, case.n_keyframes))
+            if q < runner + margin:
+                break
+        case.nums["runner_up_scan_fit"] = runner
+        return q >= runner + margin
+
     def _disambiguate(self, case: _Case, reg: Any) -> tuple[Any, Relocaliser] | None:
         """An ambiguous registration: its placement and the registration's runner-up placements
         (``reg.details["alternatives"]``, MFR's) judged on the keyframe scans, each relocalised on
@@ -346,7 +438,7 @@ class RegistrationJudge:
             except (FrslamError, ValueError):
                 relocalisers.append(None)  # the picked one would be "unusable": rejected too
         occ = occupied_points(case.grid)
-        fit_tol = tolerances(cfg, case.drift)[0]
+        fit_tol = case.tolerances(cfg)[0]
         best_map_fit = max(r.fit_points(occ, fit_tol) if r is not None else 0.0 for r in relocalisers)
         if best_map_fit < cfg.min_map_fit:
             nums["placements_map_fit"] = best_map_fit
@@ -360,6 +452,7 @@ class RegistrationJudge:
         if best < max(cfg.min_scan_fit, second + cfg.disambiguate_margin):
             return None
         nums["scan_fit"] = best
+        case.alternatives = [m for k, m in enumerate(matrices) if k != int(order[0])]
         picked = type(reg).from_matrix(
             matrices[order[0]],
             score=reg.score,

@@ -134,8 +134,8 @@ class PlanRefiner:
             m @ fix, score=reg.score, ambiguity=reg.ambiguity, method=f"{reg.method}+scale", rooms=reg.rooms
         )
         try:
-            plan_map = new.apply(acc.trusted(self.plan))
-            relocaliser = Relocaliser(plan_map, self.params)
+            relocaliser = acc.relocaliser_on(new, self.plan, self.params)
+            plan_map = relocaliser.plan
         except (FrslamError, ValueError) as exc:
             return kept(f"scale: refined plan unusable: {exc}", **nums)
         t_fit = time.perf_counter()
@@ -158,7 +158,7 @@ class PlanRefiner:
         return Refinement(
             f"scale x{f[0]:.4f} / x{f[1]:.4f} explains the keyframe scans better ({q_new:.1%} vs {q_old:.1%}); refined",
             nums,
-            AcceptedPlan(acc.id, new, plan_map, relocaliser, acc.map_fit),
+            AcceptedPlan(acc.id, new, plan_map, relocaliser, acc.map_fit, acc.drawing_tol),
             f"registration {acc.id} rescaled" if far else None,
         )
 
@@ -218,15 +218,15 @@ class PlanRefiner:
             rooms=reg.rooms,
         )
         try:
-            plan_map = new.apply(acc.trusted(self.plan))
-            relocaliser = Relocaliser(plan_map, self.params)
+            relocaliser = acc.relocaliser_on(new, self.plan, self.params)
+            plan_map = relocaliser.plan
         except (FrslamError, ValueError) as exc:
             return Refinement(f"start: moved plan unusable: {exc}", nums)
         return Refinement(
             f"start: plan moved by {np.hypot(d[0], d[1]):.2f} m / {np.rad2deg(d[2]):.2f} deg so that the first "
             "scan fits it at the anchor",
             nums,
-            AcceptedPlan(acc.id, new, plan_map, relocaliser, acc.map_fit),
+            AcceptedPlan(acc.id, new, plan_map, relocaliser, acc.map_fit, acc.drawing_tol),
             f"registration {acc.id} moved to the start",
         )
 

@@ -46,7 +46,12 @@ import numpy as np
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import RelocaliserParams
-from frslam_graph.plan_checks import plan_seen, walls_through_free_space
+from frslam_graph.plan_checks import (
+    occupied_points,
+    plan_seen,
+    wall_pieces_seen_through,
+    walls_through_free_space,
+)
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge, Verdict, tolerances
@@ -281,7 +286,12 @@ class FloorPlanUpdater:
         if verdict.outcome == "refine":  # the same placement fitted to more data
             acc = self.accepted
             self.accepted = AcceptedPlan(
-                acc.id, verdict.registration, verdict.plan_map, verdict.relocaliser, verdict.map_fit
+                acc.id,
+                verdict.registration,
+                verdict.plan_map,
+                verdict.relocaliser,
+                verdict.map_fit,
+                max(acc.drawing_tol, verdict.numbers.get("drawing_tol", 0.0)),
             )
         self.schedule.rejected(matched=reg.ok, accepted=self.accepted is not None)
         return reg
@@ -301,7 +311,12 @@ class FloorPlanUpdater:
         record(ctx, stamp, kind, msg, i, True, **verdict.numbers, distance_m=self.travel.dist, plan_seen=seen)
         previous = self.accepted
         self.accepted = AcceptedPlan(
-            self._next_id, verdict.registration, verdict.plan_map, verdict.relocaliser, verdict.map_fit
+            self._next_id,
+            verdict.registration,
+            verdict.plan_map,
+            verdict.relocaliser,
+            verdict.map_fit,
+            verdict.numbers.get("drawing_tol", 0.0),
         )
         self._next_id += 1
         self.refiner.restart(self.travel.dist)
@@ -341,12 +356,43 @@ class FloorPlanUpdater:
     def _recheck_accepted(self, ctx: BackendContext, keyframe: KeyframeInfo, grid) -> None:
         """Retract the accepted registration when the grown map contradicts it (its walls cross
         space the robot has seen free): its priors are removed and the next registration is
-        judged as a first one."""
+        judged as a first one. A plan known to be drawn off the building (``drawing_tol`` > 0:
+        its registration needed a tolerance from its residual) whose wall pieces seen through are
+        a minority of its observed walls, the rest still explaining ``min_map_fit`` of the map,
+        loses those pieces instead (later relocalisations ignore them). An accurately drawn plan
+        is retracted: there a wall the map sees through is a wrong placement (e.g. the mirror of
+        a near-symmetric plan, which differs by a wall the first scans had not seen)."""
         cfg = self.config
         acc = self.accepted
-        crossing = walls_through_free_space(acc.relocaliser, grid, tolerances(cfg, self.priors.drift)[1])
+        margin = tolerances(cfg, self.priors.drift, acc.drawing_tol)[1]
+        crossing = walls_through_free_space(acc.relocaliser, grid, margin)
         if crossing <= cfg.retract_walls_in_free_space:
             return
+        rel = acc.relocaliser
+        pts, dropped = np.zeros((0, 2)), 1.0
+        if acc.drawing_tol > 0.0:
+            pts, dropped, _ = wall_pieces_seen_through(rel, grid, margin, cfg.max_walls_in_free_space)
+        if dropped < 0.5:
+            part = rel.ignoring(pts, max(2.0 * rel.field.wall_offset + margin, rel.params.truncation))
+            fit_tol = tolerances(cfg, self.priors.drift, acc.drawing_tol)[0]
+            fit = part.fit_points(occupied_points(grid), fit_tol)
+            if fit >= cfg.min_map_fit:
+                record(
+                    ctx,
+                    keyframe.stamp,
+                    "plan_refined",
+                    f"registration {acc.id}: {crossing:.0%} of its observed walls cross free space; the wall "
+                    f"pieces seen through ({dropped:.0%} of them) dropped, the rest explains {fit:.0%} of the map",
+                    keyframe.index,
+                    True,
+                    walls_in_free_space=crossing,
+                    wall_pieces_dropped=dropped,
+                    map_fit_kept=fit,
+                )
+                self.accepted = AcceptedPlan(
+                    acc.id, acc.registration, acc.plan, part, acc.map_fit, acc.drawing_tol
+                )
+                return
         why = (
             f"registration {acc.id} contradicted by the map: {crossing:.0%} of its observed walls "
             f"cross free space > {cfg.retract_walls_in_free_space:.0%}"

@@ -1,0 +1,61 @@
+"""The judge's per-piece check of a registered plan's walls (plan_checks.wall_pieces_seen_through)
+and the relocaliser that ignores the disagreeing pieces (Relocaliser.ignoring): a plan drawn
+differently from the building in one place loses that wall piece, not the registration."""
+
+from __future__ import annotations
+
+import numpy as np
+from shapely.geometry import box
+
+from frslam_graph.floorplan import Door, FloorPlan, Room
+from frslam_graph.localisation.relocalisation import IGNORED, Relocaliser
+from frslam_graph.occupancy import OccupancyGrid
+from frslam_graph.plan_checks import wall_pieces_seen_through, walls_through_free_space
+
+RES = 0.05
+
+
+def _plan() -> FloorPlan:
+    """Two 4 x 4 m rooms side by side (metres), a wall at x = 4 with a door at y = 0.5-1.3."""
+    rooms = [Room("a", "office", box(0, 0, 4, 4)), Room("b", "office", box(4, 0, 8, 4))]
+    return FloorPlan(rooms=rooms, doors=[Door("d", (4.0, 0.5), (4.0, 1.3), ("a", "b"))], units="m")
+
+
+def _building(open_from: float) -> OccupancyGrid:
+    """The map of the building: the outer walls and the wall at x = 4 occupied, the rooms free,
+    but the wall at x = 4 absent above y = ``open_from`` (the robot saw through it)."""
+    h, w = int(5.0 / RES), int(9.0 / RES)
+    data = np.full((h, w), -1, np.int8)
+    grid = OccupancyGrid(data, RES, (-0.5, -0.5, 0.0))
+    rr, cc = np.mgrid[0:h, 0:w]
+    xy = grid.cell_to_world(np.column_stack((cc.ravel() + 0.5, rr.ravel() + 0.5))).reshape(h, w, 2)
+    x, y = xy[..., 0], xy[..., 1]
+    inside = (x > 0) & (x < 8) & (y > 0) & (y < 4)
+    outer = ~inside & (x > -0.1) & (x < 8.1) & (y > -0.1) & (y < 4.1)
+    wall = (np.abs(x - 4.0) < 0.06) & (y < open_from) & ~((y > 0.5) & (y < 1.3))
+    data[inside] = 0
+    data[outer | wall] = 100
+    return OccupancyGrid(data, RES, (-0.5, -0.5, 0.0))
+
+
+def test_only_the_wall_piece_seen_through_is_dropped_and_ignored():
+    rel = Relocaliser(_plan())
+    grid = _building(open_from=3.0)
+    assert walls_through_free_space(rel, grid, 0.2) > 0.1  # the whole-plan check refuses
+    pts, dropped, rest = wall_pieces_seen_through(rel, grid, 0.2, 0.1)
+    assert len(pts) and np.all(np.abs(pts[:, 0] - 4.0) < 0.2) and pts[:, 1].min() >= 3.0 - 1e-9
+    assert 0.1 < dropped < 0.5 and rest <= 0.1
+    part = rel.ignoring(pts, 0.3)
+    assert walls_through_free_space(part, grid, 0.2) <= 0.1
+    # no information about the dropped piece: a point on it is an outlier; the rest unchanged
+    on_piece, on_wall = np.array([[4.0, 3.5]]), np.array([[4.0, 2.0], [0.0, 2.0], [6.0, 0.0]])
+    assert part.field.lookup(on_piece)[0, 0] == IGNORED and rel.fit_points(on_piece, 0.1) == 1.0
+    assert part.fit_points(on_piece, 0.1) == 0.0 and part.fit_points(on_wall, 0.1) == 1.0
+    assert rel.ignored is None and part.ignored is not None
+
+
+def test_a_plan_that_agrees_with_the_building_drops_no_piece():
+    rel = Relocaliser(_plan())
+    pts, dropped, rest = wall_pieces_seen_through(rel, _building(open_from=9.0), 0.2, 0.1)
+    assert len(pts) == 0 and dropped == 0.0 and rest == 0.0
+    assert rel.ignoring(pts, 0.3) is rel
