@@ -10,7 +10,8 @@ worker's peak RSS, the largest private memory of the final alignment's forked ha
 largest PSS sum of all of them: :class:`bench_slam.MemorySampler`) and each child's figures.
 
 ``--simulate HOURS`` first writes the ``bench_slam.py --long`` recording (five-room plan, 720
-beams, 10 Hz, seed 1) into RECORDING unless it is there already.
+beams, 10 Hz, seed 1) into RECORDING unless it is there already, in a subprocess (in this one, the
+2-h simulation's 1.4 GB was the backend's peak RSS from the first sample on).
 
     .venv/bin/python tools/mem_profile.py /tmp/long2h --simulate 2 [--every 2000] [--limit N]
         [--set '{"loop_closure": {"closure_spacing": 1.0}}']
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_slam import MemorySampler, child_pids, child_simulate, process_memory  # noqa: E402
+from bench_slam import MemorySampler, child_pids, process_memory, run_child  # noqa: E402
 
 
 def _status(pid: str = "self") -> dict[str, int]:
@@ -59,7 +60,11 @@ def main() -> None:
     from frslam_graph import offline
 
     if args.simulate is not None and not Path(args.recording).exists():
-        sim = child_simulate({"hours": args.simulate, "out": args.recording})
+        # in a subprocess, as bench_slam.py --long: the simulation's memory (1.4 GB for 2 h) would
+        # be this process's peak RSS and the odometry worker's pages, forked from it
+        sim = run_child({"kind": "simulate", "hours": args.simulate, "out": args.recording})
+        if "error" in sim:
+            raise SystemExit(f"simulation failed: {sim['error']}")
         print(json.dumps({"simulated": sim}), flush=True)
     built: dict[str, Any] = {}
     init = offline.FRSlam.__init__
