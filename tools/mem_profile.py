@@ -7,7 +7,7 @@ VmRSS / VmHWM, MB), the odometry worker's peak RSS and private memory, the keyfr
 ``treeNnz`` (non-zeros of its Bayes tree) and the loop closures in the graph; at the end the
 peaks of the whole run as ``bench_slam.py`` reports them (``ru_maxrss`` of the backend, the
 worker's peak RSS, the largest private memory of the final alignment's forked halves, the
-largest PSS sum of all of them: :class:`bench_slam.MemorySampler`) and each child's figures.
+largest sum of the backend's RSS and the children's private memory: :class:`bench_slam.MemorySampler`) and each child's figures.
 
 ``--simulate HOURS`` first writes the ``bench_slam.py --long`` recording (five-room plan, 720
 beams, 10 Hz, seed 1) into RECORDING unless it is there already, in a subprocess (in this one, the
@@ -112,7 +112,7 @@ def main() -> None:
         "peak_backend_mb": round(peak),
         "peak_worker_mb": round(memory.worker_mb()),
         "peak_forked_private_mb": round(memory.forked_private_mb()),
-        "peak_tree_pss_mb": round(memory.tree_pss_mb),
+        "peak_tree_mb": round(memory.tree_mb),
         "children": {pid: {k: round(v) for k, v in c.items()} for pid, c in memory.children.items()},
     }
     print(json.dumps(end), flush=True)
