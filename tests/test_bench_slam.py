@@ -5,6 +5,7 @@ from __future__ import annotations
 import bz2
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -38,6 +39,8 @@ TIMING = {
     "peak_rss_mb",
     "peak_rss_backend_mb",
     "peak_rss_worker_mb",
+    "peak_forked_private_mb",
+    "peak_tree_mb",
 }
 
 
@@ -155,3 +158,54 @@ def test_a_config_file_reaches_every_frslam_run_and_a_bad_one_is_refused(bench, 
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--config" in err[0] and "keyframe_distanc" in err[0]
+
+
+def _hold(ready, go, mb: int) -> None:
+    """A forked child: ``mb`` MB of its own, then wait."""
+    own = np.ones(mb << 20, np.uint8)
+    ready.send(1)
+    go.wait()
+    del own
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and fork")
+def test_memory_sampler_counts_a_forked_childs_own_pages(bench):
+    """A forked child's RSS counts the pages it shares with its parent (``RUSAGE_CHILDREN``'s
+    peak, the figure bench_slam gave as the odometry worker's, was the final alignment's forked
+    half: ~ the backend's size); the sampler gives the odometry worker (the first child seen)
+    its peak RSS, the other children the pages they add (private memory)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    parent = np.ones(64 << 20, np.uint8)  # the backend's pages, shared with its forked children
+    go = ctx.Event()
+    ends = [ctx.Pipe(duplex=False) for _ in range(2)]
+    sampler = bench.MemorySampler()
+    kids = []
+    try:
+        for (receive, send), mb in zip(ends, (0, 32), strict=True):
+            kids.append(ctx.Process(target=_hold, args=(send, go, mb), daemon=True))
+            kids[-1].start()
+            receive.recv()
+            sampler.sample()  # the first child is seen first, as the odometry worker is
+        worker, forked = (sampler.children[str(k.pid)] for k in kids)
+        assert list(sampler.children) == [str(k.pid) for k in kids]
+        assert forked["hwm"] >= 64 + 30  # its RSS: the parent's pages and its own
+        assert 30 <= forked["private"] < 64  # its own only
+        assert sampler.forked_private_mb() == forked["private"]
+        assert sampler.worker_mb() == worker["hwm"] >= 64
+        # the parent's pages once: not the children's RSS
+        assert sampler.tree_mb < bench.process_memory()["rss"] + worker["private"] + forked["private"] + 8
+    finally:
+        go.set()
+        for k in kids:
+            k.join(timeout=10)
+    del parent
+
+
+def test_memory_cell_gives_backend_worker_and_forked(bench):
+    cell = bench.MAIN_HEAD.index("peak memory backend + worker + forked (MB)")
+    run = {**RUN, "peak_rss_backend_mb": 448.2, "peak_rss_worker_mb": 118.6, "peak_forked_private_mb": 95.9}
+    assert bench.main_row("intel", run, None)[cell] == "448 + 119 + 96"
+    old = {**RUN, "peak_rss_backend_mb": 448.2, "peak_rss_worker_mb": 346.0}  # before session 8
+    assert bench.main_row("intel", old, None)[cell] == "448 + 346"

@@ -285,3 +285,22 @@ def test_a_searched_constraint_counts_only_when_another_agrees():
     assert fa.agreeing(poses, [a, b, other]) == [a, b]
     near = con(3, 15, truth[15])  # its query submap shares keyframes with a's
     assert fa.agreeing(poses, [a, near]) == []
+
+
+def test_submaps_take_the_stored_float32_points_without_a_float64_copy():
+    """The points within range stay float32 (the store's dtype: half the memory of the float64
+    copy of every keyframe's points each round held) and give the same submaps bit for bit."""
+    rng = np.random.default_rng(4)
+    points = [rng.uniform(-12.0, 12.0, (700, 2)).astype(np.float32) for _ in range(12)]
+    poses = np.column_stack(
+        (np.cumsum(rng.uniform(0.2, 0.4, 12)), rng.normal(0, 0.1, 12), rng.normal(0, 0.3, 12))
+    )
+    local = fa._in_range(points, 10.0)
+    assert all(p.dtype == np.float32 for p in local)
+    wide = [p.astype(np.float64) for p in points]
+    want = [p[np.hypot(p[:, 0], p[:, 1]) <= 10.0] for p in wide]  # the float64 copies of before
+    for i in range(12):
+        for span in (fa.QUERY_SPAN, fa.REFERENCE_SPAN):
+            got = fa._submap(poses, local, i, span)
+            assert got.dtype == np.float64
+            np.testing.assert_array_equal(got, fa._submap(poses, want, i, span))

@@ -169,11 +169,15 @@ def candidate_pairs(
 
 
 def _in_range(points: list[np.ndarray], max_range: float) -> list[np.ndarray]:
-    """Per keyframe its points within ``max_range`` of base_link (float64): what submaps take."""
+    """Per keyframe its points within ``max_range`` of base_link (tested in float64), in their
+    own dtype: what submaps take. The store's float32 points stay float32 (half the memory of a
+    float64 copy of every keyframe's points, which the final alignment held in each round);
+    :func:`_stacked`'s float64 transform takes them exactly (float32 -> float64 is exact)."""
     out = []
     for p in points:
-        p = np.asarray(p, dtype=np.float64)
-        out.append(p[np.hypot(p[:, 0], p[:, 1]) <= max_range])
+        p = np.asarray(p)
+        q = p.astype(np.float64, copy=False)
+        out.append(p[np.hypot(q[:, 0], q[:, 1]) <= max_range])
     return out
 
 
