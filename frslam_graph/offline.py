@@ -316,8 +316,9 @@ def write_outputs(
     return run
 
 
-def _spread(ms: np.ndarray) -> dict[str, float]:
-    """Median, 99th percentile and maximum of per-scan milliseconds."""
+def _spread(seconds: np.ndarray) -> dict[str, float]:
+    """Median, 99th percentile and maximum (ms) of per-scan seconds (zeros for no scan)."""
+    ms = seconds * 1e3 if len(seconds) else np.zeros(1)
     return {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
 
@@ -328,8 +329,6 @@ def _run_metrics(
     without keyframes), evaluation."""
     res = run.result
     map_metrics = _map_metrics(run.slam, grid) if grid is not None else {}
-    lat = res.latencies * 1e3 if len(res.latencies) else np.zeros(1)
-    cpu = res.cpu_latencies * 1e3 if len(res.cpu_latencies) else np.zeros(1)
     kinds: dict[str, int] = {}
     removed = dict.fromkeys(PRIOR_REMOVAL_CAUSES, 0)
     for ev in res.log:
@@ -344,10 +343,10 @@ def _run_metrics(
         "realtime_factor": res.realtime_factor,
         # with the odometry in a worker process a latency is the sum of both stages' times
         "odometry_in_worker": res.parallel,
-        "latency_ms": _spread(lat),
+        "latency_ms": _spread(res.latencies),
         # the same in CPU time of the threads that did each scan's work: the latency on a core of
         # its own, whatever else loads the machine
-        "latency_cpu_ms": _spread(cpu),
+        "latency_cpu_ms": _spread(res.cpu_latencies),
         "map_to_odom": res.map_to_odom,
         "odometry_stats": res.stats,
         "decisions": kinds,

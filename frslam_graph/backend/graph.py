@@ -28,7 +28,7 @@ from frslam_graph.factors.floorplan_prior import (
     m_estimator,
     prior_covariance,
 )
-from frslam_graph.se2 import compose, inverse, wrap
+from frslam_graph.se2 import between_many, compose, inverse, wrap
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
 # m; smallest translation sigma of an odometry between-factor; larger = odometry trusted less
@@ -592,10 +592,7 @@ def _values_array(values: gtsam.Values, n: int) -> np.ndarray:
 
 def _logmap_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """SE(2) ``Logmap(a⁻¹ · b)`` for (n, 3) poses: (v_x, v_y, θ) as ``gtsam.Pose2.Logmap``."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    tx, ty = c * dx + s * dy, -s * dx + c * dy
-    th = wrap(b[:, 2] - a[:, 2])
+    tx, ty, th = between_many(a, b).T
     small = np.abs(th) < 1e-10
     t = np.where(small, 1.0, th)
     half = 0.5 * t
