@@ -371,3 +371,72 @@ def test_batch_runs_after_isam_is_freed(monkeypatch):
     np.testing.assert_array_equal(out, g.estimates())
     g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
     assert len(g.estimates()) == 81
+
+
+def _looped(n=200):
+    """A drifting chain closed by a loop factor far from the estimate: LM needs several iterations."""
+    g = chain(n=n, drift=np.deg2rad(0.2))
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
+    g.add_factor(gtsam.BetweenFactorPose2(key(0), key(n - 1), gtsam.Pose2(0.3 * (n - 1), 0.0, 0.0), noise), 0)
+    return g
+
+
+def test_batch_in_steps_gives_lm_values_one_iteration_per_step():
+    """optimize_batch_steps: one LM iteration per step (then the rebuild), each step costed, the
+    result that of GTSAM's own LM run to convergence on the same graph."""
+    g = _looped()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(g.config.batch_relative_tolerance)
+    lm = gtsam.LevenbergMarquardtOptimizer(g._graph(), g._current_values(), params)
+    want = np.asarray(gtsam.utilities.extractPose2(lm.optimize()))
+    steps = g.optimize_batch_steps()
+    costs = []
+    with pytest.raises(StopIteration) as stop:
+        while True:
+            costs.append(next(steps))
+    assert len(costs) == lm.iterations() + 1 >= 3  # the iterations and the rebuild
+    assert all(c > 0 for c in costs)
+    assert g.incremental
+    # the rebuilt iSAM2 took one more Gauss-Newton step from LM's values
+    np.testing.assert_allclose(stop.value.value, want, atol=1e-6)
+
+
+def test_keyframes_added_during_a_batch_in_steps_follow_it():
+    """Streaming goes on between the batch's steps: a keyframe added meanwhile waits outside iSAM2
+    and keeps its odometry relative to the batch's last keyframe when the batch ends; something
+    that needs iSAM2 mid-way (a factor with relinearising steps) finishes the batch first."""
+    g = _looped()
+    n0 = len(g)
+    steps = g.optimize_batch_steps()
+    next(steps)
+    next(steps)  # one iteration run
+    before = g.estimates()
+    g.add_keyframe([0.3, 0.0, 0.0], ODO_COV)
+    g.add_keyframe([0.3, 0.0, 0.1], ODO_COV)
+    assert not g.incremental and len(g.estimates()) == n0 + 2
+    np.testing.assert_array_equal(g.estimates()[:n0], before)  # the pre-batch estimates meanwhile
+    rel = [inverse(g.estimates()[n0 - 1]), g.estimates()[n0:]]
+    rel = np.array([compose(rel[0], p) for p in rel[1]])
+    out = None
+    with pytest.raises(StopIteration) as stop:
+        while True:
+            next(steps)
+    out = stop.value.value
+    assert g.incremental and len(out) == n0 + 2
+    kept = np.array([compose(inverse(out[n0 - 1]), p) for p in out[n0:]])
+    np.testing.assert_allclose(kept, rel, atol=1e-3)  # one iSAM2 step after the rebuild
+    # the batch moved the chain: the new keyframes moved with it
+    assert np.abs(out[n0 - 1] - before[n0 - 1]).max() > 0.02
+
+    # something needing iSAM2 mid-batch finishes it: same as the batch, then the factor
+    a, b = _looped(), _looped()
+    steps = a.optimize_batch_steps()
+    next(steps)
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.05)
+    extra = [gtsam.BetweenFactorPose2(key(10), key(100), gtsam.Pose2(27.0, 0.0, 0.0), noise) for _ in "ab"]
+    a.add_factor(extra[0], 2)
+    b.optimize_batch()
+    b.add_factor(extra[1], 2)
+    np.testing.assert_allclose(a.estimates(), b.estimates(), atol=1e-9)
+    assert next(steps, None) is None  # the generator sees its batch finished and ends

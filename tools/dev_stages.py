@@ -131,6 +131,7 @@ def instrument(st: Stages) -> None:
     st.wrap(pg, "_isam_update", "graph: iSAM2 update")
     st.wrap(pg, "_refresh_estimates", "graph: estimates refresh")
     st.wrap(pg, "optimize_batch", "graph: LM batch")
+    st.wrap(graph._InflightBatch, "iterate", "graph: LM batch")
     st.wrap(pg, "_rebuild", "graph: iSAM2 rebuild")
     st.wrap(pg, "error", "graph: error()")
     lc = closer.LoopCloser

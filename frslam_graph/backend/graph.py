@@ -29,6 +29,7 @@ from frslam_graph.factors.floorplan_prior import (
     prior_covariance,
 )
 from frslam_graph.se2 import between_many, compose, inverse, wrap
+from frslam_graph.steps import Steps, run_steps
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
 # m; smallest translation sigma of an odometry between-factor; larger = odometry trusted less
@@ -43,6 +44,12 @@ BATCH_MAX_ITERATIONS = 100  # Levenberg-Marquardt batch iterations at most; larg
 # prior_settle_near_iterations forced iSAM2 steps (others 10)
 PRIOR_SETTLE_NEAR_XY = 0.05
 PRIOR_SETTLE_NEAR_THETA_DEG = 1.0  # deg; heading part of the 'near' test of PRIOR_SETTLE_NEAR_XY
+
+# Cost model of the batch's steps (ms per keyframe on one core of the development machine; only
+# needs to be right within a factor of about two; measured on the Intel log's streaming batches,
+# 1,300-2,600 keyframes): one LM iteration, and the iSAM2 rebuild on its result.
+MS_PER_KEYFRAME_LM_ITERATION = 0.008
+MS_PER_KEYFRAME_REBUILD = 0.022
 
 _CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345}
 
@@ -95,6 +102,8 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = self._new_isam()
         # the last batch's result while iSAM2 is released (optimize_batch(incremental=False))
         self._batch_values: gtsam.Values | None = None
+        # an LM batch run one iteration per step (optimize_batch_steps) not finished yet
+        self._inflight: _InflightBatch | None = None
         self._factors: list[gtsam.NonlinearFactor | None] = []  # mirror of iSAM2's factor slots
         self._version = 0  # iSAM2 updates so far
         self._n = 0
@@ -152,8 +161,12 @@ class PoseGraph:
         return idx
 
     def _restore_isam(self) -> None:
-        """Rebuild iSAM2 on the last batch's values after :meth:`optimize_batch` released it."""
-        self._rebuild(self._batch_values)
+        """Rebuild iSAM2 on the last batch's values after :meth:`optimize_batch` released it (an
+        LM batch still running in steps is finished first: its values are the ones to keep)."""
+        if self._inflight is not None:
+            self._finish_inflight()
+        else:
+            self._rebuild(self._batch_values)
 
     @property
     def incremental(self) -> bool:
@@ -211,7 +224,7 @@ class PoseGraph:
         """Append keyframe n linked to n-1 by the odometry ``relative`` (tangent ``covariance``)."""
         if not self._n:
             raise FrslamError("add_first() must come before add_keyframe()", where="add_keyframe")
-        if self._isam is None:  # released by the last batch: streaming goes on
+        if self._isam is None and self._inflight is None:  # released by the last batch
             self._restore_isam()
         i = self._n
         factor = between_factor(key(i - 1), key(i), relative, covariance, self._floor_xy, self._floor_th)
@@ -223,6 +236,12 @@ class PoseGraph:
         values = gtsam.Values()
         values.insert(key(i), pose2(guess))
         self._n = i + 1
+        if self._inflight is not None:  # an LM batch runs in steps: the keyframe waits for it
+            self._update_released([factor], [])
+            self._batch_values.insert(key(i), pose2(guess))
+            self._estimate_cache = None
+            self._latest = guess.copy()
+            return i
         self._update([factor], values)
         return i
 
@@ -509,17 +528,64 @@ class PoseGraph:
         batches and alignment need not hold it. Factors added or removed meanwhile only change
         the graph (the next batch takes them); anything needing iSAM2 (a new keyframe, settle,
         marginals) rebuilds it from the batch's values first."""
+        return run_steps(self.optimize_batch_steps(incremental))
+
+    def optimize_batch_steps(self, incremental: bool = True) -> Steps[np.ndarray]:
+        """:meth:`optimize_batch` as a step generator (:mod:`frslam_graph.steps`) for streaming:
+        one LM iteration per step, then the iSAM2 rebuild as a step of its own, each yield giving
+        the step's estimated cost (``MS_PER_KEYFRAME_LM_ITERATION`` / ``_REBUILD``). Run to the end it gives the same values as
+        ``optimize_batch``; a batch of thousands of keyframes then costs a scan one iteration
+        (~8 µs per keyframe) or the rebuild, not the whole batch (several iterations and the
+        rebuild, 0.27 s at 2,555 keyframes on the Intel bag).
+
+        Between steps the graph stays usable: the estimates are the ones from before the batch;
+        a keyframe added meanwhile waits outside iSAM2 (its odometry factor joins the graph at
+        once) and, when the batch ends, keeps its pose relative to the batch's last keyframe.
+        Anything that needs iSAM2 before the end (a factor with relinearising steps, marginals,
+        another batch) finishes the batch first, as :meth:`optimize_batch` would have."""
         if not self._n:
             return np.zeros((0, 3))
+        if self._inflight is not None:
+            self._finish_inflight()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(BATCH_MAX_ITERATIONS)
         params.setRelativeErrorTol(self.config.batch_relative_tolerance)
         initial = self._current_values()
         # iSAM2 is freed before the batch, not after: its factorisation and LM's do not coexist
         # (a failed batch leaves the graph released at ``initial``)
-        self._isam, self._batch_values = None, initial
-        values = gtsam.LevenbergMarquardtOptimizer(self._graph(), initial, params).optimize()
+        self._isam, self._batch_values = None, gtsam.Values(initial)
+        self._estimate_cache = None
+        batch = _InflightBatch(
+            gtsam.LevenbergMarquardtOptimizer(self._graph(), initial, params), params, self._n, incremental
+        )
+        self._inflight = batch
+        while not batch.converged():
+            yield MS_PER_KEYFRAME_LM_ITERATION * batch.n
+            if self._inflight is not batch:  # finished meanwhile by something that needed iSAM2
+                return self.estimates()
+            batch.iterate()
         if incremental:
+            yield MS_PER_KEYFRAME_REBUILD * self._n
+            if self._inflight is not batch:
+                return self.estimates()
+        self._finish_inflight()
+        return self.estimates()
+
+    def _finish_inflight(self) -> None:
+        """Run the in-flight batch's remaining iterations, then take its values: keyframes added
+        since it started keep their pose relative to its last keyframe; iSAM2 is rebuilt unless
+        the batch was the end of a run (``incremental=False``)."""
+        batch, self._inflight = self._inflight, None
+        while not batch.converged():
+            batch.iterate()
+        values = gtsam.Values(batch.optimizer.values())
+        if self._n > batch.n:
+            last = key(batch.n - 1)
+            # the rigid correction the batch gave its last keyframe, carried onto the new ones
+            shift = batch.optimizer.values().atPose2(last).compose(self._batch_values.atPose2(last).inverse())
+            for i in range(batch.n, self._n):
+                values.insert(key(i), shift.compose(self._batch_values.atPose2(key(i))))
+        if batch.incremental or self._n > batch.n:
             self._rebuild(values)
         else:
             self._version += 1
@@ -529,7 +595,6 @@ class PoseGraph:
             self._marked.clear()
             self._marked_all = False
             self._latest = _vec(values.atPose2(key(self._n - 1)))
-        return self.estimates()
 
     def transform_map(self, transform: np.ndarray) -> None:
         """Re-express the whole graph in a new map frame: every pose p becomes transform ⊕ p.
@@ -537,6 +602,8 @@ class PoseGraph:
         For the first floor-plan registration (which defines ``map``): apply it before adding the
         priors so the robust kernels start near their minimum. The anchor prior moves with it.
         """
+        if self._inflight is not None:
+            self._finish_inflight()
         t = np.asarray(transform, dtype=np.float64)
         est = self.estimates()
         values = gtsam.Values()
@@ -577,6 +644,37 @@ class PoseGraph:
                 h.factor_index = remap[h.factor_index]
         self._estimate_cache = None
         self._latest = _vec(self._isam.calculateEstimatePose2(key(self._n - 1)))
+
+
+@dataclass(slots=True, eq=False)
+class _InflightBatch:
+    """An LM batch run one iteration at a time: its optimizer, the number of keyframes it holds,
+    and whether iSAM2 is rebuilt on its result. Convergence as ``NonlinearOptimizer.optimize``
+    judges it (the same iterations, so the same values)."""
+
+    optimizer: gtsam.LevenbergMarquardtOptimizer
+    params: gtsam.LevenbergMarquardtParams
+    n: int
+    incremental: bool
+    _errors: tuple[float, float] | None = None  # error before and after the last iteration
+
+    def converged(self) -> bool:
+        p = self.params
+        if self._errors is None:
+            return self.optimizer.error() <= p.getErrorTol()
+        before, after = self._errors
+        return (
+            self.optimizer.iterations() >= p.getMaxIterations()
+            or not np.isfinite(after)
+            or gtsam.checkConvergence(
+                p.getRelativeErrorTol(), p.getAbsoluteErrorTol(), p.getErrorTol(), before, after
+            )
+        )
+
+    def iterate(self) -> None:
+        before = self.optimizer.error()
+        self.optimizer.iterate()
+        self._errors = (before, self.optimizer.error())
 
 
 def _vec(p: gtsam.Pose2) -> np.ndarray:

@@ -168,7 +168,6 @@ T = TypeVar("T")
 _MS_GATHER = 0.2  # submap points: fixed part ...
 _MS_PER_POINT_GATHER = 4.2e-5  # ... and per end point of the keyframes gathered
 _MS_PER_KEYFRAME_UPDATE = 0.01  # one relinearising iSAM2 update, per keyframe of the graph
-_MS_PER_KEYFRAME_BATCH = 0.06  # LM batch and iSAM2 rebuild, per keyframe of the graph
 
 
 # ----------------------------------------------------------------------------- loop closer
@@ -801,8 +800,7 @@ class LoopCloser:
             yield from self._settle(graph, 10)
             moved = _moved(graph.estimates(), before)
             if moved >= BATCH_ON_CORRECTION or self._residual_large(graph, closures):
-                yield _MS_PER_KEYFRAME_BATCH * len(graph)
-                graph.optimize_batch()
+                yield from graph.optimize_batch_steps()
                 self.stats.batches += 1
         yield from self._settle(graph, 10 if settle else self.config.settle_small)
         moved = _moved(graph.estimates(), before)
@@ -865,8 +863,7 @@ class LoopCloser:
             if chi2[k] <= cfg.prune_chi2:
                 return
             if not converged:  # judge at the optimum, not after a few Gauss-Newton steps
-                yield _MS_PER_KEYFRAME_BATCH * len(graph)
-                graph.optimize_batch()
+                yield from graph.optimize_batch_steps()
                 self.stats.batches += 1
                 converged = True
                 continue
@@ -902,8 +899,7 @@ class LoopCloser:
             graph.remove_factors(idx, extra_iterations=0)
         yield from self._settle(graph, 10)
         if _moved(graph.estimates(), before) >= BATCH_ON_CORRECTION:
-            yield _MS_PER_KEYFRAME_BATCH * len(graph)
-            graph.optimize_batch()
+            yield from graph.optimize_batch_steps()
             self.stats.batches += 1
         self._dist = None
         self._submaps.clear()
