@@ -250,7 +250,7 @@ def test_keyframe_points_are_packed_in_a_few_chunks_not_one_heap_block_each():
     """The store copies each keyframe's points into shared float32 chunks (``PointArena``): the
     values are kept exactly, the views are read-only, and 2,000 keyframes of 720 points take
     ceil(2000 * 720 / chunk) chunks, not 2,000 separate blocks (5.8 kB each, from the heap
-    between iSAM2's blocks: ~4 kB of holes per keyframe on the 2-h recording)."""
+    between iSAM2's blocks)."""
     from frslam_graph.backend.keyframes import KeyframeStore, StoredKeyframe
 
     store = KeyframeStore()
