@@ -204,9 +204,7 @@ class FRSlam:
             ctx.graph.add_first(res.pose)  # map == odom at start
         else:
             ctx.graph.add_keyframe(res.between, res.covariance)
-        ctx.store.append(
-            StoredKeyframe(res.stamp, scan_index, res.pose.copy(), pts.astype(np.float32), off[:2].copy())
-        )
+        ctx.store.append(StoredKeyframe(res.stamp, scan_index, res.pose.copy(), pts, off[:2].copy()))
         info = ctx.keyframe(res.keyframe)
         busy = False
         if self.update_strategy is not None:

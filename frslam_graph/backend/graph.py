@@ -93,7 +93,7 @@ class PriorResidual:
 
 
 class PoseGraph:
-    """Keyframe pose graph (iSAM2 with QR factorisation; LM batch on demand)."""
+    """Keyframe pose graph (iSAM2, Cholesky by default: ``GraphConfig.factorization``; LM batch on demand)."""
 
     def __init__(self, config: GraphConfig | None = None):
         self.config = config or GraphConfig()
