@@ -105,6 +105,7 @@ class OdometryResult:
     dropped: int = 0
     n_points: int = 0
     icp_rejected: bool = False
+    period: float = 0.0  # s, the nominal scan period at this scan (0 before it is known)
 
 
 @dataclass(slots=True)
@@ -441,6 +442,7 @@ class ScanOdometry:
             dropped,
             len(pts),
             icp_rejected,
+            self._period,
         )
 
     # ----------------------------------------------------------------- helpers
@@ -711,6 +713,7 @@ class ScanOdometry:
             dropped,
             n_points,
             icp_rejected,
+            self._period,
         )
 
 
