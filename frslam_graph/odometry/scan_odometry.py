@@ -352,12 +352,12 @@ class ScanOdometry:
         seeds = [u]
         if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
             seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
-        flipped = None
-        if used_wheel and abs(u[0]) > ODOM_JUMP_MIN_M:
+        if used_wheel and abs(u[0]) > ODOM_JUMP_MIN_M and cv_u[0] * u[0] <= 0.5 * u[0] * u[0]:
             # a step this long whose sign the wheels lost (FR079 logs reversing as forward
-            # motion) puts the seed 2|u_x| off, beyond ICP's reach: let the scan decide
-            flipped = np.array([-u[0], -u[1], u[2]])
-            seeds.append(flipped)
+            # motion) puts the seed 2|u_x| off, beyond ICP's reach: let the scan decide. Only
+            # where a reversal is possible: a robot reverses through standstill, so not while the
+            # last step moved on in the wheels' direction by more than half this one
+            seeds.append(np.array([-u[0], -u[1], u[2]]))
         # a scan without wheel odometry breaks the chain: the next increment must not span it
         self._prev_wheel, self._prev_raw = wheel, raw_wheel
 
