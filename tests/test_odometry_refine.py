@@ -25,8 +25,7 @@ def test_refinement_sharpens_the_real_fr079_odometry(test_data):
     """The first 250 scans of FR079 (its relations of Kümmerle et al. among them): KISS-ICP
     matches points to the sparse points of its voxel map and leaves a scan a few tenths of a
     degree off; on lines of the recent scans the relative poses are closer to the ground truth
-    (rotation 0.30 -> 0.24 deg, translation 0.027 -> 0.022 m on this excerpt; before the wheel
-    poses were re-timed to the scans, 0.46 -> 0.26 deg)."""
+    (rotation 0.46 -> 0.26 deg, translation 0.031 -> 0.028 m on this excerpt)."""
     scans = []
     for s in open_recording(test_data / "fr079_250.clf.bz2"):
         pts, _ = body_points(s.points, s.sensor_offset)
@@ -35,7 +34,7 @@ def test_refinement_sharpens_the_real_fr079_odometry(test_data):
     plain = relation_error(_frontend(scans, 0), rel)
     refined = relation_error(_frontend(scans, 20), rel)
     assert plain.matched == refined.matched == 51
-    assert refined.rot_mean < 0.85 * plain.rot_mean
+    assert refined.rot_mean < 0.7 * plain.rot_mean
     assert refined.trans_mean < plain.trans_mean
 
 

@@ -26,9 +26,7 @@ trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel incremen
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
-periods count as dropped scans. The wheel poses are re-timed to the scans by a time offset
-learnt from the scan-matched heading steps (:meth:`ScanOdometry._retime`): a scan taken before its
-stamp (FR079: 0.11 s) met wheel increments whose turn was off by offset x (change of turn rate).
+periods count as dropped scans.
 """
 
 from __future__ import annotations
@@ -53,14 +51,11 @@ from frslam_graph.odometry.motion_model import (
     compose,
     constant_velocity,
     constant_velocity_noise,
-    exp,
     from_matrix,
-    log,
     to_matrix4,
     vector_cov,
     wheel_increment,
     wheel_noise,
-    wrap,
 )
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
@@ -252,14 +247,7 @@ class ScanOdometry:
         self._steady = True  # recent stamps keep to the period (see _clock)
         self._last_dt = 0.0
         self._last_increment = np.zeros(3)
-        self._prev_wheel: np.ndarray | None = None  # previous wheel pose, re-timed (see _retime)
-        self._prev_raw: np.ndarray | None = None  # previous wheel pose as given
-        # wheel-to-scan time offset (s, see _retime): least squares over recent steps with
-        # exponential forgetting, sum x², sum x y; the previous step's wheel turn rate (rad/s)
-        self._offset = 0.0
-        self._offset_sxx = 0.0
-        self._offset_sxy = 0.0
-        self._prev_rate: float | None = None
+        self._prev_wheel: np.ndarray | None = None
         self._prev_rel = np.zeros(3)  # fused pose relative to keyframe at the previous scan
         self._kf_index = -1
         self._kf_stamp = float("-inf")
@@ -334,16 +322,13 @@ class ScanOdometry:
         cv_u = constant_velocity(self._last_increment, self._last_dt, dt)
         cv_cov = constant_velocity_noise(dt, cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
         u, cov_u, used_wheel, jump = cv_u, cv_cov, False, False
-        raw_wheel, uw_raw = wheel, None
         if wheel is not None and self._prev_wheel is not None:
-            uw_raw = wheel_increment(self._prev_raw, wheel)
-            if np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(
-                uw_raw[2]
-            ) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0):
+            uw = wheel_increment(self._prev_wheel, wheel)
+            if np.hypot(uw[0], uw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(uw[2]) > np.deg2rad(
+                cfg.max_turn_rate_deg
+            ) * dt_speed + np.deg2rad(2.0):
                 jump = True
             else:
-                wheel = self._retime(wheel, uw_raw, dt)
-                uw = wheel_increment(self._prev_wheel, wheel)
                 # where the wheels alone carry the motion, increment after increment, their
                 # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
                 alone = not cfg.scan_matching or len(pts) < cfg.min_points
@@ -359,7 +344,7 @@ class ScanOdometry:
             # last step moved on in the wheels' direction by more than half this one
             seeds.append(np.array([-u[0], -u[1], u[2]]))
         # a scan without wheel odometry breaks the chain: the next increment must not span it
-        self._prev_wheel, self._prev_raw = wheel, raw_wheel
+        self._prev_wheel = wheel
 
         prev_rel = self._ekf.x
         degenerate, fallback, axis, icp_rejected = False, False, None, False
@@ -424,8 +409,6 @@ class ScanOdometry:
         rel = self._ekf.x
         self._last_increment = between(prev_rel, rel)
         self._last_dt = dt
-        scan_held = used_wheel and not (fallback or degenerate or icp_rejected)
-        self._learn_offset(uw_raw if scan_held else None, dt)
         is_kf = np.hypot(rel[0], rel[1]) >= self._kf_dist or abs(rel[2]) >= self._kf_angle
         if cfg.keyframe_max_interval_s is not None and stamp - self._kf_stamp >= cfg.keyframe_max_interval_s:
             is_kf = True
@@ -455,7 +438,7 @@ class ScanOdometry:
     # ----------------------------------------------------------------- helpers
     def _first(self, stamp: float, pts: np.ndarray, wheel: np.ndarray | None) -> OdometryResult:
         self._t_hist.append(stamp)
-        self._prev_wheel = self._prev_raw = wheel
+        self._prev_wheel = wheel
         start = wheel.copy() if wheel is not None else np.zeros(3)
         self._kf_pose = start
         fallback = len(pts) < self.config.min_points
@@ -523,48 +506,6 @@ class ScanOdometry:
             self.stats.gaps += 1
         dt = raw if raw >= 0.5 * period else period
         return dt, max(raw, period), dropped
-
-    def _retime(self, wheel: np.ndarray, uw_raw: np.ndarray, dt: float) -> np.ndarray:
-        """The wheel pose at the scan's own time: ``wheel`` moved along the last wheel step by
-        the estimated offset (a fraction ``offset / dt`` of that step, at most one whole step).
-
-        A scan and the wheel pose logged with it need not describe the same instant: a laser
-        stamps its scan after sending it (a SICK LMS's serial transfer takes ~0.1 s), a logger
-        may copy an older wheel reading. FR079's scans agree best with the wheel poses logged 0.1 s
-        earlier (the heading steps of the scan-matched trajectory): unaligned, a change of turn
-        rate puts offset x (rate change) into each wheel increment, 5-8° per step when scans are
-        0.6 s apart, beyond KISS-ICP's reach (its seed heading stays: tools/README.md).
-        """
-        if self._offset == 0.0 or dt <= 0.0:
-            return wheel
-        f = float(np.clip(self._offset / dt, -1.0, 1.0))
-        return compose(wheel, exp(f * log(uw_raw)))
-
-    def _learn_offset(self, uw_raw: np.ndarray | None, dt: float) -> None:
-        """Update the wheel-to-scan offset (s) from this step: uw_raw, the logged wheel increment
-        (None when the step did not take it, or the scan did not fix the step's heading).
-
-        Re-timing by τ adds τ (r_t - r_{t-1}) to a wheel heading step (r: the wheels' turn rate
-        over a step); τ is the least-squares fit of the scan-matched heading step minus the
-        wheel's on that rate change, over the last ~_OFFSET_WINDOW steps, shrunk toward 0 until
-        the turn rate has changed enough (_OFFSET_PRIOR), within ±_OFFSET_MAX.
-        """
-        if uw_raw is None or dt <= 0.0:
-            self._prev_rate = None
-            return
-        rate = float(uw_raw[2]) / dt
-        prev, self._prev_rate = self._prev_rate, rate
-        if prev is None:
-            return
-        y = float(wrap(self._last_increment[2] - uw_raw[2]))
-        if abs(y) > _OFFSET_OUTLIER:  # a wheel fault, not a timing error
-            return
-        x = rate - prev
-        keep = 1.0 - 1.0 / _OFFSET_WINDOW
-        self._offset_sxx = keep * self._offset_sxx + x * x
-        self._offset_sxy = keep * self._offset_sxy + x * y
-        tau = self._offset_sxy / (self._offset_sxx + _OFFSET_PRIOR)
-        self._offset = float(np.clip(tau, -_OFFSET_MAX, _OFFSET_MAX))
 
     def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:
         """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
@@ -793,11 +734,6 @@ def _near_cells(points: np.ndarray, queries: np.ndarray, radius: float) -> np.nd
     return occ[ix, iy]
 
 
-# wheel-to-scan time offset (ScanOdometry._learn_offset)
-_OFFSET_WINDOW = 200.0  # steps of memory of its least squares
-_OFFSET_PRIOR = 20 * 0.1**2  # (rad/s)²: shrinks it to 0 until ~20 steps changed the turn rate by 0.1 rad/s
-_OFFSET_MAX = 0.3  # s
-_OFFSET_OUTLIER = np.deg2rad(10.0)  # rad; a larger scan-vs-wheel heading step is a wheel fault
 _PERIOD_SPAN = 10  # scans per span of the nominal period's estimate (ScanOdometry._clock)
 _PERIOD_WINDOW = 60  # recent stamps it looks at
 _FIRST_SPEED_STEP = 0.1  # s: least step of the speed test before the period is known (5-40 Hz lasers)
