@@ -610,7 +610,7 @@ class LoopClosureConfig(_Section):
     budget_ms: float = Field(
         8.0,
         gt=0.0,
-        description="ms (estimated cost, not clock) of loop-closure work per scan; larger = closures sooner, higher latency",
+        description="ms (estimated cost, not clock) of loop-closure work per scan (a scanner slower than 0.3 s per scan: per 0.3 s of its period); larger = closures sooner, higher latency",
     )
     keyframe_budget_ms: float = Field(
         4.0,

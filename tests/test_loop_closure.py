@@ -301,6 +301,23 @@ def test_work_per_scan_is_packed_into_the_budget():
     assert closer.steps_last_call == 1 and closer.cost_last_call == pytest.approx(7.0)
 
 
+def test_a_slow_scanner_gets_the_budget_per_0_3_s_of_its_period():
+    """Keyframes come with travel and turning, not with scans: at 0.6 s per scan the per-scan
+    budget is that of two 0.3 s scans (8 -> 16 ms); at 0.3 s or faster it stays per scan."""
+    cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 8.0}}).loop_closure
+    closer = LoopCloser(cfg)
+    log: list[int] = []
+    closer._job = _fake_job([3.0] * 10, log)
+    closer._jobs.append(None)
+    closer.set_scan_period(0.1)
+    assert _calls(closer, 1, log) == [[0, 1]]  # 3 + 3 <= 8
+    closer.set_scan_period(0.6)
+    assert closer.budget_scale == pytest.approx(2.0)
+    assert _calls(closer, 1, log) == [[2, 3, 4, 5, 6]]  # 5 x 3 <= 16
+    closer.set_scan_period(float("nan"))
+    assert closer.budget_scale == 1.0
+
+
 def test_wall_clock_cap_uses_the_injected_clock():
     now = [0.0]
     cfg = FRSlamConfig.from_dict({"loop_closure": {"budget_ms": 1000.0, "wall_budget_ms": 12.0}})

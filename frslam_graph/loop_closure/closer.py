@@ -79,8 +79,11 @@ and each relinearising iteration after a closure, an LM batch) is a chain of ste
 ``add_scan`` (keyframe or not) while their estimated cost fits ``budget_ms``. Each step announces
 its cost from the sizes involved (a fixed cost model: look-ups, grid cells, points, keyframes),
 never from a clock, so the run is deterministic and the same on any machine; a step estimated
-above the budget runs alone. ``wall_budget_ms`` optionally caps each call by the clock as well
-(then the spread depends on the load). ``FRSlam.finish()`` runs what is left (:meth:`on_finish`).
+above the budget runs alone. The budgets are per scan of a scanner at least as fast as
+``BUDGET_PERIOD``; a slower one gets them per ``BUDGET_PERIOD`` of its period (keyframes come
+with travel and turning, not with scans: :meth:`LoopCloser.set_scan_period`).
+``wall_budget_ms`` optionally caps each call by the clock as well (then the spread depends on the
+load). ``FRSlam.finish()`` runs what is left (:meth:`on_finish`).
 With an unbounded budget the result is exactly that of doing everything in the keyframe's call.
 When the matching falls behind the budget, a keyframe plans no candidates while
 ``MAX_QUEUED_JOBS`` wait (a pending closure's check excepted): without this cap the queue grew
@@ -153,6 +156,9 @@ PRUNE_THETA_DEG = 3.0  # deg; ... or at least this turn
 # candidate matched hundreds of keyframes after its plan closes late). A pending closure's check
 # is queued all the same.
 MAX_QUEUED_JOBS = 12
+# s; the budgets are per scan of a scanner at least this fast; a slower one gets them per this
+# much of its period (LoopCloser.budget_scale)
+BUDGET_PERIOD = 0.3
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -270,6 +276,22 @@ class LoopCloser:
         self._next_cost = 0.0  # estimated cost (ms) of the current task's next step
         # steps run by the latest on_keyframe / on_scan / on_finish and their estimated cost (ms)
         self.steps_last_call, self.cost_last_call = 0, 0.0
+        self.budget_scale = 1.0  # factor on the per-call budgets (see set_scan_period)
+
+    def set_scan_period(self, period: float) -> None:
+        """The nominal scan period (s): the per-call budgets are for a scanner of at most
+        ``BUDGET_PERIOD``; a slower one gets them per ``BUDGET_PERIOD`` of its period. Keyframes
+        come with travel and turning, not with scans: at a third of FR079's scan rate most scans
+        are keyframes, and a budget per scan matched a third of the candidates (263 attempts
+        against 928, 455 keyframes planned none: 2.64 m against 0.033 m). A keyframe scan's own
+        work (graph and plan updates, ``budget_ms - keyframe_budget_ms``) is not scaled: at 0.64 s
+        most scans are keyframes, and scaling their reduced budget alone left the closer behind
+        (FR079 1.62 m; with this 0.123 m)."""
+        p = float(period)
+        self.budget_scale = max(p / BUDGET_PERIOD, 1.0) if np.isfinite(p) else 1.0
+
+    def _scaled(self, ms: float | None) -> float | None:
+        return None if ms is None else ms * self.budget_scale
 
     # ------------------------------------------------------------------ motion bookkeeping
     def _append_motion(self, pose_odom: np.ndarray) -> None:
@@ -315,7 +337,11 @@ class LoopCloser:
             if not work:
                 self.steps_last_call, self.cost_last_call = 0, 0.0
                 return []
-            return self._work(ctx, min(cfg.keyframe_budget_ms, cfg.budget_ms), cfg.wall_budget_ms)
+            # the keyframe's own work (graph and plan updates: budget_ms - keyframe_budget_ms)
+            # comes out of its scan's budget once, whatever the period
+            full = self._scaled(cfg.budget_ms)
+            budget = min(cfg.keyframe_budget_ms, cfg.budget_ms) + full - cfg.budget_ms
+            return self._work(ctx, budget, self._scaled(cfg.wall_budget_ms))
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0
@@ -329,12 +355,13 @@ class LoopCloser:
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
+            full = self._scaled(self.config.budget_ms)
             if budget_ms is not None:
-                wall = self.config.wall_budget_ms
+                wall = self._scaled(self.config.wall_budget_ms)
                 if wall is not None:
-                    wall *= min(budget_ms / self.config.budget_ms, 1.0)
-                return self._work(ctx, min(budget_ms, self.config.budget_ms), wall, first_free=False)
-            return self._work(ctx, self.config.budget_ms, self.config.wall_budget_ms)
+                    wall *= min(budget_ms / full, 1.0)
+                return self._work(ctx, min(budget_ms, full), wall, first_free=False)
+            return self._work(ctx, full, self._scaled(self.config.wall_budget_ms))
         finally:
             self.stats.seconds += time.perf_counter() - t0
             self.stats.cpu_seconds += time.process_time() - c0

@@ -19,7 +19,8 @@ Scans without enough valid points (all-NaN) fall back to the motion model. With
 mapped and used by loop closure and the floor-plan priors); scans without wheel odometry are
 then still matched. Wheel increments that are physically impossible, that the scan rejects in
 favour of constant velocity (when the two disagree both seeds are aligned and the better map fit
-wins), or that move along the robot's x axis against the scan's motion beyond the gate (wheel
+wins) or of the wheel step reversed (tried when a step is longer than ``ODOM_JUMP_MIN_M``: a lost
+sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that move along the robot's x axis against the scan's motion beyond the gate (wheel
 odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
 trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
@@ -100,6 +101,7 @@ class OdometryResult:
     dropped: int = 0
     n_points: int = 0
     icp_rejected: bool = False
+    period: float = 0.0  # s, the nominal scan period at this scan (0 before it is known)
 
 
 @dataclass(slots=True)
@@ -335,6 +337,12 @@ class ScanOdometry:
         seeds = [u]
         if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
             seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
+        if used_wheel and abs(u[0]) > ODOM_JUMP_MIN_M and cv_u[0] * u[0] <= 0.5 * u[0] * u[0]:
+            # a step this long whose sign the wheels lost (FR079 logs reversing as forward
+            # motion) puts the seed 2|u_x| off, beyond ICP's reach: let the scan decide. Only
+            # where a reversal is possible: a robot reverses through standstill, so not while the
+            # last step moved on in the wheels' direction by more than half this one
+            seeds.append(np.array([-u[0], -u[1], u[2]]))
         # a scan without wheel odometry breaks the chain: the next increment must not span it
         self._prev_wheel = wheel
 
@@ -352,8 +360,8 @@ class ScanOdometry:
             if scan.source is None:  # prepared without the registration's inputs
                 scan = self.prepare(pts, icp_inputs=True)
             chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
-            if chosen == 1:  # the scan sides with constant velocity: the wheel increment jumped
-                jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
+            if chosen:  # the scan sides with constant velocity or the reversed wheel step: a jump
+                jump, used_wheel, u, cov_u = True, False, seeds[chosen], cv_cov
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
             R_body, degenerate, fallback, axis = scan.icp_covariance
@@ -424,6 +432,7 @@ class ScanOdometry:
             dropped,
             len(pts),
             icp_rejected,
+            self._period,
         )
 
     # ----------------------------------------------------------------- helpers
@@ -528,8 +537,9 @@ class ScanOdometry:
         """KISS-ICP's register_frame up to the alignment, with one or more seed increments.
 
         Same steps as ``KissICP.register_frame`` (preprocess and voxelise: :meth:`prepare`; align);
-        nothing is changed until :meth:`_commit`. With two seeds, both are aligned and the one whose
-        result has more source points near the local map wins (ties keep seed 0). Returns (seed
+        nothing is changed until :meth:`_commit`. With more seeds, each is aligned and the one whose
+        result has the most source points near the local map wins if that beats seed 0's by 0.05
+        (else seed 0). Returns (seed
         index, pose 4×4, initial guess 4×4, thinned frame for the map).
         """
         icp = self._icp
@@ -548,12 +558,18 @@ class ScanOdometry:
         ]
         best = 0
         if len(poses) > 1 and not icp.local_map.empty():
-            d = between(from_matrix(poses[0]), from_matrix(poses[1]))
-            if np.hypot(d[0], d[1]) > 0.02 or abs(d[2]) > np.deg2rad(0.5):
+            first = from_matrix(poses[0])
+            apart = []
+            for j in range(1, len(poses)):
+                d = between(first, from_matrix(poses[j]))
+                if np.hypot(d[0], d[1]) > 0.02 or abs(d[2]) > np.deg2rad(0.5):
+                    apart.append(j)
+            if apart:
                 scores = _inlier_fractions(
                     icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
                 )
-                best = int(scores[1] > scores[0] + 0.05)
+                j = max(apart, key=lambda j: scores[j])
+                best = j if scores[j] > scores[0] + 0.05 else 0
         pose = poses[best]
         if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
             self._aligned_points = _local_points(scan.points)
@@ -652,6 +668,7 @@ class ScanOdometry:
             dropped,
             n_points,
             icp_rejected,
+            self._period,
         )
 
 
