@@ -14,7 +14,8 @@ the crisp side of a wall, whatever the wall's thickness or whether its other sid
 Parameters
 ``(theta, tx, ty, lsx, lsy, delta)`` are estimated by iteratively reweighted Gauss-Newton with
 Levenberg damping and Cauchy weights; a point counts only when the map is free two cells further
-into its room, so the unexplored rooms of the plan (and the far side of walls) do not pull. The covariance of ``(tx, ty, theta)`` is ``sigma² (JᵀWJ)⁻¹``
+into its room, so the unexplored rooms of the plan (and the far side of walls) do not pull; with
+``symmetric`` (MFR's final fit) the count does not depend on the residual's sign (:func:`_counted`). The covariance of ``(tx, ty, theta)`` is ``sigma² (JᵀWJ)⁻¹``
 (scales and delta marginalised), in metres and radians.
 """
 
@@ -196,7 +197,7 @@ def refine(
             qy = by + x[2] + x[5] * ny
             r, gx, gy, inside = field.sample(qx, qy)
             if kn is None or it % 3 == 0:  # which points see free space on their room side
-                kn = _counted(field, bx + x[1], by + x[2], nx, ny, x[5], r, symmetric)
+                kn = _counted(field, bx + x[1], by + x[2], nx, ny, x[5], r, symmetric, c)
             w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
             jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])
@@ -261,6 +262,10 @@ def refine(
     )
 
 
+# a point counts in a symmetric fit while its residual is within this many robust scales
+WINDOW = 3.0
+
+
 def _counted(
     field: DistanceField,
     x: np.ndarray,
@@ -270,21 +275,25 @@ def _counted(
     delta: float,
     r: np.ndarray,
     symmetric: bool,
+    scale: float,
 ) -> np.ndarray:
     """Weight (0..1) of boundary points at (x, y) (metres, before the ``delta`` offset) with unit
-    inward normals (nx, ny) and residuals ``r``: their room side is free two cells inside the
-    offset point. That alone drops a point whose free edge lies more than two cells inside its
-    room (furniture, a frontier, a room placed too large) and keeps one whose free space runs on
-    past it (window niches, glass, a room placed too small): on ragged real maps the counted
-    residuals lean outward and the fit grows the plan (Halmstad: +2-4 % scale). ``symmetric``:
-    the room side is probed past the point's own free edge (|r| further when it lies outside the
-    free space), and a point counts only where its nearest free edge is a wall, not a frontier to
-    unobserved space."""
+    inward normals (nx, ny) and residuals ``r`` under the robust ``scale`` (metres).
+
+    Default: the room side is free two cells inside the offset point. That drops a point whose
+    free edge lies more than two cells inside its room (furniture, a frontier, a room placed too
+    large) and keeps one whose free space runs on past it at any distance (window niches, glass,
+    a room placed too small): on ragged real maps the counted residuals lean outward and the fit
+    grows the plan (Halmstad: +2-4 % scale). ``symmetric``: the room side is probed past the
+    point's own free edge, the residual must lie within :data:`WINDOW` robust scales whatever its
+    sign, and the point's nearest free edge must be a wall, not a frontier to unobserved space
+    (the field's ``wall``)."""
     d = delta + 2.0 * field.resolution
     if not symmetric:
         return field.free_at(x + d * nx, y + d * ny)
     d = d + np.maximum(-r, 0.0)
-    return field.free_at(x + d * nx, y + d * ny) * field.wall_at(x + delta * nx, y + delta * ny)
+    near = np.abs(r) <= WINDOW * scale
+    return field.free_at(x + d * nx, y + d * ny) * field.wall_at(x + delta * nx, y + delta * ny) * near
 
 
 def robust_terms(
@@ -302,7 +311,7 @@ def robust_terms(
     nx, ny = cth * n0 - sth * n1, sth * n0 + cth * n1
     bx, by = cth * ax - sth * ay + result.tx, sth * ax + cth * ay + result.ty
     r, _, _, inside = field.sample(bx + result.delta * nx, by + result.delta * ny)
-    return np.log1p((r / scale) ** 2), _counted(field, bx, by, nx, ny, result.delta, r, True) * inside
+    return np.log1p((r / scale) ** 2), _counted(field, bx, by, nx, ny, result.delta, r, True, scale) * inside
 
 
 def ring_edges(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,7 +19,7 @@ from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door
 from frslam_graph.registration.mfr.geometry import lookup
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
-from frslam_graph.registration.refine import RefineResult, refine, robust_terms
+from frslam_graph.registration.refine import WINDOW, RefineResult, refine, robust_terms
 from frslam_graph.registration.result import params_from_matrix
 from frslam_graph.se2 import rot
 
@@ -249,11 +249,6 @@ def structure_key(
 # Cauchy scales (m) of the final refinement's stages: the first wide enough to leave the screened
 # placement's basin, the last the residual's scale
 FINAL_SCALES = (0.15, 0.05)
-# a boundary point one final fit counts and the other does not costs the other as much as a point
-# this far (m) off its wall: the farthest a drawn wall is still taken as explained
-# (register.DRAWN_TOL_MAX). Halmstad rows identical from 0.35 to 1 m; at 0.15 m a fit that
-# drops the points it does not explain wins.
-DROPPED_M = 0.35
 
 
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
@@ -265,7 +260,7 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
     geometric mean, refined with that one scale, then with two). The screened placement's aspect
     comes from the coarse moments or the wide search's scale steps, and on real maps the free
     edges beyond what the plan draws (window niches, clutter, glass) hold the two-scale fit near
-    it (Halmstad E5_12: +4.7 % scale, -5.5 % aspect from there, +2.1 % / -1.0 % from the
+    it (Halmstad E5_12: +5.5 % scale, -5.9 % aspect from there, +2.6 % / -0.9 % from the
     similarity). The fit with the lower robust cost (:func:`nll_gain`) is kept."""
     kw = {
         "scales": FINAL_SCALES,
@@ -291,12 +286,12 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
 def nll_gain(pm: PlanModel, obs: MapObservation, a: RefineResult, b: RefineResult, opts: dict) -> float:
     """How much better fit ``a`` explains the plan's boundary points than fit ``b``: the drop of
     the Cauchy negative log-likelihood (scale :data:`FINAL_SCALES`[-1]) summed over the points
-    either counts, a point one of them does not count costing it as much as one
-    :data:`DROPPED_M` off its wall (a fit must not win by dropping the points it does not
-    explain)."""
+    either counts, a point one of them does not count costing it as much as one at the edge of
+    the counting window (:data:`refine.WINDOW` scales): a truncated Cauchy, so that a fit does not
+    win by dropping the points it does not explain."""
     pts, nrm, _, _, _ = _points(pm, obs, b.matrix, opts["sample_px"], opts["max_points"])
     scale = FINAL_SCALES[-1]
-    cap = math.log1p((DROPPED_M / scale) ** 2)
+    cap = math.log1p(WINDOW**2)
     t_a, w_a = robust_terms(pts, nrm, obs.field, a, scale)
     t_b, w_b = robust_terms(pts, nrm, obs.field, b, scale)
     w = np.maximum(w_a, w_b)
