@@ -62,8 +62,8 @@ class DistanceField:
         u = (x - self.origin[0]) * (1.0 / self.resolution) - 0.5
         v = (y - self.origin[1]) * (1.0 / self.resolution) - 0.5
         inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
-        u = np.clip(u, 0, w - 1.0001)
-        v = np.clip(v, 0, h - 1.0001)
+        u = np.minimum(np.maximum(u, 0.0), w - 1.0001)  # np.clip's wrapper costs more here
+        v = np.minimum(np.maximum(v, 0.0), h - 1.0001)
         i0 = u.astype(np.intp)
         j0 = v.astype(np.intp)
         return j0 * w + i0, u - i0, v - j0, inside
@@ -174,7 +174,7 @@ def refine(
     r = np.zeros(len(p))
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
-    jac = np.empty((len(p), 6))
+    jac = np.empty((6, len(p)))  # one row per parameter: contiguous rows
     # free parameters: all six, or with ``fixed_aspect`` one log scale moving both
     basis = np.eye(6)
     if fixed_aspect:
@@ -200,16 +200,16 @@ def refine(
                 kn = _counted(field, bx + x[1], by + x[2], nx, ny, x[5], r, symmetric, c)
             w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
-            jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])
-            jac[:, 1] = gx
-            jac[:, 2] = gy
-            jac[:, 3] = (gx * cth + gy * sth) * ax
-            jac[:, 4] = (gy * cth - gx * sth) * ay
-            jac[:, 5] = (gx * nx + gy * ny) if free_delta else 0.0
-            ja = jac @ basis  # the free parameters' columns
-            jw = ja * w_all[:, None]
-            jtj = ja.T @ jw
-            jtr = jw.T @ r
+            jac[0] = gy * (qx - x[1]) - gx * (qy - x[2])
+            jac[1] = gx
+            jac[2] = gy
+            jac[3] = (gx * cth + gy * sth) * ax
+            jac[4] = (gy * cth - gx * sth) * ay
+            jac[5] = (gx * nx + gy * ny) if free_delta else 0.0
+            ja = basis.T @ jac if fixed_aspect else jac  # the free parameters' rows
+            jw = ja * w_all
+            jtj = jw @ ja.T
+            jtr = jw @ r
             # Gaussian prior on delta, relative to a residual noise of half a pixel
             jtj[-1, -1] += prior_w
             jtr[-1] += prior_w * (x[5] - delta0)

@@ -250,32 +250,66 @@ def structure_key(
 # placement's basin, the last the residual's scale
 FINAL_SCALES = (0.15, 0.05)
 
+# The second start's gate: a cheap similarity fit (one scale, the first stage only, this many
+# iterations on at most this many boundary points this many map cells apart) whose truncated-Cauchy
+# cost on those points (:func:`nll_gain`) must come within ``GATE_MARGIN`` (nats, summed over
+# them) of the first fit's for the full second start to run. Halmstad (18 maps): the second start
+# won (by > 1 nat at full resolution) on 9, their gate gains -14 to +1 nats, the gate passes 17;
+# simulator quick set (184 fits): it passes 16 (none of them has the first fit's residual above
+# the final robust scale).
+GATE_POINTS, GATE_SPACING_PX, GATE_ITERATIONS, GATE_MARGIN = 150, 6.0, 3, 20.0
+
 
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
     """The screened placement refined at full resolution (``sample_px``, ``max_points``,
     ``iterations``, robust scales :data:`FINAL_SCALES`, points counted whatever the sign of their
     residual); the screened one when the final fits are degenerate.
 
-    Two starts: the screened placement, and its similarity (its two scales replaced by their
-    geometric mean, refined with that one scale, then with two). The screened placement's aspect
-    comes from the coarse moments or the wide search's scale steps, and on real maps the free
-    edges beyond what the plan draws (window niches, clutter, glass) hold the two-scale fit near
-    it (Halmstad E5_12: +5.5 % scale, -5.9 % aspect from there, +2.6 % / -0.9 % from the
-    similarity). The fit with the lower robust cost (:func:`nll_gain`) is kept."""
-    kw = {
-        "scales": FINAL_SCALES,
+    A second start: the screened placement's similarity (its two scales replaced by their
+    geometric mean, refined with that one scale, then with two, both at :data:`FINAL_SCALES`).
+    The screened placement's aspect comes from the coarse moments or the wide search's scale
+    steps, and on real maps the free edges beyond what the plan draws (window niches, clutter,
+    glass) hold the two-scale fit near it (Halmstad E5_12: +5.5 % scale, -5.9 % aspect from
+    there, +2.6 % / -0.9 % from the similarity). It costs two more full fits, so it runs only
+    when it can matter: the first fit's weighted RMS residual exceeds the final robust scale (the
+    map's edges do not pin it: Halmstad 0.07-0.10 m; 1 of the simulator quick set's 184) and a
+    cheap similarity fit comes near its robust cost (``GATE_*``). The fit with the lower robust
+    cost (:func:`nll_gain`) is kept."""
+    full = {
         "spacing_px": opts["sample_px"],
         "max_points": opts["max_points"],
         "iterations": opts["iterations"],
         "symmetric": True,
     }
-    fits = [refine_from(pm, obs, screened.matrix, screened.delta, opts, **kw)]
+    first = refine_from(pm, obs, screened.matrix, screened.delta, opts, scales=FINAL_SCALES, **full)
+    fits = [first] if plausible(first, opts) else []
+    if fits and first.rms <= FINAL_SCALES[-1]:
+        return first
     g = math.sqrt(screened.sx * screened.sy)
     similar = RefineResult(**{**screened.__dict__, "sx": g, "sy": g})
-    one = refine_from(pm, obs, similar.matrix, screened.delta, opts, fixed_aspect=True, **kw)
-    if plausible(one, opts):
-        fits.append(refine_from(pm, obs, one.matrix, one.delta, opts, **kw))
-    fits = [r for r in fits if plausible(r, opts)]
+    gate = refine_from(
+        pm,
+        obs,
+        similar.matrix,
+        screened.delta,
+        opts,
+        scales=FINAL_SCALES[:1],
+        spacing_px=GATE_SPACING_PX,
+        max_points=GATE_POINTS,
+        iterations=GATE_ITERATIONS,
+        fixed_aspect=True,
+        symmetric=True,
+    )
+    if plausible(gate, opts) and (
+        not fits or nll_gain(pm, obs, gate, first, opts, GATE_SPACING_PX, GATE_POINTS) > -GATE_MARGIN
+    ):
+        one = refine_from(
+            pm, obs, similar.matrix, screened.delta, opts, scales=FINAL_SCALES, fixed_aspect=True, **full
+        )
+        if plausible(one, opts):
+            second = refine_from(pm, obs, one.matrix, one.delta, opts, scales=FINAL_SCALES, **full)
+            if plausible(second, opts):
+                fits.append(second)
     if not fits:
         return screened
     if len(fits) == 2 and nll_gain(pm, obs, fits[1], fits[0], opts) > 0.0:
@@ -283,13 +317,24 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
     return fits[0]
 
 
-def nll_gain(pm: PlanModel, obs: MapObservation, a: RefineResult, b: RefineResult, opts: dict) -> float:
+def nll_gain(
+    pm: PlanModel,
+    obs: MapObservation,
+    a: RefineResult,
+    b: RefineResult,
+    opts: dict,
+    spacing_px: float | None = None,
+    max_points: int | None = None,
+) -> float:
     """How much better fit ``a`` explains the plan's boundary points than fit ``b``: the drop of
     the Cauchy negative log-likelihood (scale :data:`FINAL_SCALES`[-1]) summed over the points
     either counts, a point one of them does not count costing it as much as one at the edge of
     the counting window (:data:`refine.WINDOW` scales): a truncated Cauchy, so that a fit does not
-    win by dropping the points it does not explain."""
-    pts, nrm, _, _, _ = _points(pm, obs, b.matrix, opts["sample_px"], opts["max_points"])
+    win by dropping the points it does not explain. The points: the final fit's (``sample_px``,
+    ``max_points``), or ``spacing_px`` map cells apart, at most ``max_points``."""
+    pts, nrm, _, _, _ = _points(
+        pm, obs, b.matrix, spacing_px or opts["sample_px"], max_points or opts["max_points"]
+    )
     scale = FINAL_SCALES[-1]
     cap = math.log1p(WINDOW**2)
     t_a, w_a = robust_terms(pts, nrm, obs.field, a, scale)
