@@ -227,34 +227,6 @@ def test_recovers_simulated_lidar_map(plan):
     assert reg.details["delta_m"] == pytest.approx(0.06, abs=0.02)
 
 
-def test_final_fit_starts_once_when_the_map_pins_it(plan, monkeypatch):
-    """The final fit's second start (the screened placement's similarity: two more fits at full
-    resolution) runs only when the first fit leaves residuals beyond the final robust scale, as on
-    ragged real maps (Halmstad: 0.08-0.10 m); the simulator's walls pin the first fit."""
-    from frslam_graph.datasets.simulator import Distortion, House, partial_map
-
-    from frslam_graph.registration.mfr import fine
-    from frslam_graph.registration.mfr.register import DEFAULTS
-
-    full = []
-    refine_from = fine.refine_from
-
-    def counted(*args, **kwargs):
-        r = refine_from(*args, **kwargs)
-        if kwargs.get("spacing_px") == DEFAULTS["sample_px"]:
-            full.append(r)
-        return r
-
-    monkeypatch.setattr(fine, "refine_from", counted)
-    dist = Distortion(0.025, (0.95, 1.08), True, math.radians(33.0), (2.0, -1.0))
-    house = House.from_plan(plan, dist)
-    grid, _ = partial_map(house, 0.6, np.random.default_rng(3), start_room="living")
-    reg = register(plan, grid)
-    assert reg.ok, reg.reason
-    assert iou_a(plan, reg.matrix, dist.matrix) > 0.97
-    assert len(full) == 1 and full[0].rms <= fine.FINAL_SCALES[-1]
-
-
 def test_runner_up_placements_are_reported(plan):
     """details["alternatives"]: MFR's runner-up placements (map frame), each a different
     placement from the best and from each other, scored relative to the best."""

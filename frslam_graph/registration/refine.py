@@ -14,8 +14,7 @@ the crisp side of a wall, whatever the wall's thickness or whether its other sid
 Parameters
 ``(theta, tx, ty, lsx, lsy, delta)`` are estimated by iteratively reweighted Gauss-Newton with
 Levenberg damping and Cauchy weights; a point counts only when the map is free two cells further
-into its room, so the unexplored rooms of the plan (and the far side of walls) do not pull; with
-``symmetric`` (MFR's final fit) the count does not depend on the residual's sign (:func:`_counted`). The covariance of ``(tx, ty, theta)`` is ``sigma² (JᵀWJ)⁻¹``
+into its room, so the unexplored rooms of the plan (and the far side of walls) do not pull. The covariance of ``(tx, ty, theta)`` is ``sigma² (JᵀWJ)⁻¹``
 (scales and delta marginalised), in metres and radians.
 """
 
@@ -33,37 +32,31 @@ from frslam_graph.registration.result import matrix_from_params
 @dataclass(frozen=True)
 class DistanceField:
     """Bilinear fields over a pixel grid (row 0 = lowest y): ``sdf`` (metres) and ``known`` (0..1),
-    here the free-space indicator: a point counts when the room side of it is free space; and
-    optionally ``wall`` (0..1): 1 where the nearest free edge is a wall (free next to a non-free
-    observed cell), 0 where it is a frontier to unobserved space."""
+    here the free-space indicator: a point counts when the room side of it is free space."""
 
     sdf: np.ndarray
     known: np.ndarray
     resolution: float
     origin: tuple[float, float]
-    wall: np.ndarray | None = None
 
     @classmethod
-    def from_masks(
-        cls, free: np.ndarray, resolution: float, origin, wall: np.ndarray | None = None
-    ) -> DistanceField:
-        """Signed distance to the edge of ``free`` (bool), ``free`` as a float field, and the
-        optional ``wall`` indicator (see the class docstring)."""
+    def from_masks(cls, free: np.ndarray, resolution: float, origin) -> DistanceField:
+        """Signed distance to the edge of ``free`` (bool), and ``free`` as a float field."""
         f = free.astype(np.uint8)
         # 3x3-mask distances: both sides alike, so the zero crossing stays on the pixel edges
         d_in = cv2.distanceTransform(f, cv2.DIST_L2, cv2.DIST_MASK_3)
         d_out = cv2.distanceTransform(1 - f, cv2.DIST_L2, cv2.DIST_MASK_3)
         sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32) * np.float32(resolution)
         kn = free.astype(np.float32)
-        return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])), wall)
+        return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])))
 
     def _cells(self, x: np.ndarray, y: np.ndarray):
         h, w = self.sdf.shape
         u = (x - self.origin[0]) * (1.0 / self.resolution) - 0.5
         v = (y - self.origin[1]) * (1.0 / self.resolution) - 0.5
         inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
-        u = np.minimum(np.maximum(u, 0.0), w - 1.0001)  # np.clip's wrapper costs more here
-        v = np.minimum(np.maximum(v, 0.0), h - 1.0001)
+        u = np.clip(u, 0, w - 1.0001)
+        v = np.clip(v, 0, h - 1.0001)
         i0 = u.astype(np.intp)
         j0 = v.astype(np.intp)
         return j0 * w + i0, u - i0, v - j0, inside
@@ -82,17 +75,6 @@ class DistanceField:
         gx = (a + fy * (b - a)) * (1.0 / self.resolution)
         gy = (bot - top) * (1.0 / self.resolution)
         return val, gx, gy, inside
-
-    def wall_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear wall indicator at points (x, y) (1 everywhere without a ``wall`` field)."""
-        if self.wall is None:
-            return np.ones(len(x))
-        w = self.sdf.shape[1]
-        k, fx, fy, inside = self._cells(x, y)
-        kf = self.wall.ravel()
-        top = kf[k] + fx * (kf[k + 1] - kf[k])
-        bot = kf[k + w] + fx * (kf[k + w + 1] - kf[k + w])
-        return (top + fy * (bot - top)) * inside
 
     def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear free indicator at points (x, y) (0 outside the grid)."""
@@ -146,8 +128,6 @@ def refine(
     fixed_delta_stages: int = 1,
     scales: tuple[float, ...] = (0.4, 0.15, 0.05),
     iterations: int = 8,
-    fixed_aspect: bool = False,
-    symmetric: bool = False,
 ) -> RefineResult:
     """Gauss-Newton/LM on boundary ``points`` (N, 2, plan units) with unit inward ``normals``
     (N, 2, plan frame); see the module docstring.
@@ -156,9 +136,7 @@ def refine(
     at two pixels). ``delta`` starts at the given value with a Gaussian prior of ``delta_sigma``;
     it is held fixed in the first ``fixed_delta_stages`` stages (wide robust scales would trade it
     against the scales). ``correlation``: how many neighbouring points share one independent error
-    (inflates the covariance). ``fixed_aspect``: the ratio ``sy / sx`` held at its start (one
-    scale; a similarity when it starts at 1). ``symmetric``: which points count does not depend
-    on the sign of their residual (:func:`_counted`).
+    (inflates the covariance).
     """
     p = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -168,18 +146,14 @@ def refine(
     res = field.resolution
     lam = 1e-3
     prior_w = (0.5 * field.resolution / delta_sigma) ** 2
+    probe = 2.0 * field.resolution  # the room side of a point, this far inside its free edge
     jtj = None
     stage_scales = [max(s, 2.0 * res) for s in scales]
     w_all = np.zeros(len(p))
     r = np.zeros(len(p))
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
-    jac = np.empty((6, len(p)))  # one row per parameter: contiguous rows
-    # free parameters: all six, or with ``fixed_aspect`` one log scale moving both
-    basis = np.eye(6)
-    if fixed_aspect:
-        basis = np.delete(basis, 4, axis=1)
-        basis[4, 3] = 1.0
+    jac = np.empty((len(p), 6))
     for stage, c in enumerate(stage_scales):
         free_delta = stage >= fixed_delta_stages
         kn = None
@@ -195,29 +169,29 @@ def refine(
             by = sth * ax + cth * ay
             qx = bx + x[1] + x[5] * nx
             qy = by + x[2] + x[5] * ny
-            r, gx, gy, inside = field.sample(qx, qy)
             if kn is None or it % 3 == 0:  # which points see free space on their room side
-                kn = _counted(field, bx + x[1], by + x[2], nx, ny, x[5], r, symmetric, c)
+                d = x[5] + probe
+                kn = field.free_at(bx + x[1] + d * nx, by + x[2] + d * ny)
+            r, gx, gy, inside = field.sample(qx, qy)
             w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
-            jac[0] = gy * (qx - x[1]) - gx * (qy - x[2])
-            jac[1] = gx
-            jac[2] = gy
-            jac[3] = (gx * cth + gy * sth) * ax
-            jac[4] = (gy * cth - gx * sth) * ay
-            jac[5] = (gx * nx + gy * ny) if free_delta else 0.0
-            ja = basis.T @ jac if fixed_aspect else jac  # the free parameters' rows
-            jw = ja * w_all
-            jtj = jw @ ja.T
-            jtr = jw @ r
+            jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])
+            jac[:, 1] = gx
+            jac[:, 2] = gy
+            jac[:, 3] = (gx * cth + gy * sth) * ax
+            jac[:, 4] = (gy * cth - gx * sth) * ay
+            jac[:, 5] = (gx * nx + gy * ny) if free_delta else 0.0
+            jw = jac * w_all[:, None]
+            jtj = jac.T @ jw
+            jtr = jw.T @ r
             # Gaussian prior on delta, relative to a residual noise of half a pixel
-            jtj[-1, -1] += prior_w
-            jtr[-1] += prior_w * (x[5] - delta0)
+            jtj[5, 5] += prior_w
+            jtr[5] += prior_w * (x[5] - delta0)
             if not np.all(np.isfinite(jtj)) or w_all.sum() < 6:
                 break
             a = jtj + lam * np.diag(np.diag(jtj) + 1e-9)
             try:
-                step = basis @ -np.linalg.solve(a, jtr)
+                step = -np.linalg.solve(a, jtr)
             except np.linalg.LinAlgError:
                 break
             if not np.all(np.isfinite(step)) or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
@@ -241,7 +215,7 @@ def refine(
             sigma2 = float((w_all * r * r).sum() / max(wsum - 6.0, 1.0))
             # residuals of neighbouring points on a wall are correlated (the map's cells along a
             # wall err together): count one independent residual per ``correlation`` points
-            covf = basis @ np.linalg.inv(jtj) @ basis.T * sigma2 * max(1.0, correlation)
+            covf = np.linalg.inv(jtj) * sigma2 * max(1.0, correlation)
             idx = [1, 2, 0]
             cov3 = covf[np.ix_(idx, idx)]
         except np.linalg.LinAlgError:
@@ -260,59 +234,6 @@ def refine(
         covariance=cov3,
         covariance_full=covf,
     )
-
-
-# a point counts in a symmetric fit while its residual is within this many robust scales
-WINDOW = 3.0
-
-
-def _counted(
-    field: DistanceField,
-    x: np.ndarray,
-    y: np.ndarray,
-    nx: np.ndarray,
-    ny: np.ndarray,
-    delta: float,
-    r: np.ndarray,
-    symmetric: bool,
-    scale: float,
-) -> np.ndarray:
-    """Weight (0..1) of boundary points at (x, y) (metres, before the ``delta`` offset) with unit
-    inward normals (nx, ny) and residuals ``r`` under the robust ``scale`` (metres).
-
-    Default: the room side is free two cells inside the offset point. That drops a point whose
-    free edge lies more than two cells inside its room (furniture, a frontier, a room placed too
-    large) and keeps one whose free space runs on past it at any distance (window niches, glass,
-    a room placed too small): on ragged real maps the counted residuals lean outward and the fit
-    grows the plan (Halmstad E5, refined from the annotated truth: aspect -1.9 %, -1.1 % counted
-    symmetrically; tools/README.md). ``symmetric``: the room side is probed past the
-    point's own free edge, the residual must lie within :data:`WINDOW` robust scales whatever its
-    sign, and the point's nearest free edge must be a wall, not a frontier to unobserved space
-    (the field's ``wall``)."""
-    d = delta + 2.0 * field.resolution
-    if not symmetric:
-        return field.free_at(x + d * nx, y + d * ny)
-    d = d + np.maximum(-r, 0.0)
-    near = np.abs(r) <= WINDOW * scale
-    return field.free_at(x + d * nx, y + d * ny) * field.wall_at(x + delta * nx, y + delta * ny) * near
-
-
-def robust_terms(
-    points: np.ndarray, normals: np.ndarray, field: DistanceField, result: RefineResult, scale: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per point (as given to :func:`refine`), under ``result``'s parameters: the Cauchy negative
-    log-likelihood ``ln(1 + (r / scale)^2)`` of its residual and its weight (0..1: counted as by
-    :func:`refine` with ``symmetric``, inside the grid)."""
-    p = np.asarray(points, dtype=np.float64)
-    nrm = np.asarray(normals, dtype=np.float64)
-    f = -1.0 if result.flipped else 1.0
-    cth, sth = math.cos(result.theta), math.sin(result.theta)
-    ax, ay = result.sx * p[:, 0], f * result.sy * p[:, 1]
-    n0, n1 = nrm[:, 0], f * nrm[:, 1]
-    nx, ny = cth * n0 - sth * n1, sth * n0 + cth * n1
-    bx, by = cth * ax - sth * ay + result.tx, sth * ax + cth * ay + result.ty
-    r, _, _, inside = field.sample(bx + result.delta * nx, by + result.delta * ny)
-    return np.log1p((r / scale) ** 2), _counted(field, bx, by, nx, ny, result.delta, r, True, scale) * inside
 
 
 def ring_edges(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,27 +19,9 @@ from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door
 from frslam_graph.registration.mfr.geometry import lookup
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
-from frslam_graph.registration.refine import WINDOW, RefineResult, refine, robust_terms
+from frslam_graph.registration.refine import RefineResult, refine
 from frslam_graph.registration.result import params_from_matrix
 from frslam_graph.se2 import rot
-
-
-def _points(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, spacing_px: float, max_points: int):
-    """The plan's boundary samples about ``spacing_px`` map cells apart (at most ``max_points``),
-    turned by ``-pm.angle`` so the scales act along the plan's wall directions: (points, normals,
-    the turn (3 x 3), the placement's parameters after it, points per 0.5 m of wall)."""
-    pre = np.eye(3)
-    pre[:2, :2] = rot(-pm.angle)
-    params = params_from_matrix(matrix @ pre.T)
-    sx, sy = params[2], params[3]
-    base = pm.sample_step  # plan units between samples
-    want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
-    stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
-    # one independent wall error per 0.5 m of wall
-    correlation = 0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9)
-    pts = pm.samples[::stride] @ pre[:2, :2].T
-    nrm = pm.sample_normals[::stride] @ pre[:2, :2].T
-    return pts, nrm, pre, params, correlation
 
 
 def refine_from(
@@ -53,22 +35,22 @@ def refine_from(
     spacing_px: float,
     max_points: int,
     iterations: int,
-    fixed_aspect: bool = False,
-    symmetric: bool = False,
 ) -> RefineResult:
     """Refine the placement ``matrix`` (plan -> grid frame) on a subsample of the plan's boundary
     samples about ``spacing_px`` map cells apart (at most ``max_points``).
 
     The scales act along the plan's wall directions: the plan is first turned by ``-pm.angle``
-    (zero for plans drawn axis-aligned); the result's matrix includes that turn. ``fixed_aspect``
-    and ``symmetric``: see :func:`refine`.
+    (zero for plans drawn axis-aligned); the result's matrix includes that turn.
     """
-    pts, nrm, pre, (flipped, theta, sx, sy, tx, ty), correlation = _points(
-        pm, obs, matrix, spacing_px, max_points
-    )
+    pre = np.eye(3)
+    pre[:2, :2] = rot(-pm.angle)
+    flipped, theta, sx, sy, tx, ty = params_from_matrix(matrix @ pre.T)
+    base = pm.sample_step  # plan units between samples
+    want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
+    stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
     r = refine(
-        pts,
-        nrm,
+        pm.samples[::stride] @ pre[:2, :2].T,
+        pm.sample_normals[::stride] @ pre[:2, :2].T,
         obs.field,
         flipped,
         theta,
@@ -82,9 +64,8 @@ def refine_from(
         iterations=iterations,
         # the wall offset trades against the scales under wide robust scales: hold it there
         fixed_delta_stages=sum(1 for c in scales if c > 0.16),
-        correlation=correlation,
-        fixed_aspect=fixed_aspect,
-        symmetric=symmetric,
+        # one independent wall error per 0.5 m of wall
+        correlation=0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9),
     )
     r.pre = pre
     return r
@@ -246,101 +227,21 @@ def structure_key(
     )
 
 
-# Cauchy scales (m) of the final refinement's stages: the first wide enough to leave the screened
-# placement's basin, the last the residual's scale
-FINAL_SCALES = (0.15, 0.05)
-
-# The second start's gate: a cheap similarity fit (one scale, the first stage only, this many
-# iterations on at most this many boundary points this many map cells apart) whose truncated-Cauchy
-# cost on those points (:func:`nll_gain`) must come within ``GATE_MARGIN`` (nats, summed over
-# them) of the first fit's for the full second start to run. Halmstad (18 maps): the second start
-# won (by > 1 nat at full resolution) on 9, their gate gains -14 to +1 nats, the gate passes 17;
-# simulator quick set (184 fits): it passes 16 (none of them has the first fit's residual above
-# the final robust scale).
-GATE_POINTS, GATE_SPACING_PX, GATE_ITERATIONS, GATE_MARGIN = 150, 6.0, 3, 20.0
-
-
 def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
     """The screened placement refined at full resolution (``sample_px``, ``max_points``,
-    ``iterations``, robust scales :data:`FINAL_SCALES`, points counted whatever the sign of their
-    residual); the screened one when the final fits are degenerate.
-
-    A second start: the screened placement's similarity (its two scales replaced by their
-    geometric mean, refined with that one scale, then with two, both at :data:`FINAL_SCALES`).
-    The screened placement's aspect comes from the coarse moments or the wide search's scale
-    steps, and on real maps the free edges beyond what the plan draws (window niches, clutter,
-    glass) hold the two-scale fit near it (Halmstad E5_12: +5.5 % scale, -5.9 % aspect from
-    there, +2.6 % / -0.9 % from the similarity). It costs two more full fits, so it runs only
-    when it can matter: the first fit's weighted RMS residual exceeds the final robust scale (the
-    map's edges do not pin it: Halmstad 0.07-0.10 m; 1 of the simulator quick set's 184) and a
-    cheap similarity fit comes near its robust cost (``GATE_*``). The fit with the lower robust
-    cost (:func:`nll_gain`) is kept."""
-    full = {
-        "spacing_px": opts["sample_px"],
-        "max_points": opts["max_points"],
-        "iterations": opts["iterations"],
-        "symmetric": True,
-    }
-    first = refine_from(pm, obs, screened.matrix, screened.delta, opts, scales=FINAL_SCALES, **full)
-    fits = [first] if plausible(first, opts) else []
-    if fits and first.rms <= FINAL_SCALES[-1]:
-        return first
-    g = math.sqrt(screened.sx * screened.sy)
-    similar = RefineResult(**{**screened.__dict__, "sx": g, "sy": g})
-    gate = refine_from(
+    ``iterations``, robust scale 0.05 m); the screened one when that final fit is degenerate."""
+    r = refine_from(
         pm,
         obs,
-        similar.matrix,
+        screened.matrix,
         screened.delta,
         opts,
-        scales=FINAL_SCALES[:1],
-        spacing_px=GATE_SPACING_PX,
-        max_points=GATE_POINTS,
-        iterations=GATE_ITERATIONS,
-        fixed_aspect=True,
-        symmetric=True,
+        scales=(0.05,),
+        spacing_px=opts["sample_px"],
+        max_points=opts["max_points"],
+        iterations=opts["iterations"],
     )
-    if plausible(gate, opts) and (
-        not fits or nll_gain(pm, obs, gate, first, opts, GATE_SPACING_PX, GATE_POINTS) > -GATE_MARGIN
-    ):
-        one = refine_from(
-            pm, obs, similar.matrix, screened.delta, opts, scales=FINAL_SCALES, fixed_aspect=True, **full
-        )
-        if plausible(one, opts):
-            second = refine_from(pm, obs, one.matrix, one.delta, opts, scales=FINAL_SCALES, **full)
-            if plausible(second, opts):
-                fits.append(second)
-    if not fits:
-        return screened
-    if len(fits) == 2 and nll_gain(pm, obs, fits[1], fits[0], opts) > 0.0:
-        return fits[1]
-    return fits[0]
-
-
-def nll_gain(
-    pm: PlanModel,
-    obs: MapObservation,
-    a: RefineResult,
-    b: RefineResult,
-    opts: dict,
-    spacing_px: float | None = None,
-    max_points: int | None = None,
-) -> float:
-    """How much better fit ``a`` explains the plan's boundary points than fit ``b``: the drop of
-    the Cauchy negative log-likelihood (scale :data:`FINAL_SCALES`[-1]) summed over the points
-    either counts, a point one of them does not count costing it as much as one at the edge of
-    the counting window (:data:`refine.WINDOW` scales): a truncated Cauchy, so that a fit does not
-    win by dropping the points it does not explain. The points: the final fit's (``sample_px``,
-    ``max_points``), or ``spacing_px`` map cells apart, at most ``max_points``."""
-    pts, nrm, _, _, _ = _points(
-        pm, obs, b.matrix, spacing_px or opts["sample_px"], max_points or opts["max_points"]
-    )
-    scale = FINAL_SCALES[-1]
-    cap = math.log1p(WINDOW**2)
-    t_a, w_a = robust_terms(pts, nrm, obs.field, a, scale)
-    t_b, w_b = robust_terms(pts, nrm, obs.field, b, scale)
-    w = np.maximum(w_a, w_b)
-    return float(np.sum(w_b * t_b + (w - w_b) * cap) - np.sum(w_a * t_a + (w - w_a) * cap))
+    return r if plausible(r, opts) else screened
 
 
 def face_distances(

@@ -99,19 +99,12 @@ def observe_map(
     small[1:] = st2[1:, cv2.CC_STAT_AREA] * res * res < obstacle_m2
     # keep components that touch the footprint's outside (outer walls) even when small
     free = free | (small[lab2] & _interior(footprint, lab2, m))
+    field_ = DistanceField.from_masks(free, res, (0.0, 0.0))
     # free cells on a wall (not on a frontier to unknown): the map's room structure
     walls_in = (footprint & ~free).astype(np.uint8)
     cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
     edge = free & cv2.dilate(walls_in, cross).astype(bool)
     edge_dt = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3) * np.float32(res)
-    # free cells on a frontier to unobserved space: a free edge there is where the sensor
-    # stopped, not a wall; the final refinement counts a point only nearer a wall cell
-    front = free & cv2.dilate((~footprint).astype(np.uint8), cross).astype(bool)
-    wall_side = None
-    if front.any():
-        d_front = cv2.distanceTransform((~front).astype(np.uint8), cv2.DIST_L2, 3) * np.float32(res)
-        wall_side = (edge_dt <= d_front).astype(np.float32)
-    field_ = DistanceField.from_masks(free, res, (0.0, 0.0), wall=wall_side)
     er, ec = np.nonzero(edge)
     if len(er) < 10:
         return "map shows no walls next to free space: nothing to match"
