@@ -20,7 +20,8 @@ mapped and used by loop closure and the floor-plan priors); scans without wheel 
 then still matched. Wheel increments that are physically impossible, that the scan rejects in
 favour of constant velocity (when the two disagree both seeds are aligned and the better map fit
 wins) or of the wheel step reversed (tried when a step is longer than ``ODOM_JUMP_MIN_M``: a lost
-sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that move along the robot's x axis against the scan's motion beyond the gate (wheel
+sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that
+move along the robot's x axis against the scan's motion beyond the gate (wheel
 odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
 trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
@@ -539,8 +540,7 @@ class ScanOdometry:
         Same steps as ``KissICP.register_frame`` (preprocess and voxelise: :meth:`prepare`; align);
         nothing is changed until :meth:`_commit`. With more seeds, each is aligned and the one whose
         result has the most source points near the local map wins if that beats seed 0's by 0.05
-        (else seed 0). Returns (seed
-        index, pose 4×4, initial guess 4×4, thinned frame for the map).
+        (else seed 0). Returns (seed index, pose 4×4, initial guess 4×4, thinned frame for the map).
         """
         icp = self._icp
         source, frame_ds = scan.source, scan.frame_ds
