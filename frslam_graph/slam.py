@@ -189,11 +189,12 @@ class FRSlam:
         self._log_odometry(res)
         scan_index = len(ctx.store.scans)
         ctx.store.scans.append(res.stamp, res.keyframe, res.relative, res.pose)
+        if self.loop_closer is not None:  # its budgets follow the scan period
+            self.loop_closer.set_scan_period(res.period)
         if not res.is_keyframe:
             # 2. a hook's deferred work, one step; queued loop-closure work in the rest of the budget
             spent = ctx.deferred.step()
             if self.loop_closer is not None:
-                self.loop_closer.set_scan_period(res.period)
                 budget = ctx.deferred.budget_ms * self.loop_closer.budget_scale
                 if spent is None:
                     self.loop_closer.on_scan(ctx)
@@ -216,7 +217,6 @@ class FRSlam:
             # (counting it starved loop closure behind a floor plan: queue lag ~120 keyframes).
             busy = ctx.graph.version != version or ctx.deferred.steps_run != steps
         if self.loop_closer is not None:  # uses the keyframe's index and odometry pose only
-            self.loop_closer.set_scan_period(res.period)
             self.loop_closer.on_keyframe(ctx, info, work=not busy)
 
     def _log_odometry(self, res: OdometryResult) -> None:
