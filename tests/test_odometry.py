@@ -373,22 +373,30 @@ def test_bursty_stamps_keep_every_scan_and_flag_no_jump(room):
     assert end_error(truth, poses, sub) / path_length(truth) < 0.02
 
 
+def _sign_lost(room, every: int, flipped: range):
+    """The room's every ``every``-th scan, with wheel poses re-integrated from the increments and
+    the x of the increments into the scans in ``flipped`` negated (an encoder that lost the sign).
+    Returns truth, points, wheel."""
+    from frslam_graph.odometry.motion_model import compose
+
+    truth, points, odom = room
+    sub = np.arange(0, len(truth), every)
+    truth, points, odom = truth[sub], [points[i] for i in sub], odom[sub]
+    wheel = odom.copy()
+    for i in range(1, len(odom)):
+        inc = between(odom[i - 1], odom[i])
+        if i in flipped:
+            inc = np.array([-inc[0], inc[1], inc[2]])
+        wheel[i] = compose(wheel[i - 1], inc)
+    return truth, points, wheel
+
+
 def test_wheel_odometry_that_loses_the_sign_of_the_motion(room):
     """Over 20 scans (2 s at 0.5 m/s) the wheels log the robot's forward motion as backward (an
     encoder without direction; the FR079 log integrates a reversal at 0.5 m/s as forward motion):
     the scan's motion is trusted, those increments count as odometry jumps, and the drift stays
     as without the fault (0.66 % of the route if the wheels are fused)."""
-    from frslam_graph.odometry.motion_model import compose
-
-    truth, points, odom = room
-    sub = np.arange(0, len(truth), 2)  # 5 Hz: 0.1 m a scan
-    truth, points, odom = truth[sub], [points[i] for i in sub], odom[sub]
-    wheel = odom.copy()
-    for i in range(1, len(odom)):  # re-integrate the increments, x flipped on scans 100..119
-        inc = between(odom[i - 1], odom[i])
-        if 100 <= i < 120:
-            inc = np.array([-inc[0], inc[1], inc[2]])
-        wheel[i] = compose(wheel[i - 1], inc)
+    truth, points, wheel = _sign_lost(room, every=2, flipped=range(100, 120))  # 5 Hz: 0.1 m a scan
     o, poses, results = run(points, truth, wheel)
     assert all(r.odom_jump for r in results[100:120])
     assert end_error(truth, poses) / path_length(truth) < 0.004
@@ -399,17 +407,7 @@ def test_wheel_odometry_that_loses_the_sign_at_a_slow_scan_rate(room):
     the scan's motion, beyond ICP's reach (KISS-ICP converges near it and the fault goes
     unseen: FR079 at a third of its rate); the reversed wheel step is tried as a seed too, and
     the scan's fit picks it."""
-    from frslam_graph.odometry.motion_model import compose
-
-    truth, points, odom = room
-    sub = np.arange(0, len(truth), 6)
-    truth, points, odom = truth[sub], [points[i] for i in sub], odom[sub]
-    wheel = odom.copy()
-    for i in range(1, len(odom)):  # re-integrate the increments, x flipped on scans 30..36
-        inc = between(odom[i - 1], odom[i])
-        if 30 <= i < 37:
-            inc = np.array([-inc[0], inc[1], inc[2]])
-        wheel[i] = compose(wheel[i - 1], inc)
+    truth, points, wheel = _sign_lost(room, every=6, flipped=range(30, 37))
     _, poses, _ = run(points, truth, wheel)
     # 0.05 % of the route; 1.46 % when only the wheel step and constant velocity were tried
     assert end_error(truth, poses) / path_length(truth) < 0.004
