@@ -45,9 +45,11 @@ BATCH_MAX_ITERATIONS = 100  # Levenberg-Marquardt batch iterations at most; larg
 PRIOR_SETTLE_NEAR_XY = 0.05
 PRIOR_SETTLE_NEAR_THETA_DEG = 1.0  # deg; heading part of the 'near' test of PRIOR_SETTLE_NEAR_XY
 
-# Cost model of the batch's steps (ms per keyframe on one core of the development machine; only
-# needs to be right within a factor of about two; measured on the Intel log's streaming batches,
-# 1,300-2,600 keyframes): one LM iteration, and the iSAM2 rebuild on its result.
+# Cost model of the graph's steps (ms per keyframe on one core of the development machine; only
+# needs to be right within a factor of about two), shared with the loop closer's schedule: one
+# relinearising iSAM2 update; one LM iteration and the iSAM2 rebuild on its result (these two
+# measured on the Intel log's streaming batches, 1,300-2,600 keyframes).
+MS_PER_KEYFRAME_UPDATE = 0.01
 MS_PER_KEYFRAME_LM_ITERATION = 0.008
 MS_PER_KEYFRAME_REBUILD = 0.022
 

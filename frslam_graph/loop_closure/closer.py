@@ -109,7 +109,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from frslam_graph.backend.graph import key
+from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
@@ -173,7 +173,6 @@ T = TypeVar("T")
 # the houses, so a scan's 8 ms budget ran 15-30 ms of closure work).
 _MS_GATHER = 0.2  # submap points: fixed part ...
 _MS_PER_POINT_GATHER = 4.2e-5  # ... and per end point of the keyframes gathered
-_MS_PER_KEYFRAME_UPDATE = 0.01  # one relinearising iSAM2 update, per keyframe of the graph
 
 
 # ----------------------------------------------------------------------------- loop closer
@@ -813,7 +812,7 @@ class LoopCloser:
         runs when the correction moved the graph far. The relinearising iSAM2 iterations after
         the factor (:meth:`PoseGraph.settle`) run one per step."""
         graph = ctx.graph
-        yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+        yield MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
         # with floor-plan priors in the graph, absolute corrections come from the plan: a
         # confirmed pair stays under the robust kernel too, so an aliased pair (two matches of
@@ -911,7 +910,7 @@ class LoopCloser:
         """Remove the accepted closures at positions ``which`` of ``self.closures`` (residuals
         ``r`` / ``chi2`` as judged) in one iSAM2 update, then settle (a step generator)."""
         graph = ctx.graph
-        yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+        yield MS_PER_KEYFRAME_UPDATE * len(graph)
         before = graph.estimates()
         removed = [self.closures[k] for k in which]
         gone = set(which)
@@ -946,7 +945,7 @@ class LoopCloser:
     def _settle(graph, max_iterations: int, tol: float = 1e-4) -> Steps[None]:
         """:meth:`PoseGraph.settle_steps` with this module's cost estimate for each step."""
         for _ in graph.settle_steps(max_iterations, tol):
-            yield _MS_PER_KEYFRAME_UPDATE * len(graph)
+            yield MS_PER_KEYFRAME_UPDATE * len(graph)
 
     @staticmethod
     def _residual_large(graph, closures: list[LoopClosure]) -> bool:
