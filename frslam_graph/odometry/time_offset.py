@@ -1,10 +1,10 @@
 """Wheel-to-scan time offset: estimated online from the heading steps, applied only where significant.
 
 A scan and the wheel pose logged with it need not describe the same instant. FR079's laser lines
-carry the wheel pose of their stamp, but the scan was taken ~0.13 s earlier (a SICK LMS's serial
-transfer of 180 beams takes ~0.1 s); ACES's laser lines copy the last ODOM record, itself ~0.12 s
-old (``tools/README.md``). With the offset τ (s: the scan stamped t shows the robot the wheels
-put at t + τ), each wheel heading step u_t between scans is off by τ (r_t - r_{t-1}), r the
+carry the wheel pose of their stamp, but the scan was taken ~0.14 s earlier (a SICK LMS's serial
+transfer of 180 beams takes ~0.1 s); ACES's scans ~0.09 s earlier than their stamp (its ODOM
+records interpolated at the stamps). With the offset τ (s: the scan stamped t shows the robot the
+wheels put at t + τ), each wheel heading step u_t between scans is off by τ (r_t - r_{t-1}), r the
 wheels' turn rate over a step (rad/s): 5-8° per step on FR079 at a third of its scan rate.
 
 Estimate (the linearised cross-correlation of the scan-matched and the wheel turn rates): the
@@ -19,9 +19,10 @@ when its two-sided ``LEVEL`` confidence interval (Student t over the blocks) exc
 
 Only a negative offset is applied: the wheel pose of the scan's instant then lies between the last
 two logged ones (interpolation, which also averages their step noise). A positive one (the scan
-shows a later instant than its wheel pose: ACES, +0.10 ± 0.02 s) is estimated and reported, not
-applied: that wheel pose is not logged yet, and extrapolating the last step by f = τ/dt of it
-multiplies the step noise's variance by (1 + f)² + f² (ACES with it: 0.0395 -> 0.0632 m).
+shows a later instant than its wheel pose: ACES's laser-line poses, stale copies of the last ODOM
+record, +0.10 ± 0.02 s) is estimated and reported, not applied: that wheel pose is not logged
+yet, and extrapolating the last step by f = τ/dt of it multiplies the step noise's variance by
+(1 + f)² + f² (ACES's laser-line poses with it: 0.0395 -> 0.0632 m).
 """
 
 from __future__ import annotations
