@@ -162,15 +162,15 @@ class CarmenLog(Recording):
     Args:
         path: ``.clf`` / ``.log`` file, optionally ``.gz`` / ``.bz2``.
         laser: ``"front"`` (FLASER, ROBOTLASER1; default), ``"rear"`` or ``"all"``.
-        odom: ``"laser"`` takes the robot pose written in each laser line (default); ``"odom"``
-            interpolates the ODOM records at the scan stamps (both re-timed from their message
-            counts when the log stamps them on arrival in bursts, as Intel does:
-            :func:`~frslam_graph.datasets.recording.acquisition_times`); ``"none"`` attaches none;
-            ``"auto"`` interpolates when the log shows that the laser lines' poses are stale and
-            the stamps can be trusted, else takes the laser lines' poses (see
-            :attr:`odom_source`, :attr:`odom_reason`; not the default yet: on ACES it sharpens the
-            odometry, 0.041 -> 0.035 m on relations under 2 s, but the whole run then closed its
-            first large loop wrongly, 0.0632 m against 0.0457, see tools/README.md).
+        odom: ``"auto"`` (default) interpolates the ODOM records at the scan stamps when the log
+            shows that the laser lines' poses are stale copies of the last ODOM record and the
+            stamps can be trusted, else takes the laser lines' poses (see :attr:`odom_source`,
+            :attr:`odom_reason`; of the shared logs only ACES is interpolated: 0.0395 -> 0.0350 m,
+            0.453 -> 0.306 deg, see tools/README.md); ``"laser"`` takes the robot pose written in
+            each laser line; ``"odom"`` interpolates the ODOM records at the scan stamps (both
+            re-timed from their message counts when the log stamps them on arrival in bursts, as
+            Intel does: :func:`~frslam_graph.datasets.recording.acquisition_times`); ``"none"``
+            attaches none.
         max_range: readings at or beyond it become ``nan``; ``None`` = detect (see module doc).
         backwards: a scan stamped before an earlier line's scan is ``"keep"`` (kept in file
             order, counted in the warning: the Intel log has 1,612 such FLASER lines, and its
@@ -184,7 +184,7 @@ class CarmenLog(Recording):
         path: str | Path,
         *,
         laser: Literal["front", "rear", "all"] = "front",
-        odom: Literal["auto", "laser", "odom", "none"] = "laser",
+        odom: Literal["auto", "laser", "odom", "none"] = "auto",
         max_range: float | None = None,
         backwards: Literal["keep", "skip", "error"] = "keep",
         odom_tolerance: float = 0.5,

@@ -76,7 +76,7 @@ def test_angle_increment_follows_carmen_convention():
 
 @pytest.mark.parametrize("name", ["log.clf", "log.log", "log.clf.gz", "log.clf.bz2"])
 def test_flaser_scans_plain_and_compressed(tmp_path, name):
-    rec = open_recording(write(tmp_path, simple_log(), name))
+    rec = open_recording(write(tmp_path, simple_log(), name), odom="laser")  # the lines' own poses
     assert isinstance(rec, CarmenLog)
     assert len(rec) == 5
     scans, warns = read_all(rec)
@@ -146,7 +146,7 @@ def test_odometry_interpolated_from_odom_records(tmp_path):
     assert th == pytest.approx(math.atan2(math.sin(math.pi + 0.05), math.cos(math.pi + 0.05)))
     assert scans[1].odom is None
     assert any("outside the ODOM records" in w for w in warns)
-    from_laser, _ = read_all(open_recording(p))
+    from_laser, _ = read_all(open_recording(p, odom="laser"))
     assert from_laser[0].odom == (99.0, 99.0, 0.0)
     none, _ = read_all(open_recording(p, odom="none"))
     assert none[0].odom is None
@@ -181,7 +181,9 @@ def test_copied_laser_poses_are_replaced_by_odom_interpolated_at_the_stamps(tmp_
     for s in scans:
         assert s.odom[0] == pytest.approx(s.stamp - 10.0, abs=1e-6)
         assert s.odom[2] == pytest.approx(math.atan2(math.sin(s.stamp), math.cos(s.stamp)), abs=1e-6)
-    copied, _ = read_all(open_recording(write(tmp_path, _moving_log(copied=True))))  # the default
+    default, _ = read_all(open_recording(write(tmp_path, _moving_log(copied=True))))
+    assert [d.odom for d in default] == [d.odom for d in scans]  # "auto" is the default
+    copied, _ = read_all(open_recording(write(tmp_path, _moving_log(copied=True)), odom="laser"))
     assert copied[1].odom[0] == pytest.approx(copied[1].stamp - 10.0 - 0.05, abs=1e-6)
 
 

@@ -28,8 +28,8 @@ Odom = Annotated[
     str | None,
     typer.Option(
         "--odom",
-        help="CARMEN: the 'laser' lines' poses (default), interpolated 'odom', 'auto' (interpolated "
-        "when the laser lines copy a stale pose and the stamps never go backwards, else 'laser'), 'none'.",
+        help="CARMEN: 'auto' (default: interpolated when the laser lines copy a stale pose and the "
+        "stamps never go backwards, else 'laser'), the 'laser' lines' poses, interpolated 'odom', 'none'.",
     ),
 ]
 PlaneTol = Annotated[

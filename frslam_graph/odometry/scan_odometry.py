@@ -27,7 +27,9 @@ trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel incremen
 failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
-periods count as dropped scans.
+periods count as dropped scans. The wheel poses are re-timed to the scans by the wheel-to-scan
+time offset estimated from the heading steps, where it is significant and negative
+(:mod:`frslam_graph.odometry.time_offset`: FR079, -0.14 s).
 """
 
 from __future__ import annotations
@@ -57,7 +59,9 @@ from frslam_graph.odometry.motion_model import (
     vector_cov,
     wheel_increment,
     wheel_noise,
+    wrap,
 )
+from frslam_graph.odometry.time_offset import WheelTimeOffset
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
 # m; KISS-ICP adaptive threshold learns only from steps moving at least this; larger = slower to adapt
@@ -119,6 +123,10 @@ class OdometryStats:
     dropped_scans: int = 0
     gaps: int = 0
     out_of_order: int = 0
+    # wheel-to-scan time offset (s; odometry/time_offset.py): estimate, its standard error, applied
+    time_offset: float = 0.0
+    time_offset_sigma: float = 0.0
+    time_offset_applied: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,7 +256,9 @@ class ScanOdometry:
         self._steady = True  # recent stamps keep to the period (see _clock)
         self._last_dt = 0.0
         self._last_increment = np.zeros(3)
-        self._prev_wheel: np.ndarray | None = None
+        self._prev_wheel: np.ndarray | None = None  # previous wheel pose, re-timed (see _toff)
+        self._prev_raw: np.ndarray | None = None  # previous wheel pose as given
+        self._toff = WheelTimeOffset()
         self._prev_rel = np.zeros(3)  # fused pose relative to keyframe at the previous scan
         self._kf_index = -1
         self._kf_stamp = float("-inf")
@@ -323,13 +333,17 @@ class ScanOdometry:
         cv_u = constant_velocity(self._last_increment, self._last_dt, dt)
         cv_cov = constant_velocity_noise(dt, cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
         u, cov_u, used_wheel, jump = cv_u, cv_cov, False, False
+        raw_wheel, uw_raw = wheel, None
         if wheel is not None and self._prev_wheel is not None:
-            uw = wheel_increment(self._prev_wheel, wheel)
-            if np.hypot(uw[0], uw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(uw[2]) > np.deg2rad(
-                cfg.max_turn_rate_deg
-            ) * dt_speed + np.deg2rad(2.0):
+            uw_raw = wheel_increment(self._prev_raw, wheel)
+            if np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(
+                uw_raw[2]
+            ) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0):
                 jump = True
             else:
+                # the wheel pose at the scan's own time (time_offset.py: 0 unless significant)
+                wheel = self._toff.retime(wheel, uw_raw, dt)
+                uw = wheel_increment(self._prev_wheel, wheel)
                 # where the wheels alone carry the motion, increment after increment, their
                 # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
                 alone = not cfg.scan_matching or len(pts) < cfg.min_points
@@ -345,7 +359,7 @@ class ScanOdometry:
             # last step moved on in the wheels' direction by more than half this one
             seeds.append(np.array([-u[0], -u[1], u[2]]))
         # a scan without wheel odometry breaks the chain: the next increment must not span it
-        self._prev_wheel = wheel
+        self._prev_wheel, self._prev_raw = wheel, raw_wheel
 
         prev_rel = self._ekf.x
         degenerate, fallback, axis, icp_rejected = False, False, None, False
@@ -410,6 +424,7 @@ class ScanOdometry:
         rel = self._ekf.x
         self._last_increment = between(prev_rel, rel)
         self._last_dt = dt
+        self._learn_offset(uw_raw, dt, used_wheel and not (jump or fallback or degenerate or icp_rejected))
         is_kf = np.hypot(rel[0], rel[1]) >= self._kf_dist or abs(rel[2]) >= self._kf_angle
         if cfg.keyframe_max_interval_s is not None and stamp - self._kf_stamp >= cfg.keyframe_max_interval_s:
             is_kf = True
@@ -439,7 +454,7 @@ class ScanOdometry:
     # ----------------------------------------------------------------- helpers
     def _first(self, stamp: float, pts: np.ndarray, wheel: np.ndarray | None) -> OdometryResult:
         self._t_hist.append(stamp)
-        self._prev_wheel = wheel
+        self._prev_wheel = self._prev_raw = wheel
         start = wheel.copy() if wheel is not None else np.zeros(3)
         self._kf_pose = start
         fallback = len(pts) < self.config.min_points
@@ -466,6 +481,18 @@ class ScanOdometry:
             fallback=fallback,
             n_points=len(pts),
         )
+
+    def _learn_offset(self, uw_raw: np.ndarray | None, dt: float, held: bool) -> None:
+        """One step of the wheel-to-scan time offset's estimate (time_offset.py): the logged wheel
+        step ``uw_raw`` against the fused one, where the scan held the step (``held``) and the
+        stamps keep time (a steady clock, :meth:`_clock`: an offset cannot be measured against
+        bursty stamps)."""
+        if uw_raw is None or not held or not self._steady or dt <= 0.0:
+            self._toff.add(None)
+        else:
+            self._toff.add(float(uw_raw[2]) / dt, float(wrap(self._last_increment[2] - uw_raw[2])))
+        st, toff = self.stats, self._toff
+        st.time_offset, st.time_offset_sigma, st.time_offset_applied = toff.estimate, toff.sigma, toff.applied
 
     def _clock(self, stamp: float) -> tuple[float, float, int]:
         """Seconds of motion since the previous scan: for the motion model and for the speed
