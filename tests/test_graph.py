@@ -440,3 +440,20 @@ def test_keyframes_added_during_a_batch_in_steps_follow_it():
     b.add_factor(extra[1], 2)
     np.testing.assert_allclose(a.estimates(), b.estimates(), atol=1e-9)
     assert next(steps, None) is None  # the generator sees its batch finished and ends
+
+
+def test_priors_removed_during_a_batch_in_steps():
+    """Removing priors while an LM batch runs in steps: the removal's settle finishes the batch,
+    whose rebuild re-maps the factor indices of the active priors. The removed ones were still
+    active then (marked inactive after the update): KeyError on their index (intel.bag with its
+    plan, a prior removed as wrong mid-batch). Now the others stay in the graph, re-mapped."""
+    g = _looped()
+    handles = [g.add_prior(k, [0.3 * k, 0.0, 0.0], np.diag([0.01, 0.01, 0.001])) for k in (20, 60, 120)]
+    steps = g.optimize_batch_steps()
+    next(steps)
+    next(steps)
+    assert g.remove_priors(handles[:2]) == handles[:2]
+    assert not handles[0].active and not handles[1].active and handles[2].active
+    assert g._factors[handles[2].factor_index] is not None
+    g.remove_prior(handles[2])
+    assert g.priors() == []

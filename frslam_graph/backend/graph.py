@@ -313,9 +313,12 @@ class PoseGraph:
                 raise FrslamError(f"prior {h.id} is not in the graph", where="handle")
         if not live:
             return []
-        self.remove_factors([h.factor_index for h in live], extra_iterations)
+        indices = [h.factor_index for h in live]
+        # inactive before the update: its settle may finish an in-flight batch, whose rebuild
+        # re-maps the indices of the active handles only (a removed one has none left)
         for h in live:
             h.active = False
+        self.remove_factors(indices, extra_iterations)
         return live
 
     def settle(self, max_iterations: int = 10, tol: float = 1e-4) -> int:
