@@ -122,7 +122,7 @@ class _Case:
     n_keyframes: int
     drawing_tol: float = 0.0  # m, the registration's (drawing_tolerance)
     alternatives: list = field(default_factory=list)  # its runner-up placements' matrices (plan -> map)
-    alike: dict = field(default_factory=dict)  # id(matrix) -> its relocaliser judged alike (_alike)
+    alike: dict = field(default_factory=dict)  # matrix bytes -> its relocaliser judged alike (_alike)
 
     def tolerances(self, config: UpdatesConfig) -> tuple[float, float]:
         """(map-fit distance, free-space margin) in metres for this case (:func:`tolerances`)."""
@@ -484,7 +484,7 @@ class RegistrationJudge:
         (:func:`~frslam_graph.plan_checks.wall_pieces_seen_through` at the case's free-space
         margin), so that both are measured on what each can explain; None when unusable.
         Built once per case."""
-        key = id(matrix)
+        key = np.asarray(matrix, float).tobytes()
         if key not in case.alike:
             margin = case.tolerances(self.config)[1]
             try:
