@@ -10,10 +10,9 @@ disagree) and to refine the plan's scale on the scans.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from frslam_graph.localisation.relocalisation import Relocaliser, tukey_weights
+from frslam_graph.localisation.relocalisation import IGNORED, Relocaliser, tukey_weights
 
 
 def occupied_points(grid, max_points: int = 4000) -> np.ndarray:
@@ -53,7 +52,7 @@ def walls_through_free_space(relocaliser: Relocaliser, grid, margin: float = 0.2
     walls = _wall_pixels(relocaliser, grid, margin)
     if walls is None:
         return 0.0
-    _, _, observed, through = walls
+    _, _, observed, through, _ = walls
     return int(through.sum()) / max(int(observed.sum()), 1)
 
 
@@ -75,7 +74,7 @@ def wall_pieces_seen_through(
     walls = _wall_pixels(relocaliser, grid, margin)
     if walls is None:
         return np.zeros((0, 2)), 0.0, 0.0
-    xy, normal, observed, through = walls
+    xy, normal, observed, through, _ = walls
     tile = np.floor(xy / WALL_PIECE_M).astype(np.int64)
     # a wall's normal up to its sign, in four bins of 45 deg: the walls meeting at a corner differ
     angle = np.mod(np.arctan2(normal[:, 1], normal[:, 0]), np.pi)
@@ -97,8 +96,8 @@ def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> d
     """Per room of the registered plan (``relocaliser.plan``, map metres): (its interior wall
     pixels the map has observed, those the map has seen through), as
     :func:`walls_through_free_space` counts them; a wall pixel counts for both rooms it
-    separates (the rooms found at its place and ``2 * wall_offset`` + a cell either side along
-    its normal). A room drawn where the building has open space (a corridor through a block the
+    separates (the rooms found at its place, ``2 * wall_offset`` + a cell in front of it and a
+    cell beyond the wall's far face along its normal). A room drawn where the building has open space (a corridor through a block the
     plan draws closed) has most of its walls seen through; its neighbours only the shared part."""
     from frslam_graph.raster import rasterise_polygons
 
@@ -107,7 +106,7 @@ def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> d
     out = {r.id: (0, 0) for r in plan.rooms}
     if walls is None or not plan.rooms:
         return out
-    xy, normal, observed, through = walls
+    xy, normal, observed, through, thick = walls
     f = relocaliser.field
     labels = rasterise_polygons(
         [r.polygon for r in plan.rooms], f.frame, values=list(range(1, len(plan.rooms) + 1))
@@ -116,8 +115,8 @@ def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> d
     reach = 2.0 * f.wall_offset + f.frame.resolution
     n = len(plan.rooms)
     hit = np.zeros((len(xy), n + 1), bool)
-    for s in (-reach, 0.0, reach):
-        c = np.floor(f.frame.to_pixel(xy + s * normal)).astype(np.intp)
+    for s in (-(thick + f.frame.resolution), np.zeros(len(xy)), np.full(len(xy), reach)):
+        c = np.floor(f.frame.to_pixel(xy + s[:, None] * normal)).astype(np.intp)
         col, row = c[:, 0], c[:, 1]
         ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
         lab = np.zeros(len(xy), np.intp)
@@ -129,28 +128,48 @@ def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> d
     return {r.id: (int(obs_n[i]), int(thr_n[i])) for i, r in enumerate(plan.rooms)}
 
 
+#: m; the thickest interior wall a plan draws (IPA drawings: 0.2-0.4 m at their scale): a wall
+#: face with another room within this behind it is an interior wall, tested across its thickness
+MAX_WALL_THICKNESS_M = 0.5
+
+
 def _wall_pixels(relocaliser: Relocaliser, grid, margin: float):
     """The interior wall pixels of :func:`walls_through_free_space`: (centres (N, 2) in map
-    metres, unit normals (N, 2), observed by the map (N,), seen through (N,)); None without any."""
+    metres, unit normals (N, 2) out of the wall, observed by the map (N,), seen through (N,),
+    the wall's thickness there (N,) in metres); None without any. A pixel is on a wall face (the one-pixel band of the field inside a wall,
+    next to a room's free space) with another room's free space at most ``MAX_WALL_THICKNESS_M``
+    + ``2 * wall_offset`` behind it along the normal: outer walls (with outside behind them, where
+    the map may see through windows and doors) are not. Seen through: every map cell from
+    ``2 * wall_offset + margin`` in front of the face to ``margin`` behind the opposite face is
+    free. A plan drawing its walls thick (an image plan, a wall 0.3 m between rooms) is tested on
+    all of them, not only on its thin ones (before: the walls thinner than about 0.2 m, on the
+    Intel plan 0.5-4.5 m of wall, so the share seen through jumped between 0.2 and 0.7 on maps
+    a few metres apart)."""
     f = relocaliser.field
     res = f.frame.resolution
-    # interior walls only (between two rooms): an outer wall may legitimately have free space
-    # beyond it in the map (open windows and doors, glass)
-    deep = (f.sdf < -(f.wall_offset + 1.5 * res)).astype(np.uint8)
-    k = int(np.ceil((2.0 * f.wall_offset + 2.0 * res) / res))
-    near_outside = cv2.dilate(deep, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))) > 0
-    rows, cols = np.nonzero((f.sdf <= 0) & ~near_outside)
+    sdf = f.sdf
+    rows, cols = np.nonzero((sdf <= 0) & (sdf > -1.5 * res))
     if not len(rows):
         return None
-    if len(rows) > 20000:
-        k = np.linspace(0, len(rows) - 1, 20000).round().astype(np.intp)
-        rows, cols = rows[k], cols[k]
     grad = f.data[rows, cols, 1:].astype(np.float64)
     norm = np.hypot(grad[:, 0], grad[:, 1])
     keep = norm > 0.5  # the distance field's gradient is a unit normal off ridges
     rows, cols, normal = rows[keep], cols[keep], grad[keep] / norm[keep, None]
     xy = f.frame.to_world(np.column_stack((cols + 0.5, rows + 0.5)))
-    reach = 2.0 * f.wall_offset + margin
+    # the wall's thickness: the first free-space sample behind the face (another room)
+    depth = np.arange(res, MAX_WALL_THICKNESS_M + 2.0 * f.wall_offset + 1e-9, res)
+    behind = f.lookup((xy[:, None, :] - depth[None, :, None] * normal[:, None, :]).reshape(-1, 2), -1.0)
+    behind = behind[:, 0].reshape(len(xy), len(depth))
+    hit = (behind > 0) & (behind < 0.5 * IGNORED)  # a room, not the surroundings of an ignored piece
+    inner = hit.any(axis=1)
+    if not inner.any():
+        return None
+    xy, normal = xy[inner], normal[inner]
+    thick = depth[np.argmax(hit[inner], axis=1)]
+    if len(xy) > 20000:
+        k = np.linspace(0, len(xy) - 1, 20000).round().astype(np.intp)
+        xy, normal, thick = xy[k], normal[k], thick[k]
+    front = 2.0 * f.wall_offset + margin
     free = grid.free_mask()
     known = free | grid.occupied_mask()
     h, w = grid.shape
@@ -163,12 +182,16 @@ def _wall_pixels(relocaliser: Relocaliser, grid, margin: float):
         return out
 
     observed = sample(known, xy)
-    # every cell along the normal within +-reach is free: no real wall (occupied) or unseen
-    # space (unknown) anywhere near, the robot has seen straight through this plan wall
-    steps = np.arange(-reach, reach + 1e-9, 0.5 * grid.resolution)
-    pts = xy[:, None, :] + steps[None, :, None] * normal[:, None, :]
-    through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(steps)).all(axis=1)
-    return xy, normal, observed, through
+    # every cell across the wall is free: no real wall (occupied) or unseen space (unknown)
+    # anywhere near, the robot has seen straight through this plan wall
+    n_steps = int(
+        np.ceil((front + MAX_WALL_THICKNESS_M + 2.0 * f.wall_offset + margin) / (0.5 * grid.resolution))
+    )
+    t = np.linspace(0.0, 1.0, n_steps + 1)
+    offs = front - t[None, :] * (front + thick + margin)[:, None]  # (N, S) along the normal
+    pts = xy[:, None, :] + offs[:, :, None] * normal[:, None, :]
+    through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(t)).all(axis=1)
+    return xy, normal, observed, through, thick
 
 
 def fit_plan_scale(field, pts, poses, lin, t, centre, truncation, sigma, iterations: int = 15) -> np.ndarray:

@@ -301,6 +301,15 @@ class Relocaliser:
             (best_pose, best_soft), comp[0] = comp[0], (best_pose, best_soft)
         res = self.field.lookup(self._transform(pts, best_pose), outside=-p.truncation)[:, 0]
         score = float(np.mean(np.abs(res) < p.inlier_distance))
+        # the points around the wall pieces ignored (no information there) count neither way in
+        # the scores reported: a scan half in a part of the building the plan draws differently
+        # fits the rest as well as any (the search and the ambiguity are unchanged)
+        informed = int(np.count_nonzero(res < 0.5 * IGNORED)) if self.ignored is not None else len(pts)
+        if p.min_points <= informed < len(pts):
+            share = informed / len(pts)
+            score, best_soft_seen = score / share, best_soft / share
+        else:
+            best_soft_seen = best_soft
         cov = self._covariance(pts, best_pose)
         info = np.linalg.inv(cov)
         ambiguity, runner = 0.0, None
@@ -311,7 +320,9 @@ class Relocaliser:
                 runner = pose_c
                 break
         ok, reason = True, ""
-        if score < p.min_score:
+        if informed < p.min_points:
+            ok, reason = False, f"too few points where the plan is not ignored ({informed} < {p.min_points})"
+        elif score < p.min_score:
             ok, reason = False, f"no fit: inlier fraction {score:.2f} < {p.min_score:.2f}"
         return Relocalisation(
             ok=ok,
@@ -320,7 +331,7 @@ class Relocaliser:
             score=score,
             ambiguity=ambiguity,
             reason=reason,
-            soft_score=best_soft,
+            soft_score=best_soft_seen,
             n_points=len(pts),
             prior=prior,
             runner_up=runner,
@@ -338,12 +349,18 @@ class Relocaliser:
 
     def fit_points(self, xy_map: np.ndarray, distance: float | None = None) -> float:
         """Fraction of map points (N, 2) within ``distance`` (default ``inlier_distance``,
-        metres) of a plan wall."""
+        metres) of a plan wall, among those where the field holds information: a point in the
+        surroundings of the wall pieces this relocaliser ignores (:meth:`ignoring`: the plan is
+        drawn differently there) counts neither for nor against it; 0 when no point is left."""
         xy_map = np.asarray(xy_map, dtype=np.float64).reshape(-1, 2)
         if not len(xy_map):
             return 0.0
         tol = self.params.inlier_distance if distance is None else float(distance)
         r = self.field.lookup(xy_map, outside=-max(self.params.truncation, tol + 1.0))[:, 0]
+        if self.ignored is not None:
+            r = r[r < 0.5 * IGNORED]
+            if not len(r):
+                return 0.0
         return float(np.mean(np.abs(r) < tol))
 
     # ------------------------------------------------------------------ internals

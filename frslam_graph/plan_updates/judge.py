@@ -53,6 +53,14 @@ REFINE_SCAN_MARGIN = 0.005  # scan fits closer than this (mean soft score) are a
 # when its fit is at least SCAN_FIT_FLOOR (mean soft score: the scans nearer its walls than not)
 # and beats every runner-up placement by disambiguate_margin (the disambiguation's rule)
 SCAN_FIT_FLOOR = 0.5
+# registrations awaiting confirmation (confirm_after_m) a new one may agree with: the last ones
+# that passed every other check
+CONFIRM_CANDIDATES = 3
+# a registration drawn off the building below min_map_fit passes on the map when its walls explain
+# at least MAP_FIT_FLOOR of the map (share of occupied cells it can explain) and each runner-up
+# placement at most MAP_FIT_RUNNER_UP of that (MFR's own margin, DRAWN_MARGIN, on its gate)
+MAP_FIT_FLOOR = 0.25
+MAP_FIT_RUNNER_UP = 0.8
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
@@ -67,7 +75,8 @@ KEEP = object()
 class Verdict:
     """``accept`` (a new accepted registration; ``relocalisation`` of the current scan on it),
     ``refine`` (the same placement fitted to more data replaces the accepted one) or ``reject``
-    (``why``). ``pending``: the registration awaiting confirmation afterwards (:data:`KEEP`:
+    (``why``). ``pending``: the registrations awaiting confirmation afterwards (a list of at most
+    :data:`CONFIRM_CANDIDATES`, or None; :data:`KEEP`:
     unchanged)."""
 
     outcome: Literal["accept", "refine", "reject"]
@@ -113,6 +122,7 @@ class _Case:
     n_keyframes: int
     drawing_tol: float = 0.0  # m, the registration's (drawing_tolerance)
     alternatives: list = field(default_factory=list)  # its runner-up placements' matrices (plan -> map)
+    alike: dict = field(default_factory=dict)  # matrix bytes -> its relocaliser judged alike (_alike)
 
     def tolerances(self, config: UpdatesConfig) -> tuple[float, float]:
         """(map-fit distance, free-space margin) in metres for this case (:func:`tolerances`)."""
@@ -141,7 +151,7 @@ class RegistrationJudge:
         n_keyframes: int,
     ) -> Verdict:
         """The verdict on ``reg`` (registration plan -> map) made on ``grid`` (the map); ``numbers``
-        start its numbers; ``pending``: a registration awaiting confirmation; ``drift``: metres
+        start its numbers; ``pending``: the registrations awaiting confirmation (list or None); ``drift``: metres
         since the last accepted prior; ``n_keyframes``: keyframes seen by the updater."""
         case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
         case.drawing_tol = drawing_tolerance(reg)
@@ -198,19 +208,23 @@ class RegistrationJudge:
                     plan_map, fit = relocaliser.plan, relocaliser.fit_points(occ, fit_tol)
                     nums["map_fit"] = fit
                 return self._by_the_scans(case, reg, plan_map, relocaliser, occ, fit_tol, fit, disp)
-        if fit < cfg.min_map_fit:
+        if case.drawing_tol > 0.0:
+            drawn = self._drawn_on_the_map(case, reg, relocaliser, margin, occ, fit_tol)
+            if isinstance(drawn, Verdict):
+                return drawn
+            plan_map, relocaliser, fit = drawn
+        elif fit < cfg.min_map_fit:
             return self._reject(
                 case, f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
             )
-        crossing = walls_through_free_space(relocaliser, case.grid, margin)
-        nums["walls_in_free_space"] = crossing
+        crossing = 0.0 if case.drawing_tol > 0.0 else walls_through_free_space(relocaliser, case.grid, margin)
+        if case.drawing_tol <= 0.0:
+            nums["walls_in_free_space"] = crossing
         if crossing > cfg.max_walls_in_free_space:
             # a plan known to be drawn off the building loses its wall pieces seen through; an
             # accurately drawn one its rooms seen through (a wall piece masked there could be the
             # one wall that tells a near-symmetric plan's mirror from the right placement)
-            trusted = (self._trusted_part if case.drawing_tol > 0.0 else self._trusted_rooms)(
-                case, reg, relocaliser, margin, occ, fit_tol
-            )
+            trusted = self._trusted_rooms(case, reg, relocaliser, margin, occ, fit_tol)
             if isinstance(trusted, str):
                 return self._reject(
                     case,
@@ -234,6 +248,52 @@ class RegistrationJudge:
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})",
                 )
         return self._on_the_scans(case, reg, plan_map, relocaliser, fit)
+
+    def _drawn_on_the_map(
+        self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
+    ) -> tuple[Any, Relocaliser, float] | Verdict:
+        """The map checks of a registration drawn off the building (``drawing_tol`` > 0): the wall
+        pieces the map has seen through are dropped first (:meth:`_trusted_part`; a majority
+        refuses), then the rest's map fit, over the map it can explain (the cells around the
+        dropped pieces count neither way), passes at ``min_map_fit`` or, as on the scans
+        (:meth:`_clearly_best_on_the_scans`), when it is at least :data:`MAP_FIT_FLOOR` and each
+        runner-up placement, judged alike, explains at most :data:`MAP_FIT_RUNNER_UP` of it: a
+        plan drawn 0.25-1 m off in a furnished building explains 43-55 % of the map at its right
+        placement (Intel, kf 1,300-2,600), its wrong placements 14-36 %, and a single map moves it
+        across 50 %. Returns the plan in ``map``, its relocaliser and its map fit, or the
+        rejection."""
+        cfg, nums = self.config, case.nums
+        crossing = walls_through_free_space(relocaliser, case.grid, margin)
+        nums["walls_in_free_space"] = crossing
+        plan_map, fit = relocaliser.plan, relocaliser.fit_points(occ, fit_tol)
+        if crossing > cfg.max_walls_in_free_space:
+            trusted = self._trusted_part(case, reg, relocaliser, margin, occ, fit_tol)
+            if isinstance(trusted, str):
+                return self._reject(
+                    case,
+                    f"{crossing:.0%} of the plan's observed walls cross free space in the map "
+                    f"> {cfg.max_walls_in_free_space:.0%}{trusted}",
+                )
+            plan_map, relocaliser, fit = trusted
+        nums["map_fit"] = fit
+        if fit >= cfg.min_map_fit:
+            return plan_map, relocaliser, fit
+        runner = 0.0
+        if fit >= MAP_FIT_FLOOR:
+            for m in case.alternatives:
+                rel = self._alike(case, m)
+                if rel is None:
+                    continue
+                runner = max(runner, rel.fit_points(occ, fit_tol))
+                if runner > MAP_FIT_RUNNER_UP * fit:
+                    break
+            nums["runner_up_map_fit"] = runner
+            if case.alternatives and runner <= MAP_FIT_RUNNER_UP * fit:
+                return plan_map, relocaliser, fit
+        why = f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
+        if fit >= MAP_FIT_FLOOR and case.alternatives:
+            why += f", and a runner-up placement {runner:.0%} (> {MAP_FIT_RUNNER_UP:.0%} of it)"
+        return self._reject(case, why)
 
     def _trusted_rooms(
         self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
@@ -278,9 +338,9 @@ class RegistrationJudge:
         pieces the map has seen through (:func:`~frslam_graph.plan_checks.wall_pieces_seen_through`;
         a plan drawn differently from the building as built, e.g. a block drawn closed where the
         building has a corridor, or a wall drawn a metre off). Returns the plan in ``map``, its
-        relocaliser ignoring those pieces (no prior is pulled by them) and its map fit when they
-        are a minority of the plan's observed walls and the rest explains ``min_map_fit`` of the
-        map; else why not (text appended to the rejection). A wrong placement draws walls across
+        relocaliser ignoring those pieces (no prior is pulled by them) and its map fit (over the
+        cells it can explain) when they are a minority of the plan's observed walls (the caller
+        judges the fit, :meth:`_drawn_on_the_map`); else why not (text appended to the rejection). A wrong placement draws walls across
         rooms seen empty nearly everywhere: most of its pieces are seen through."""
         cfg, nums = self.config, case.nums
         pts, dropped, rest = wall_pieces_seen_through(
@@ -294,11 +354,6 @@ class RegistrationJudge:
         part = relocaliser.ignoring(pts, radius)
         fit = part.fit_points(occ, fit_tol)
         nums["map_fit_kept"] = fit
-        if fit < cfg.min_map_fit:
-            return (
-                f"; without the wall pieces seen through ({dropped:.0%} of its observed walls) its walls "
-                f"explain {fit:.0%} of the map"
-            )
         return part.plan, part, fit
 
     def _by_the_scans(
@@ -349,7 +404,13 @@ class RegistrationJudge:
         points = case.ctx.keyframe_scans()[0][case.keyframe.index]
         reloc = relocaliser.relocalise(points, case.keyframe.pose_map)
         nums.update(reloc_score=reloc.score, reloc_ambiguity=reloc.ambiguity)
-        if not reloc.ok or reloc.score < cfg.reloc_min_score:
+        scan_fits = reloc.ok and reloc.score >= cfg.reloc_min_score
+        # one scan is little evidence about a plan drawn off the building (it may stand where the
+        # plan is drawn differently): with a second agreeing registration required anyway (drift
+        # beyond confirm_after_m), the keyframe scans below and the confirmation judge it; its
+        # first prior and the chi2 gate need a scan that fits (the prior is then refused)
+        waived = case.drawing_tol > 0.0 and case.accepted is None and case.drift > cfg.confirm_after_m
+        if not scan_fits and not waived:
             return self._reject(
                 case, f"current scan does not fit the registered plan (inliers {reloc.score:.0%})"
             )
@@ -369,8 +430,8 @@ class RegistrationJudge:
                     f"the keyframe scans do not fit the registered plan ({q:.1%} < {cfg.min_scan_fit:.0%})",
                 )
         if case.accepted is None:
-            chi2 = gate_chi2(cfg, case.ctx, case.keyframe, reloc, case.drift)
-            nums["chi2"] = chi2
+            chi2 = gate_chi2(cfg, case.ctx, case.keyframe, reloc, case.drift) if scan_fits else 0.0
+            nums["chi2" if scan_fits else "current_scan_waived"] = chi2 if scan_fits else 1.0
             if chi2 > INCONSISTENT_CHI2:
                 return self._reject(
                     case, f"inconsistent with the trajectory: chi2 {chi2:.1f} > {INCONSISTENT_CHI2:.1f}"
@@ -378,17 +439,20 @@ class RegistrationJudge:
             if case.drift > cfg.confirm_after_m:
                 # the drift allowance has made the chi2 gate weak: a second registration that
                 # agrees must confirm this one (as for loop closures with large corrections)
-                if case.pending is None:
+                # the candidates: the last CONFIRM_CANDIDATES registrations that passed every
+                # other check (one odd placement in between does not reset the evidence)
+                waiting = list(case.pending or [])
+                if not waiting:
                     why = f"{case.drift:.0f} m travelled without a prior: waiting for a second registration that agrees"
-                    return self._reject(case, why, pending=reg)
-                disp = matrix_disagreement(self.plan, case.pending.matrix, reg.matrix)
+                    return self._reject(case, why, pending=[reg])
+                disp = min(matrix_disagreement(self.plan, p.matrix, reg.matrix) for p in waiting)
                 nums["disagreement"] = disp
                 if disp > cfg.agree_tol:
                     return self._reject(
                         case,
                         f"{case.drift:.0f} m travelled without a prior: disagrees with the previous "
-                        f"registration (RMS {disp:.2f} m); waiting for one that agrees",
-                        pending=reg,
+                        f"{len(waiting)} registration(s) (RMS {disp:.2f} m at best); waiting for one that agrees",
+                        pending=[*waiting, reg][-CONFIRM_CANDIDATES:],
                     )
         return Verdict("accept", "accepted", nums, reg, plan_map, relocaliser, reloc, fit, pending=None)
 
@@ -397,23 +461,42 @@ class RegistrationJudge:
         the keyframe scans to ``min_scan_fit``: each scan's furniture and the walls drawn up to
         ``drawing_tol`` away score little whatever the placement. Its scan fit ``q`` then passes
         as in the disambiguation, against the registration's runner-up placements
-        (``alternatives``): at least :data:`SCAN_FIT_FLOOR` instead of ``min_scan_fit``, and
-        ``disambiguate_margin`` over each of them (a plan of another building fits every
-        placement alike). ``runner_up_scan_fit`` in the numbers."""
+        (``alternatives``, each judged alike: :meth:`_alike`): at least :data:`SCAN_FIT_FLOOR`
+        instead of ``min_scan_fit``, and ``disambiguate_margin`` over each of them (a plan of
+        another building fits every placement alike). ``runner_up_scan_fit`` in the numbers."""
         margin = self.config.disambiguate_margin
         if case.drawing_tol <= 0.0 or margin <= 0.0 or q < SCAN_FIT_FLOOR or not case.alternatives:
             return False
         runner = 0.0
         for m in case.alternatives:
-            try:
-                rel = Relocaliser(Registration.from_matrix(m).apply(self.plan), self.params)
-            except (FrslamError, ValueError):
+            rel = self._alike(case, m)
+            if rel is None:
                 continue
             runner = max(runner, self.evidence.fit(case.ctx, rel, case.n_keyframes))
             if q < runner + margin:
                 break
         case.nums["runner_up_scan_fit"] = runner
         return q >= runner + margin
+
+    def _alike(self, case: _Case, matrix: np.ndarray) -> Relocaliser | None:
+        """The relocaliser of a runner-up placement (``matrix``: plan -> map) judged like the
+        registration drawn off the building: without its wall pieces the map has seen through
+        (:func:`~frslam_graph.plan_checks.wall_pieces_seen_through` at the case's free-space
+        margin), so that both are measured on what each can explain; None when unusable.
+        Built once per case."""
+        key = np.asarray(matrix, float).tobytes()
+        if key not in case.alike:
+            margin = case.tolerances(self.config)[1]
+            try:
+                rel = Relocaliser(Registration.from_matrix(matrix).apply(self.plan), self.params)
+            except (FrslamError, ValueError):
+                case.alike[key] = None
+                return None
+            pts, _, _ = wall_pieces_seen_through(rel, case.grid, margin, self.config.max_walls_in_free_space)
+            case.alike[key] = rel.ignoring(
+                pts, max(2.0 * rel.field.wall_offset + margin, rel.params.truncation)
+            )
+        return case.alike[key]
 
     def _disambiguate(self, case: _Case, reg: Any) -> tuple[Any, Relocaliser] | None:
         """An ambiguous registration: its placement and the registration's runner-up placements

@@ -119,7 +119,7 @@ class FloorPlanUpdater:
         self.judge = RegistrationJudge(plan, cfg, self.params, evidence)
         self.refiner = PlanRefiner(plan, cfg, self.params, evidence)
         self.priors = PriorManager(cfg, self.travel, self.schedule, lambda: self.accepted, self.timings)
-        self._pending_reg = None  # a registration waiting for confirmation (see confirm_after_m)
+        self._pending_reg = None  # registrations waiting for confirmation (a list; see confirm_after_m)
         self._next_id = 0
         #: a refused final registration's placement (FloorPlan in map metres), for the figures
         self.final_placement = None
