@@ -73,12 +73,13 @@ _SCRATCH = threading.local()
 
 def _scratch(slot: int, shape: tuple[int, ...], dtype: type) -> np.ndarray:
     """An array of ``shape`` / ``dtype`` (C order, contents undefined) in this thread's buffer
-    ``slot``, kept between calls and grown to the largest request: the correlative search's
-    large temporaries. A fresh block of 256 kB or more is mapped anew and unmapped when freed
-    (the pinned mmap threshold, :func:`frslam_graph.offline._pin_mmap_threshold`), and the
-    kernel zero-fills each of its 4 kB pages on first touch: FR079's backend took 4.3 million
-    page faults (5.7 s of system CPU), half of them in these two functions. A buffer of a slot
-    is reused by the next call: a caller keeps no view of one past its own return."""
+    ``slot``, kept between calls and grown to the largest request: the large temporaries of
+    the correlative search, the field build and the max filter. A fresh block of 256 kB or more
+    is mapped anew and unmapped when freed (the pinned mmap threshold,
+    :func:`frslam_graph.offline._pin_mmap_threshold`), and the kernel zero-fills each of its
+    4 kB pages on first touch: FR079's backend took 4.3 million page faults (5.5-5.9 s of system
+    CPU), 2.2-2.5 million with these buffers. A buffer of a slot is reused by the next call: a
+    caller keeps no view of one past its own return (nor across a step's yield)."""
     bufs: dict[int, np.ndarray] | None = getattr(_SCRATCH, "bufs", None)
     if bufs is None:
         bufs = _SCRATCH.bufs = {}
