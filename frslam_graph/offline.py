@@ -165,8 +165,14 @@ def _odometry_in_worker(slam: FRSlam, recording: Iterable[Any], worker) -> Itera
 #: scans between two returns of freed heap memory to the system during :func:`run_recording`
 TRIM_EVERY_SCANS = 200
 #: bytes; blocks from this size up are mapped and unmapped one by one (glibc's M_MMAP_THRESHOLD,
-#: pinned by :func:`_pin_mmap_threshold`; the trim threshold at twice it)
+#: pinned by :func:`_pin_mmap_threshold`)
 MMAP_THRESHOLD = 256 * 1024
+#: bytes of free memory at the top of the heap that ``free`` leaves mapped (glibc's
+#: M_TRIM_THRESHOLD, set with the pin). At 512 kB the top of the heap was given back and mapped
+#: again all the time, the kernel zero-filling each page anew: the odometry took 728,000 page
+#: faults on FR079 (1.1 s of system CPU of ~20 s), 5,600 at 4 MB. :data:`TRIM_EVERY_SCANS` trims
+#: the heap anyway.
+TRIM_THRESHOLD = 4 * 1024 * 1024
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt(3) parameters (malloc.h)
 
 
@@ -178,7 +184,8 @@ def _pin_mmap_threshold() -> bool:
     32 MB): afterwards iSAM2's and numpy's temporaries of that size come from the heap, and the
     heap grew between two trims by what they left behind (on the long simulated recording,
     peak RSS - trimmed RSS: 35 MB at 4,000 scans, 119 MB at 16,000). Pinned, such blocks go back
-    to the system when freed: 11 and 29 MB. It moves no live object: results are unchanged."""
+    to the system when freed: 11 and 29 MB. The trim threshold goes with it
+    (:data:`TRIM_THRESHOLD`). It moves no live object: results are unchanged."""
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -187,7 +194,7 @@ def _pin_mmap_threshold() -> bool:
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD)
+        mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
     )
 
 

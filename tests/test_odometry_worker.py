@@ -245,6 +245,26 @@ def test_prepare_placement_gives_the_same_results(faulty_recording, schedule, mo
         assert worker.prepared_here > 0 and worker.prepared_there > 0
 
 
+@needs_worker
+def test_the_worker_may_run_256_scans_ahead_of_its_caller(faulty_recording):
+    """The caller hands the worker 16 chunks of 16 scans before it takes the first result: a
+    backend busy for a while (a closure's LM batch, a stretch of matching) does not stop the
+    odometry until it is 256 scans ahead (with 64, FR079's and ACES's workers waited: tools/README.md)."""
+    cfg = FRSlamConfig.from_dict(CFG).odometry
+    pulled = []
+
+    def inputs():
+        for k, s in enumerate(faulty_recording[:300]):
+            pulled.append(k)
+            yield s.stamp, s.points, s.odom, k
+
+    with odometry_worker.OdometryWorker(cfg) as worker:
+        run = worker.run(inputs())
+        first = next(run)
+        assert first[0][3] == 0 and len(pulled) == 256 == worker.chunk * worker.window
+        assert [item[3] for item, *_ in run] == list(range(1, 300))
+
+
 def test_prepare_goes_to_the_lighter_stage():
     """The rule, on given moving averages (seconds per scan): the caller prepares while its own
     work is below the worker's odometry, and before both are measured."""

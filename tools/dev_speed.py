@@ -1,6 +1,7 @@
 """One real log through ``run_recording`` (as ``tools/bench_slam.py`` runs it): relation error,
-CPU seconds of the backend and of its odometry worker, and the loop closer's counts, as one JSON
-line. CPU seconds and counts compare runs on a loaded machine, where wall times do not.
+CPU seconds of the backend and of its odometry worker (their system CPU and minor page faults
+too; "worker" = the children: odometry worker and final alignment halves), and the loop
+closer's counts, as one JSON line. CPU seconds and counts compare runs on a loaded machine, where wall times do not.
 
     .venv/bin/python tools/dev_speed.py fr079            # aces, intel, fr079, intel.bag
     .venv/bin/python tools/dev_speed.py fr079 --profile /tmp/fr079.prof   # + cProfile of the run
@@ -53,6 +54,7 @@ def main() -> None:
         prof.dump_stats(args.profile)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    me = resource.getrusage(resource.RUSAGE_SELF)
     res = run.result
     rel = relation_error(res.trajectory, load_relations(relations))
     lat = res.latencies * 1e3
@@ -65,6 +67,11 @@ def main() -> None:
         "xrt": round(res.duration / wall, 2),
         "cpu_backend_s": round(cpu, 2),
         "cpu_worker_s": round(kids.ru_utime + kids.ru_stime, 2),
+        # system CPU and minor page faults (fresh pages the kernel zero-fills: session 10)
+        "sys_backend_s": round(me.ru_stime, 2),
+        "sys_worker_s": round(kids.ru_stime, 2),
+        "faults_backend": me.ru_minflt,
+        "faults_worker": kids.ru_minflt,
         "latency_ms": [round(float(np.percentile(lat, q)), 1) for q in (50, 99, 100)],
         "loop_closure": stats,
     }

@@ -119,7 +119,6 @@ def field_of_view(points: list[np.ndarray]) -> float:
 #: keyframes whose neighbours are gathered at once by :func:`candidate_pairs` (its memory is this
 #: times the keyframes within the radius of one, not the square of the keyframes in the map)
 PAIRS_CHUNK = 128
-_LIFT = 1.0e6  # m between the submaps' layers in the exact-neighbour k-d tree (beyond any distance)
 
 
 def candidate_pairs(
@@ -217,7 +216,6 @@ class _ReferenceStack:
         self.nearest = np.concatenate([r.nearest for r in refs])  # indices into each submap's points
         self.points = np.concatenate([r.points for r in refs])
         self.normals = self.quality = None
-        self._tree: cKDTree | None = None
 
     def prepare_icp(self, used: np.ndarray) -> None:
         """Normals and line quality of the submaps ``used`` (indices; the others' stay zero)."""
@@ -248,14 +246,21 @@ class _ReferenceStack:
         self, points: np.ndarray, ref: np.ndarray, max_distance: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """As :meth:`nearest_points` with the exact nearest point of each point's submap (ICP's
-        correspondences; see :meth:`ReferenceSubmap.exact_nearest_offsets`): one k-d tree over
-        all submaps, each lifted to its own height so that no query reaches another's points."""
-        if self._tree is None:
-            owner = np.repeat(np.arange(len(self.refs)), [len(r.points) for r in self.refs])
-            self._tree = cKDTree(np.column_stack((self.points, _LIFT * owner)))
-        d, j = self._tree.query(np.column_stack((points, _LIFT * ref)), distance_upper_bound=max_distance)
-        sel = np.flatnonzero(np.isfinite(d))
-        return sel, j[sel]
+        correspondences; see :meth:`ReferenceSubmap.exact_nearest_offsets`): each run of points
+        of one submap queries that submap's own k-d tree (``ref`` comes grouped by submap: one
+        query per submap). The same neighbours as one k-d tree over all submaps, each lifted to
+        a height of its own (FR079's final alignment: 9.1 -> 8.3 s of CPU)."""
+        if len(ref) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        cut = (np.flatnonzero(ref[1:] != ref[:-1]) + 1).tolist()
+        sels, js = [], []
+        for lo, hi in zip([0, *cut], [*cut, len(ref)], strict=True):
+            r = int(ref[lo])
+            d, j = self.refs[r].tree.query(points[lo:hi], distance_upper_bound=max_distance)
+            s = np.flatnonzero(np.isfinite(d))
+            sels.append(s + lo)
+            js.append(j[s] + self.point_offset[r])
+        return np.concatenate(sels), np.concatenate(js)
 
     def inlier_fractions(
         self, queries: np.ndarray, owner: np.ndarray, ref: np.ndarray, poses: np.ndarray, distance: float
