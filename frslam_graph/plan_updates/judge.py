@@ -213,25 +213,22 @@ class RegistrationJudge:
             if isinstance(drawn, Verdict):
                 return drawn
             plan_map, relocaliser, fit = drawn
-        elif fit < cfg.min_map_fit:
-            return self._reject(
-                case, f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
-            )
-        crossing = 0.0 if case.drawing_tol > 0.0 else walls_through_free_space(relocaliser, case.grid, margin)
-        if case.drawing_tol <= 0.0:
-            nums["walls_in_free_space"] = crossing
-        if crossing > cfg.max_walls_in_free_space:
-            # a plan known to be drawn off the building loses its wall pieces seen through; an
-            # accurately drawn one its rooms seen through (a wall piece masked there could be the
-            # one wall that tells a near-symmetric plan's mirror from the right placement)
-            trusted = self._trusted_rooms(case, reg, relocaliser, margin, occ, fit_tol)
-            if isinstance(trusted, str):
+        else:
+            if fit < cfg.min_map_fit:
                 return self._reject(
-                    case,
-                    f"{crossing:.0%} of the plan's observed walls cross free space in the map "
-                    f"> {cfg.max_walls_in_free_space:.0%}{trusted}",
+                    case, f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
                 )
-            plan_map, relocaliser, fit = trusted
+            crossing = walls_through_free_space(relocaliser, case.grid, margin)
+            nums["walls_in_free_space"] = crossing
+            if crossing > cfg.max_walls_in_free_space:
+                # a plan known to be drawn off the building loses its wall pieces seen through
+                # (_drawn_on_the_map); an accurately drawn one its rooms seen through (a wall piece
+                # masked there could be the one wall that tells a near-symmetric plan's mirror from
+                # the right placement)
+                trusted = self._trusted_rooms(case, reg, relocaliser, margin, occ, fit_tol)
+                if isinstance(trusted, str):
+                    return self._walls_cross(case, crossing, trusted)
+                plan_map, relocaliser, fit = trusted
         if acc is not None:
             disp = matrix_disagreement(self.plan, acc.registration.matrix, reg.matrix)
             old_fit = acc.relocaliser.fit_points(occ, fit_tol)
@@ -248,6 +245,15 @@ class RegistrationJudge:
                     f"the map no better ({fit:.0%} vs {old_fit:.0%})",
                 )
         return self._on_the_scans(case, reg, plan_map, relocaliser, fit)
+
+    def _walls_cross(self, case: _Case, crossing: float, why: str) -> Verdict:
+        """The refusal of a plan whose observed walls cross the map's free space (``why``: what
+        dropping the parts seen through could not save)."""
+        return self._reject(
+            case,
+            f"{crossing:.0%} of the plan's observed walls cross free space in the map "
+            f"> {self.config.max_walls_in_free_space:.0%}{why}",
+        )
 
     def _drawn_on_the_map(
         self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float
@@ -269,11 +275,7 @@ class RegistrationJudge:
         if crossing > cfg.max_walls_in_free_space:
             trusted = self._trusted_part(case, reg, relocaliser, margin, occ, fit_tol)
             if isinstance(trusted, str):
-                return self._reject(
-                    case,
-                    f"{crossing:.0%} of the plan's observed walls cross free space in the map "
-                    f"> {cfg.max_walls_in_free_space:.0%}{trusted}",
-                )
+                return self._walls_cross(case, crossing, trusted)
             plan_map, relocaliser, fit = trusted
         nums["map_fit"] = fit
         if fit >= cfg.min_map_fit:
