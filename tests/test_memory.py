@@ -141,7 +141,8 @@ def test_finish_frees_isam_and_a_later_scan_rebuilds_it():
     np.testing.assert_allclose(slam.trajectory()[:n, 1:3], done[:, 1:3], atol=0.05)
 
 
-_FREED_BLOCKS_KEPT = """
+# the start of a fresh process's script that reads glibc's allocator (struct mallinfo2)
+_MALLINFO2 = """
 import ctypes, sys
 import numpy as np
 from frslam_graph import offline
@@ -152,6 +153,11 @@ class Info(ctypes.Structure):  # glibc's struct mallinfo2
 
 libc = ctypes.CDLL("libc.so.6")
 libc.mallinfo2.restype = Info
+"""
+
+_FREED_BLOCKS_KEPT = (
+    _MALLINFO2
+    + """
 if sys.argv[1] == "pin":
     assert offline._pin_mmap_threshold()
 big = np.ones(8 << 20, np.uint8)  # a large temporary, mapped and freed (glibc then raises its threshold)
@@ -160,6 +166,7 @@ before = libc.mallinfo2().hblkhd
 blocks = [np.ones(2 << 20, np.uint8) for _ in range(4)]
 print(libc.mallinfo2().hblkhd - before)  # bytes of them mapped on their own (unmapped when freed)
 """
+)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
@@ -184,22 +191,15 @@ def test_pinned_mmap_threshold_returns_freed_large_blocks_at_once(pinned):
         assert mapped < (2 << 20), mapped
 
 
-_FREED_TOP_KEPT = """
-import ctypes
-import numpy as np
-from frslam_graph import offline
-
-class Info(ctypes.Structure):  # glibc's struct mallinfo2
-    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
-                                                 "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
-
-libc = ctypes.CDLL("libc.so.6")
-libc.mallinfo2.restype = Info
+_FREED_TOP_KEPT = (
+    _MALLINFO2
+    + """
 assert offline._pin_mmap_threshold()
 blocks = [np.ones(100_000, np.uint8) for _ in range(30)]  # 3 MB of heap blocks, at its top
 del blocks
 print(libc.mallinfo2().keepcost)  # free bytes left mapped at the top of the heap
 """
+)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
