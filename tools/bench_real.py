@@ -244,22 +244,15 @@ def prbonn_identity_row(data: Path, method: str = "mfr") -> dict[str, Any]:
 
 # ----------------------------------------------------------------------------- map styles
 def _explore(house: Any, share: float, rng: np.random.Generator) -> list[str]:
-    """A connected set of rooms grown to ``share`` of the area from a random room (area-weighted)
-    of a part of the house (rooms connected by doors) that holds that share, or of the biggest
-    part when none does (R2V plans miss doors: a start in a closet would explore 1 %)."""
+    """A connected set of rooms grown to ``share`` of the area from a random room of a part of
+    the house that holds that share (``partial_map.random_start_room``: R2V plans miss doors, and
+    a start in a closet would explore 1 %)."""
+    from frslam_graph.datasets.simulator.partial_map import random_start_room
+
     areas = {r.id: r.polygon.area for r in house.plan.rooms}
     adjacency = house.adjacency()
     total = sum(areas.values())
-    part = {}
-    for rid in areas:
-        if rid not in part:
-            members = house.reachable(rid)
-            part.update(dict.fromkeys(members, sum(areas[m] for m in members)))
-    ids = [r for r in areas if part[r] >= share * total * 0.97] or [
-        r for r in areas if part[r] == max(part.values())
-    ]
-    p = np.array([areas[i] for i in ids])
-    chosen = [ids[int(rng.choice(len(ids), p=p / p.sum()))]]
+    chosen = [random_start_room(house, share, rng)]
     while sum(areas[r] for r in chosen) < share * total * 0.97:
         frontier = sorted({n for r in chosen for n in adjacency[r]} - set(chosen))
         if not frontier:

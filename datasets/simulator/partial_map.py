@@ -63,6 +63,24 @@ def explored_fraction(house: House, rooms: list[str]) -> float:
     return float(sum(areas[r] for r in set(rooms)) / sum(areas.values()))
 
 
+def random_start_room(house: House, completeness: float, rng: np.random.Generator) -> str:
+    """A room (random, weighted by area) of a part of the house (rooms connected by open doors)
+    big enough for ``completeness`` of its area, or of the biggest part when none is."""
+    areas = house.room_areas
+    total = sum(areas.values())
+    ids = list(areas)
+    comp_area: dict[str, float] = {}
+    for rid in ids:
+        if rid not in comp_area:
+            members = house.reachable(rid)
+            share = sum(areas[m] for m in members)
+            comp_area.update(dict.fromkeys(members, share))
+    enough = [r for r in ids if comp_area[r] >= completeness * total * 0.999]
+    pool = enough or [r for r in ids if comp_area[r] == max(comp_area.values())]
+    p = np.array([areas[r] for r in pool])
+    return pool[int(rng.choice(len(pool), p=p / p.sum()))]
+
+
 def grow_rooms(
     house: House, completeness: float, rng: np.random.Generator, start_room: str | None = None
 ) -> list[str]:
@@ -73,18 +91,7 @@ def grow_rooms(
     ids = list(areas)
     adj = house.adjacency()
     if start_room is None:
-        # Start in a part of the house (rooms connected by open doors) big enough for the target,
-        # or in the biggest part when none is; rooms weighted by area.
-        comp_area: dict[str, float] = {}
-        for rid in ids:
-            if rid not in comp_area:
-                members = house.reachable(rid)
-                share = sum(areas[m] for m in members)
-                comp_area.update(dict.fromkeys(members, share))
-        enough = [r for r in ids if comp_area[r] >= completeness * total * 0.999]
-        pool = enough or [r for r in ids if comp_area[r] == max(comp_area.values())]
-        p = np.array([areas[r] for r in pool])
-        start_room = pool[int(rng.choice(len(pool), p=p / p.sum()))]
+        start_room = random_start_room(house, completeness, rng)
     elif start_room not in areas:
         raise ConfigError(
             f"unknown room {start_room!r} (the house has {ids})", where="partial_map.start_room"
