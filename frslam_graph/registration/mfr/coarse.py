@@ -364,6 +364,24 @@ def search(
     return hyps, seeds
 
 
+def turned_seeds(seed: Hypothesis, obs: MapObservation) -> list[Hypothesis]:
+    """The other 7 dihedral turns of ``seed``'s placement about the footprint's centroid, in the
+    wall-aligned map frame of its wall direction: the same plan scales (metres per plan unit
+    along the plan's axes), another flip and rotation. The moment fit of a (dihedral case, wall
+    direction) assumes the footprint is a union of whole plan rooms; on a map seeing corridors
+    and parts of rooms its scales are 20-40 % off, or the case has no hypothesis at all, and the
+    wide search does not reach the truth from it: the best placement's scales are closer."""
+    rm = rot(obs.angles[seed.angle_index])
+    c = obs.centroid
+    out = []
+    for k, flipped in DIHEDRAL[1:]:
+        d = np.eye(3)
+        d[:2, :2] = rm @ dihedral(k, flipped) @ rm.T
+        d[:2, 2] = c - d[:2, :2] @ c
+        out.append(Hypothesis(seed.mask, k, flipped, d @ seed.matrix, 0.0, seed.angle_index))
+    return out
+
+
 # the wide search: per map axis, scale factors x shifts (fractions of the footprint's extent)
 WIDE_FACTORS = np.exp(np.linspace(math.log(0.6), math.log(1.75), 15))  # ~7.6 % apart
 WIDE_SHIFTS = np.linspace(-0.25, 0.25, 13)
@@ -409,6 +427,15 @@ def _top_cells(key: np.ndarray, shape: tuple[int, int], n: int, radius: int = 2)
     return out
 
 
+def _aligned_frame(obs: MapObservation, angle_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(3x3 turn from the wall-aligned map frame of wall direction ``angle_index`` to the grid
+    frame, the footprint's centroid and its extent (metres) in the wall-aligned frame)."""
+    angle, bbox = obs.angles[angle_index], obs.bboxes[angle_index]
+    rm = np.eye(3)
+    rm[:2, :2] = rot(angle)
+    return rm, rot(-angle) @ obs.centroid, bbox[2:] - bbox[:2]
+
+
 def wide_search(
     pm: PlanModel,
     obs: MapObservation,
@@ -417,6 +444,7 @@ def wide_search(
     tol: float,
     limit: int,
     check: bool = False,
+    polish_best: int | None = None,
 ) -> list[Hypothesis]:
     """Placements found by searching each seed's scale and shift along each wall-aligned map axis
     over a wide grid (x0.6 to x1.75, +-25 % of the footprint's extent), for maps whose footprint
@@ -429,8 +457,10 @@ def wide_search(
     the ``WIDE_POLISH`` rounds, the last on all points at twice the gate's tolerance ``tol``
     (metres): that one tells a right placement from one stretched by a room. ``check``: a cheaper
     check of an already refined placement (a beam of one, x and y once, shifts +-12.5 %, no
-    polish when the grid's best is the placement itself, the last polish on ``quick_points``). Returns up to ``limit`` distinct hypotheses, best first, each with its
-    coarse key (default tolerance) as ``key``.
+    polish when the grid's best is the placement itself, the last polish on ``quick_points``).
+    ``polish_best``: polish only that many of all seeds' beams, best grid key first (many seeds).
+    Returns up to ``limit`` distinct hypotheses, best first, each with its coarse key (default
+    tolerance) as ``key``.
     """
     door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
     full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
@@ -443,12 +473,9 @@ def wide_search(
     shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
     last_points = opts["quick_points"] if check else None
     found: list[tuple[float, np.ndarray, int]] = []
+    beams: list[tuple[float, np.ndarray, int]] = []
     for si, seed in enumerate(seeds):
-        angle, bbox = obs.angles[seed.angle_index], obs.bboxes[seed.angle_index]
-        rm = np.eye(3)
-        rm[:2, :2] = rot(angle)
-        c = rot(-angle) @ obs.centroid
-        ext = bbox[2:] - bbox[:2]
+        rm, c, ext = _aligned_frame(obs, seed.angle_index)
         beam = [(float(score(seed.matrix[None], points)[0]), seed.matrix)]
         for axis in WIDE_AXES[:2] if check else WIDE_AXES:
             grown = list(beam)
@@ -467,17 +494,21 @@ def wide_search(
                     break
         if check and np.allclose(beam[0][1], seed.matrix):
             continue  # no other scale or shift on the grid scores better: nothing to polish
-        for _, m in beam:
-            for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
-                factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
-                pts = last_points if stage == len(WIDE_POLISH) - 1 else points
-                tl = None if tmul is None else tmul * tol
-                for axis in (0, 1):
-                    mats = np.concatenate(
-                        [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
-                    )
-                    m = mats[int(np.argmax(score(mats, pts, tl)))]
-            found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
+        beams.extend((k_, m, si) for k_, m in beam)
+    if polish_best is not None:  # only the best placements of all seeds' grids are polished
+        beams = sorted(beams, key=lambda t: -t[0])[:polish_best]
+    for _, m, si in beams:
+        rm, c, ext = _aligned_frame(obs, seeds[si].angle_index)
+        for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
+            factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
+            pts = last_points if stage == len(WIDE_POLISH) - 1 else points
+            tl = None if tmul is None else tmul * tol
+            for axis in (0, 1):
+                mats = np.concatenate(
+                    [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
+                )
+                m = mats[int(np.argmax(score(mats, pts, tl)))]
+        found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
     found.sort(key=lambda t: -t[0])
     out: list[Hypothesis] = []
     for k_, m, si in found:

@@ -26,8 +26,11 @@ Steps
    When the screened best (step 4) covers the footprint poorly (coarse IoU below
    ``search_below_iou``) or fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
    starts from its placement, and when it fails the gate also from the best placement of each of
-   the ``wide_seeds`` best (dihedral case, wall direction); its placements that cover the footprint
-   with plan rooms (IoU >= ``WIDE_MIN_IOU``) are screened with the others.
+   the ``wide_seeds`` best (dihedral case, wall direction) and from its own seven other dihedral
+   turns (:func:`coarse.turned_seeds`); when the screened best places one plan room (refused as
+   under-determined) and another places several, from that one and its turns instead. Its
+   placements that cover the footprint with plan rooms (IoU >= ``WIDE_MIN_IOU``) are screened
+   with the others.
 4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored; the best
    is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
    two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
@@ -150,7 +153,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     fine.screen(pm, obs, chosen, opts, tol_f)
     n_wide, wide_searched = 0, False
     top = chosen[0]
-    fails = top.quick < opts["min_score"]
+    # a placement of one plan room stretched over the map is refused as under-determined
+    # (:func:`_determined`), but it can outscore the screened placements of several rooms, whose
+    # moment-fitted scales are 10-40 % off: it must not stop the search from them
+    one_room = top.placed_rooms < 2 and any(h.placed_rooms >= 2 for h in chosen[1:])
+    fails = top.quick < opts["min_score"] or one_room
     if opts["wide_seeds"] > 0 and (fails or top.coarse_iou < opts["search_below_iou"]):
         # the footprint is not the union of the placed rooms (or nothing passes the gate): the
         # moment-fitted scales may be far off. Search the best placement's scales widely, and
@@ -158,9 +165,27 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         own = Hypothesis(top.mask, top.k, top.flipped, top.refined.matrix, 0.0, top.angle_index)
         wide_searched = True
         if fails:
-            wide = coarse.wide_search(
-                pm, obs, [own, *best_rotations[: opts["wide_seeds"]]], opts, tol_f, opts["refine_k"]
+            if one_room:  # from the best placement of several rooms instead
+                h = next(h for h in chosen[1:] if h.placed_rooms >= 2)
+                base = Hypothesis(h.mask, h.k, h.flipped, h.refined.matrix, 0.0, h.angle_index)
+                seeds = [base]
+            else:
+                base = own
+                seeds = [own, *best_rotations[: opts["wide_seeds"]]]
+            wide = coarse.wide_search(pm, obs, seeds, opts, tol_f, opts["refine_k"])
+            # and from its seven other turns (its scales, another flip and rotation: the moment
+            # fit of the right turn can be far off, or that turn have no hypothesis at all),
+            # only the best of their grids polished (the polish is most of the search's cost)
+            wide += coarse.wide_search(
+                pm,
+                obs,
+                coarse.turned_seeds(base, obs),
+                opts,
+                tol_f,
+                opts["refine_k"],
+                polish_best=opts["refine_k"],
             )
+            wide.sort(key=lambda h: -h.key)
         else:
             wide = coarse.wide_search(pm, obs, [own], opts, tol_f, 1, check=True)
         # the placements not screened yet (within twice the gate's tolerance of a screened one)
