@@ -209,6 +209,13 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             ]
             chosen, covered = _merge(chosen, wide, hyps, covered, obs)
             n_wide = len(wide)
+    if chosen[0].coarse_iou < opts["search_below_iou"]:
+        # rooms seen in part: the screening refinement stops in the basin of its start, with
+        # the scales a few per cent off; polish every screened placement alike (the ambiguity
+        # compares them) and rank them again
+        for h in chosen:
+            fine.polish_scales(pm, obs, h, opts, tol_f)
+        chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
     r0 = best.refined
     best.refined = r = fine.refine_final(pm, obs, r0, opts)
