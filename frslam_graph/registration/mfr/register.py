@@ -209,10 +209,13 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             ]
             chosen, covered = _merge(chosen, wide, hyps, covered, obs)
             n_wide = len(wide)
+    ambiguity_screened = 0.0
     if chosen[0].coarse_iou < opts["search_below_iou"]:
         # rooms seen in part: the screening refinement stops in the basin of its start, with
         # the scales a few per cent off; polish every screened placement alike (the ambiguity
-        # compares them) and rank them again
+        # compares them) and rank them again. The restarts do not land alike (a best polished
+        # further than its runner-ups): the answer stays as doubtful as it was before them
+        ambiguity_screened = _ambiguity(chosen, hyps, covered, chosen[0].refined.matrix, obs)
         for h in chosen:
             fine.polish_scales(pm, obs, h, opts, tol_f)
         chosen.sort(key=lambda h: -h.quick)
@@ -224,7 +227,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     best.score, best.rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
     prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
-    ambiguity = _ambiguity(chosen, hyps, covered, r0.matrix, obs)
+    ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened)
     alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
     t_fine = time.perf_counter()
     fixed_ok = quality >= opts["min_score"] and rec >= opts["min_recall"]
