@@ -282,20 +282,51 @@ class RegistrationJudge:
             return plan_map, relocaliser, fit
         runner = 0.0
         if fit >= MAP_FIT_FLOOR:
-            for m in case.alternatives:
-                rel = self._alike(case, m)
-                if rel is None:
-                    continue
-                runner = max(runner, rel.fit_points(occ, fit_tol))
-                if runner > MAP_FIT_RUNNER_UP * fit:
-                    break
-            nums["runner_up_map_fit"] = runner
+            runner = nums["runner_up_map_fit"] = self._runner_up_fit(case, occ, fit, fit_tol)
             if case.alternatives and runner <= MAP_FIT_RUNNER_UP * fit:
                 return plan_map, relocaliser, fit
         why = f"plan walls explain {fit:.0%} of the map's occupied cells < {cfg.min_map_fit:.0%}"
         if fit >= MAP_FIT_FLOOR and case.alternatives:
             why += f", and a runner-up placement {runner:.0%} (> {MAP_FIT_RUNNER_UP:.0%} of it)"
         return self._reject(case, why)
+
+    def _runner_up_fit(self, case: _Case, occ: np.ndarray, fit: float, fit_tol: float) -> float:
+        """The best map fit of the case's runner-up placements, each judged alike (:meth:`_alike`),
+        at ``fit_tol`` metres; the search stops once one explains more than
+        :data:`MAP_FIT_RUNNER_UP` of ``fit``."""
+        runner = 0.0
+        for m in case.alternatives:
+            rel = self._alike(case, m)
+            if rel is None:
+                continue
+            runner = max(runner, rel.fit_points(occ, fit_tol))
+            if runner > MAP_FIT_RUNNER_UP * fit:
+                break
+        return runner
+
+    def still_clearly_best(
+        self,
+        ctx: BackendContext,
+        keyframe: KeyframeInfo,
+        grid: Any,
+        accepted: AcceptedPlan,
+        drift: float,
+        fit: float,
+    ) -> bool:
+        """The recheck of an accepted registration drawn off the building whose walls, but for the
+        pieces seen through, explain ``fit`` < ``min_map_fit`` of the grown map: it stays by the
+        rule that accepted it (:meth:`_drawn_on_the_map`): ``fit`` at least :data:`MAP_FIT_FLOOR`
+        and each of its registration's runner-up placements, judged alike on this map, at most
+        :data:`MAP_FIT_RUNNER_UP` of it."""
+        case = _Case(ctx, keyframe, grid, {}, accepted, None, drift, 0, accepted.drawing_tol)
+        case.alternatives = [
+            np.asarray(a["matrix"], float)
+            for a in (getattr(accepted.registration, "details", None) or {}).get("alternatives", [])
+        ]
+        if fit < MAP_FIT_FLOOR or not case.alternatives:
+            return False
+        fit_tol = case.tolerances(self.config)[0]
+        return self._runner_up_fit(case, occupied_points(grid), fit, fit_tol) <= MAP_FIT_RUNNER_UP * fit
 
     def _trusted_rooms(
         self, case: _Case, reg: Any, relocaliser: Relocaliser, margin: float, occ: np.ndarray, fit_tol: float

@@ -131,7 +131,12 @@ class PlanRefiner:
         fix[:2, 2] = centre - f * centre
         reg = acc.registration
         new = type(reg).from_matrix(
-            m @ fix, score=reg.score, ambiguity=reg.ambiguity, method=f"{reg.method}+scale", rooms=reg.rooms
+            m @ fix,
+            score=reg.score,
+            ambiguity=reg.ambiguity,
+            method=f"{reg.method}+scale",
+            rooms=reg.rooms,
+            details=_runner_ups(reg, np.eye(3)),
         )
         try:
             relocaliser = acc.relocaliser_on(new, self.plan, self.params)
@@ -212,6 +217,7 @@ class PlanRefiner:
         reg = acc.registration
         new = type(reg).from_matrix(
             to_matrix(d) @ np.asarray(reg.matrix, float),
+            details=_runner_ups(reg, to_matrix(d)),
             score=reg.score,
             ambiguity=reg.ambiguity,
             method=f"{reg.method}+start",
@@ -232,3 +238,11 @@ class PlanRefiner:
 
 
 __all__ = ["PlanRefiner", "Refinement"]
+
+
+def _runner_ups(reg: Any, move: np.ndarray) -> dict:
+    """``reg``'s runner-up placements (``details["alternatives"]``) for its refinement, moved in
+    ``map`` by ``move`` (3x3) as the refinement moves the plan: the recheck of a plan drawn off
+    the building judges it against them (:meth:`RegistrationJudge.still_clearly_best`)."""
+    alts = (getattr(reg, "details", None) or {}).get("alternatives", [])
+    return {"alternatives": [{**a, "matrix": (move @ np.asarray(a["matrix"], float)).tolist()} for a in alts]}

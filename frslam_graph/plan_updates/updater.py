@@ -358,8 +358,10 @@ class FloorPlanUpdater:
         space the robot has seen free): its priors are removed and the next registration is
         judged as a first one. A plan known to be drawn off the building (``drawing_tol`` > 0:
         its registration needed a tolerance from its residual) whose wall pieces seen through are
-        a minority of its observed walls, the rest still explaining ``min_map_fit`` of the map,
-        loses those pieces instead (later relocalisations ignore them). An accurately drawn plan
+        a minority of its observed walls, the rest still explaining the map as its acceptance
+        required (``min_map_fit``, or clearly more than its runner-up placements:
+        :meth:`RegistrationJudge.still_clearly_best`), loses those pieces instead (later
+        relocalisations ignore them). An accurately drawn plan
         is retracted: there a wall the map sees through is a wrong placement (e.g. the mirror of
         a near-symmetric plan, which differs by a wall the first scans had not seen)."""
         cfg = self.config
@@ -369,14 +371,16 @@ class FloorPlanUpdater:
         if crossing <= cfg.retract_walls_in_free_space:
             return
         rel = acc.relocaliser
-        pts, dropped = np.zeros((0, 2)), 1.0
+        pts, dropped, fit = np.zeros((0, 2)), 1.0, float("nan")
         if acc.drawing_tol > 0.0:
             pts, dropped, _ = wall_pieces_seen_through(rel, grid, margin, cfg.max_walls_in_free_space)
         if dropped < 0.5:
             part = rel.ignoring(pts, max(2.0 * rel.field.wall_offset + margin, rel.params.truncation))
             fit_tol = tolerances(cfg, self.priors.drift, acc.drawing_tol)[0]
             fit = part.fit_points(occupied_points(grid), fit_tol)
-            if fit >= cfg.min_map_fit:
+            if fit >= cfg.min_map_fit or self.judge.still_clearly_best(
+                ctx, keyframe, grid, acc, self.priors.drift, fit
+            ):
                 record(
                     ctx,
                     keyframe.stamp,
@@ -397,6 +401,13 @@ class FloorPlanUpdater:
             f"registration {acc.id} contradicted by the map: {crossing:.0%} of its observed walls "
             f"cross free space > {cfg.retract_walls_in_free_space:.0%}"
         )
+        if acc.drawing_tol > 0.0:
+            why += (
+                f"; the pieces seen through are {dropped:.0%} of them (a majority)"
+                if dropped >= 0.5
+                else f"; without the pieces seen through its walls explain {fit:.0%} of the map < "
+                f"{cfg.min_map_fit:.0%}, and not clearly more than its runner-up placements"
+            )
         record(
             ctx,
             keyframe.stamp,

@@ -81,10 +81,16 @@ def plausible(r: RefineResult, opts: dict) -> bool:
 
 
 def placed_rooms_iou(
-    pm: PlanModel, frame: RasterFrame, footprint: np.ndarray, matrix: np.ndarray, min_cover: float
+    pm: PlanModel,
+    frame: RasterFrame,
+    footprint: np.ndarray,
+    matrix: np.ndarray,
+    min_cover: float,
+    unexplored: np.ndarray | None = None,
 ) -> tuple[float, tuple[int, ...]]:
     """IoU of the rooms the placement puts on the footprint (>= ``min_cover`` of their area) with
-    the footprint, and those rooms (indices)."""
+    the footprint, and those rooms (indices). What a placement puts on ``unexplored`` cells (bool,
+    ``frame``: enclosed regions the map has not observed) counts neither for nor against it."""
     if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
         return 0.0, ()
     n = len(pm.ids)
@@ -92,7 +98,8 @@ def placed_rooms_iou(
     on = np.bincount(labels[footprint].ravel(), minlength=n + 1)[1:]
     det = abs(np.linalg.det(matrix[:2, :2]))
     px_area = pm.room_areas * det / frame.resolution**2
-    cover = on / np.maximum(px_area, 1e-9)
+    off = np.zeros(n) if unexplored is None else np.bincount(labels[unexplored].ravel(), minlength=n + 1)[1:]
+    cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:
         return 0.0, rooms
@@ -101,6 +108,8 @@ def placed_rooms_iou(
     placed = sel[labels]
     inter = np.count_nonzero(placed & footprint)
     union = np.count_nonzero(placed | footprint)
+    if unexplored is not None:
+        union -= np.count_nonzero(placed & unexplored)
     return (inter / union if union else 0.0), rooms
 
 
@@ -217,7 +226,7 @@ def structure_key(
     the door-width plausibility of its scale; and that IoU and the number of those rooms. The
     coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement shifted by a
     wall or a room above the right one on maps with partly seen rooms and thick walls."""
-    iou, rooms = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    iou, rooms = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"], obs.unexplored)
     prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
     scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
     return (

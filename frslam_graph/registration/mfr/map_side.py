@@ -1,6 +1,8 @@
 """MFR step 1, the map side: the partial occupancy map prepared for registration.
 
-Observed footprint = free ∪ occupied with holes filled, main connected component; free space with
+Observed footprint = free ∪ occupied with holes filled, main connected component, except
+unobserved regions that could hold a room (:data:`CORE_RADIUS_M`): the block a corridor ring goes
+round is unexplored, neither footprint nor outside (``unexplored``); free space with
 small obstacles filled; its signed distance field (full resolution); the "wall-side" free cells
 (free next to a wall) and doorway-like exits (free running into unobserved space, 0.4–2.5 m wide);
 up to two wall directions (peaks of the histogram of 4 × gradient angle, so walls at 90° agree);
@@ -22,6 +24,8 @@ from frslam_graph.raster import RasterFrame
 from frslam_graph.registration.mfr.geometry import dominant_angles
 from frslam_graph.registration.refine import DistanceField
 from frslam_graph.se2 import rot
+
+CORE_RADIUS_M = 1.0  # an enclosed unobserved region holding a disc this wide (radius, m) is not footprint
 
 
 @dataclass
@@ -45,6 +49,7 @@ class MapObservation:
     edge_dt: np.ndarray  # metres to the nearest wall-side free cell (full resolution)
     edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
     exit_points: np.ndarray  # (J, 2) free cells next to unobserved space outside the footprint
+    unexplored: np.ndarray  # bool: enclosed unobserved regions left out of the footprint
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -83,6 +88,8 @@ def observe_map(
         return "map has no free cells"
     known = free | occ
     filled = _fill_holes(known.astype(np.uint8))
+    unexplored = _unexplored_cores(filled & ~known, CORE_RADIUS_M / res)
+    filled &= ~unexplored
     n, labels, stats, _ = cv2.connectedComponentsWithStats(filled.astype(np.uint8), connectivity=8)
     if n <= 1:
         return "map has no observed area"
@@ -171,7 +178,22 @@ def observe_map(
         edge_dt=edge_dt,
         edge_points=edge_points,
         exit_points=exit_points,
+        unexplored=unexplored,
     )
+
+
+def _unexplored_cores(pockets: np.ndarray, radius_px: float) -> np.ndarray:
+    """The unobserved regions enclosed by the observed area (``pockets``, bool) that hold a disc
+    of ``radius_px`` cells: rooms the robot has not entered, the core of a building a corridor
+    goes round. The smaller ones (behind furniture, inside thick walls) stay footprint."""
+    p8 = pockets.astype(np.uint8)
+    n, labels = cv2.connectedComponents(p8, connectivity=4)
+    depth = np.zeros(n, np.float32)  # each pocket's inscribed radius (cells)
+    inside = pockets.ravel()
+    np.maximum.at(depth, labels.ravel()[inside], cv2.distanceTransform(p8, cv2.DIST_L2, 3).ravel()[inside])
+    core = depth >= radius_px
+    core[0] = False
+    return core[labels]
 
 
 def _ring(mask: np.ndarray) -> np.ndarray:

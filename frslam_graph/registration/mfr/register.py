@@ -7,7 +7,8 @@ axes along the grid); the result is composed with the grid's ``origin`` (x, y, y
 matrix from plan coordinates to ``map`` metres.
 
 Steps
-1. Map: observed footprint = free ∪ occupied with holes filled, main connected component; free
+1. Map: observed footprint = free ∪ occupied with holes filled (but for unobserved regions that
+   could hold a room), main connected component; free
    space with small obstacles filled; its signed distance field (full resolution); the
    "wall-side" free cells (free next to a wall) and doorway-like exits (free running into
    unobserved space, 0.4–2.5 m wide); up to two wall directions (peaks of the histogram of
@@ -224,7 +225,9 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     best.refined = r = fine.refine_final(pm, obs, r0, opts)
     if not fine.plausible(r, opts):
         return fail("degenerate fit (scales collapsed or exploded)")
-    best.score, best.rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"])
+    best.score, best.rooms = fine.placed_rooms_iou(
+        pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"], obs.unexplored
+    )
     prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
     ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened)
@@ -353,7 +356,9 @@ def _drawing_gate(pm, obs, best, chosen, screened, final, tol_f: float, opts: di
 
     def measure(matrix: np.ndarray, delta: float) -> tuple[float, float, int]:
         """IoU x precision x recall at ``tol``, the recall at the fixed tolerance, rooms placed."""
-        iou, rooms = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, matrix, opts["min_cover"])
+        iou, rooms = fine.placed_rooms_iou(
+            pm, obs.frame, obs.footprint, matrix, opts["min_cover"], obs.unexplored
+        )
         (prec, rec), (_, rec_f) = shares(matrix, delta, (tol, tol_f))
         return iou * prec * rec, rec_f, len(rooms)
 
