@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from frslam_graph.loop_closure import submap_matching as sm
 
@@ -78,3 +79,30 @@ def test_a_slot_is_one_buffer_grown_to_the_largest_request():
     assert np.shares_memory(a, b) and b.shape == (10, 5) and b.dtype == np.float32 and b.flags.c_contiguous
     c = sm._scratch(7, (400, 50), np.float64)  # larger: a new buffer, kept for the next calls
     assert c.shape == (400, 50) and np.shares_memory(c, sm._scratch(7, (100, 50), np.float64))
+
+
+def _nearest_from_full_grids(ref: sm.ReferenceSubmap, labels: np.ndarray) -> np.ndarray:
+    """The nearest-point map as it was computed before its scratch buffers (a full-grid owner
+    table, the labels' look-up table by label - 1, clipped)."""
+    h, w = ref.shape
+    pad, hi_, wi = ref._inner
+    nearest = np.full((h, w), -1, np.int32)
+    owner = np.full(h * w, -1, np.int32)
+    owner[ref._cells] = np.arange(len(ref.points), dtype=np.int32)
+    owner = owner.reshape(h, w)[pad : pad + hi_, pad : pad + wi].ravel()
+    inner = np.take(owner[np.flatnonzero(ref._occupied)], labels.ravel() - 1, mode="clip")
+    nearest[pad : pad + hi_, pad : pad + wi] = inner.reshape(hi_, wi)
+    return nearest.ravel()
+
+
+@pytest.mark.parametrize("margin", [0.3, 2.5, 6.0])
+def test_the_nearest_point_map_is_the_one_of_the_full_grid_owner_table(margin):
+    """The nearest-point map of the ICP's inlier tests, built on the inner grid in scratch
+    buffers: the same map as the full-grid owner table gave, a submap after another (the
+    buffers hold the previous one's numbers), with or without a zero margin around the inner grid."""
+    rng = np.random.default_rng(7)
+    for scale in (1.0, 0.6, 1.3):
+        pts = scale * _room(rng) + rng.uniform(-1.0, 1.0, 2)
+        ref = sm.ReferenceSubmap(pts, 0.05, 0.1, margin, likelihood=False)
+        labels = ref._labels.copy()
+        np.testing.assert_array_equal(ref.nearest, _nearest_from_full_grids(ref, labels))

@@ -357,8 +357,11 @@ def _icp_many(
 
 
 #: reference grid cells matched at once (the look-up tables of a chunk of reference submaps:
-#: 4 bytes per cell, plus the pairs' query points)
-_CHUNK_CELLS = 4_000_000
+#: 4 bytes per cell, plus the pairs' query points). At 4 million the ICP's per-point arrays
+#: (~45,000 points) were each a fresh mapping of 0.4-1 MB whose pages the kernel zero-filled
+#: on first touch (FR079: 440,000 page faults a round); at 1 million they are about a quarter
+#: (FR079's round 2 in one process: 4.2 -> 3.5 s of CPU, the same constraints).
+_CHUNK_CELLS = 1_000_000
 
 
 def align_pairs(
