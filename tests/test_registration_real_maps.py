@@ -197,18 +197,26 @@ def test_halmstad_apartment_sensor_map_registers_within_the_annotation_residual(
     folder = test_data / "halmstad"
     plan = FloorPlan.load(folder / "HIH_layout_crop.png")
     assert len(plan.rooms) >= 3
+    row = _registered_against_points(
+        bench, plan, folder / "HIH_03_crop.png", folder / "HIH_03_to_layout_crop.csv", 5
+    )
+    assert row["flip_ok"] and row["rot_err_deg"] < 2.0
+    assert abs(row["scale_err"]) < 0.02
+    assert row["err_ratio"] < 2.0
+
+
+def _registered_against_points(bench, plan, map_png, points_csv, skiprows: int) -> dict:
+    """MFR of ``plan`` on the Halmstad sensor map ``map_png`` (0.05 m a pixel), accepted, scored
+    against the annotated points (``tools/bench_real.py``'s row: flip, rotation, scale, points)."""
     res = 0.05
-    grid = OccupancyGrid.from_image(folder / "HIH_03_crop.png", res)
-    pts = np.loadtxt(folder / "HIH_03_to_layout_crop.csv", delimiter=",", comments="#", skiprows=5, ndmin=2)
+    grid = OccupancyGrid.from_image(map_png, res)
+    pts = np.loadtxt(points_csv, delimiter=",", comments="#", skiprows=skiprows, ndmin=2)
     map_pts = np.column_stack([pts[:, 0] + 0.5, pts[:, 1]]) * res
     plan_pts = np.column_stack([pts[:, 2] + 0.5, pts[:, 3]])
     truth, residual = bench.fit_similarity(plan_pts, map_pts)
     reg = register(plan, grid)
     assert reg.ok, reg.reason
-    row = bench.point_rows(reg, truth, plan_pts, map_pts, residual)
-    assert row["flip_ok"] and row["rot_err_deg"] < 2.0
-    assert abs(row["scale_err"]) < 0.02
-    assert row["err_ratio"] < 2.0
+    return bench.point_rows(reg, truth, plan_pts, map_pts, residual)
 
 
 def _styled(test_data, stem: str, rotation: str, style: str, share: float, dist_seed, map_seed):
@@ -342,15 +350,9 @@ def test_halmstad_apartment_placement_polished_past_its_mirror_image(shared_data
     bench = load_tool("bench_real")
     folder = shared_data / "halmstad" / "HIH"
     plan = FloorPlan.load(folder / "layout" / "HIH_layout.png")
-    res = 0.05
-    grid = OccupancyGrid.from_image(folder / "sensor_maps" / "HIH_02.png", res)
-    pts = np.loadtxt(folder / "annotations" / "HIH_02_to_layout.csv", delimiter=",", skiprows=1, ndmin=2)
-    map_pts = np.column_stack([pts[:, 0] + 0.5, pts[:, 1]]) * res
-    plan_pts = np.column_stack([pts[:, 2] + 0.5, pts[:, 3]])
-    truth, residual = bench.fit_similarity(plan_pts, map_pts)
-    reg = register(plan, grid)
-    assert reg.ok, reg.reason
-    row = bench.point_rows(reg, truth, plan_pts, map_pts, residual)
+    row = _registered_against_points(
+        bench, plan, folder / "sensor_maps" / "HIH_02.png", folder / "annotations" / "HIH_02_to_layout.csv", 1
+    )
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0
 
 
