@@ -124,7 +124,9 @@ def test_decision_log_contents(clean):
     assert len(added) == len(slam.graph.priors())
     assert all("chi2" in e.data for e in added)
     reg = next(e for e in upd.log if e.kind == "register")
-    assert {"score", "ambiguity", "area", "map_fit"} <= set(reg.data)
+    assert {"score", "ambiguity", "area", "map_fit", "flipped", "rotation_deg", "scale_x", "scale_y"} <= set(
+        reg.data
+    )
     # written once, into the run's decision log (the updater's are a view of it)
     assert all(any(e is f for f in slam.log) for e in upd.log)
     assert len([e for e in slam.log if e.kind == "prior_added"]) == len(added)

@@ -272,6 +272,13 @@ class FloorPlanUpdater:
             self.timings["register"] += time.perf_counter() - t0
             return None
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
+        if reg.ok:  # the placement itself (plan -> map): a run's log says what was judged
+            nums.update(
+                flipped=int(bool(reg.flipped)),
+                rotation_deg=float(reg.rotation_deg),
+                scale_x=float(reg.scale[0]),
+                scale_y=float(reg.scale[1]),
+            )
         n_kf = len(self.travel.kf_dist)
         verdict = self.judge.judge(
             ctx, keyframe, reg, grid, nums, self.accepted, self._pending_reg, self.priors.drift, n_kf
