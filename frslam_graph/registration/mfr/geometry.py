@@ -68,12 +68,18 @@ def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, ori
     x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
     y2 = y.reshape(x2.shape)
     inv = np.float32(1.0 / resolution)
-    mx = (x2 - np.float32(origin[0])) * inv - np.float32(0.5)
-    my = (y2 - np.float32(origin[1])) * inv - np.float32(0.5)
+    half = np.float32(0.5)
+    # (x - origin) * inv - 0.5 in place: the same dtypes and roundings, fewer temporaries
+    mx = x2 - np.float32(origin[0])
+    mx *= inv
+    mx -= half
+    my = y2 - np.float32(origin[1])
+    my *= inv
+    my -= half
     out = cv2.remap(
         img,
-        mx.astype(np.float32),
-        my.astype(np.float32),
+        mx.astype(np.float32, copy=False),
+        my.astype(np.float32, copy=False),
         cv2.INTER_NEAREST,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=float(fill),
@@ -87,6 +93,11 @@ def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndar
     t = t.astype(np.float32)
     p = pts.astype(np.float32)
     px, py = p[None, :, 0], p[None, :, 1]
-    x = a[:, 0, 0, None] * px + a[:, 0, 1, None] * py + t[:, 0, None]
-    y = a[:, 1, 0, None] * px + a[:, 1, 1, None] * py + t[:, 1, None]
+    # a00 * px + a01 * py + t0, left to right, in place (float32 roundings unchanged)
+    x = a[:, 0, 0, None] * px
+    x += a[:, 0, 1, None] * py
+    x += t[:, 0, None]
+    y = a[:, 1, 0, None] * px
+    y += a[:, 1, 1, None] * py
+    y += t[:, 1, None]
     return x, y
