@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup
+from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup, lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel
 from frslam_graph.registration.refine import RefineResult
@@ -224,8 +224,9 @@ def coarse_scores(
         step = np.asarray(delta, dtype=np.float32)[:, None] / np.maximum(np.hypot(nx, ny), 1e-12)
         x, y = x + step * nx, y + step * ny
     res = obs.frame.resolution
-    inside = lookup(obs.footprint_u8, x, y, res, (0.0, 0.0), 0) > 0
-    near = (lookup(obs.edge_dt, x, y, res, (0.0, 0.0), 1e9) < tol) & inside
+    on_fp, d_edge = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), x, y, res, (0.0, 0.0))
+    inside = on_fp > 0
+    near = (d_edge < tol) & inside
     precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
     # recall
     tinv = -np.einsum("hij,hj->hi", ainv, t)

@@ -17,7 +17,7 @@ import numpy as np
 
 from frslam_graph.raster import RasterFrame
 from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door_prior
-from frslam_graph.registration.mfr.geometry import lookup
+from frslam_graph.registration.mfr.geometry import lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
 from frslam_graph.registration.refine import RefineResult, refine
@@ -345,8 +345,9 @@ def face_distances(
     if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
         nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
         q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
-    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
-    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)[inside]
+    on_fp, d = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), q[:, 0], q[:, 1], res, (0.0, 0.0))
+    inside = on_fp > 0
+    d = d[inside]
     det = abs(float(np.linalg.det(a)))
     if det <= 0:
         return d, None, 0.0

@@ -62,9 +62,15 @@ def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) 
 def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
     """Nearest-cell values of ``img`` (row 0 = lowest y; uint8 or float32) at metric points
     (x, y arrays of one shape, at most 32767 wide); ``fill`` outside (cv2.remap)."""
+    return lookups(((img, fill),), x, y, resolution, origin)[0]
+
+
+def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> list[np.ndarray]:
+    """:func:`lookup` of several (image, fill) pairs of one raster frame at the same points (the
+    cell coordinates computed once)."""
     shape = x.shape
     if x.size == 0:
-        return np.full(shape, fill, dtype=img.dtype)
+        return [np.full(shape, fill, dtype=img.dtype) for img, fill in imgs]
     x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
     y2 = y.reshape(x2.shape)
     inv = np.float32(1.0 / resolution)
@@ -76,15 +82,14 @@ def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, ori
     my = y2 - np.float32(origin[1])
     my *= inv
     my -= half
-    out = cv2.remap(
-        img,
-        mx.astype(np.float32, copy=False),
-        my.astype(np.float32, copy=False),
-        cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=float(fill),
-    )
-    return out.reshape(shape)
+    mx = mx.astype(np.float32, copy=False)
+    my = my.astype(np.float32, copy=False)
+    return [
+        cv2.remap(
+            img, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=float(fill)
+        ).reshape(shape)
+        for img, fill in imgs
+    ]
 
 
 def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
