@@ -498,3 +498,25 @@ def test_a_map_of_one_room_is_not_refused_but_a_wrong_placement_is_flagged(plan,
             continue
         right = reg.flipped == flipped and rot_error_deg(reg, truth) < 5.0 and reg.rooms == (room,)
         assert right or reg.details["ambiguous"]
+
+
+def test_speed_helpers_match_numpy() -> None:
+    """The speed-ups of session 11 give numpy's answers exactly: the stable top-k (ties by index,
+    inf and NaN last), the sorted unique of uint64 masks, and the per-label pixel counts."""
+    from frslam_graph.registration.mfr.coarse import smallest_stable
+    from frslam_graph.registration.mfr.fine import _label_counts
+    from frslam_graph.registration.subsets import _sorted_unique
+
+    rng = np.random.default_rng(3)
+    for t in range(300):
+        n, k = int(rng.integers(1, 3000)), int(rng.integers(1, 400))
+        a = rng.integers(0, int(rng.integers(1, 40)), n).astype(float)
+        a[rng.random(n) < 0.2] = np.inf
+        if t % 3 == 0:
+            a[rng.random(n) < 0.2] = np.nan
+        assert np.array_equal(smallest_stable(a, k), np.argsort(a, kind="stable")[:k])
+        m = rng.integers(0, 1 << int(rng.integers(1, 60)), n, dtype=np.uint64)
+        assert np.array_equal(_sorted_unique(m), np.unique(m))
+    labels = rng.integers(0, 27, (120, 90)).astype(np.uint8)
+    mask = rng.random((120, 90)) < 0.4
+    assert np.array_equal(_label_counts(labels, mask, 26), np.bincount(labels[mask], minlength=27)[1:])

@@ -65,8 +65,9 @@ class DistanceField:
         """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        flat = self.sdf.ravel()
-        v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + w + 1]
+        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
+        v = self.sdf.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
+        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
         a = v10 - v00
         b = v11 - v01
         top = v00 + fx * a
@@ -197,7 +198,7 @@ def refine(
             if not np.all(np.isfinite(step)) or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
                 break  # a degenerate system (too few points on walls): keep the last estimate
             x = x + step
-            x[5] = float(np.clip(x[5], *delta_bounds))
+            x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper
             if (
                 abs(step[0]) < 2e-6
                 and abs(step[1]) + abs(step[2]) < 2e-4

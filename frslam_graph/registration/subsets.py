@@ -159,6 +159,18 @@ def _neighbours(masks: np.ndarray, tables: np.ndarray) -> np.ndarray:
     return nb & ~masks
 
 
+def _sorted_unique(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a)`` of a 1-D array, by sorting: numpy 2.4's hash-based unique is 15-20x
+    slower on uint64 masks (0.44 vs 0.02 ms on 5000)."""
+    s = np.sort(a)
+    if len(s) < 2:
+        return s
+    keep = np.empty(len(s), bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    return s[keep]
+
+
 def connected_subsets(
     adj: np.ndarray,
     *,
@@ -180,7 +192,7 @@ def connected_subsets(
         raise ValueError(f"at most {MAX_ROOMS} rooms supported, got {n}")
     if seeds is None:
         seeds = np.arange(n)
-    level = np.unique((np.uint64(1) << np.asarray(seeds, dtype=np.uint64)).astype(np.uint64))
+    level = _sorted_unique((np.uint64(1) << np.asarray(seeds, dtype=np.uint64)).astype(np.uint64))
     out = [level]
     max_size = n if max_size is None else min(n, max_size)
     tables = _byte_tables(adj)
@@ -190,7 +202,7 @@ def connected_subsets(
         rows, cols = np.nonzero(mask_matrix(nb, n))
         if len(rows) == 0:
             break
-        level = np.unique(level[rows] | bits[cols])
+        level = _sorted_unique(level[rows] | bits[cols])
         if len(level) > max_per_level:
             if cost is not None:
                 keep = np.argsort(cost(level), kind="stable")[:max_per_level]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup
+from frslam_graph.registration.mfr.geometry import DIHEDRAL, apply_affine, dihedral, lookup, lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel
 from frslam_graph.registration.refine import RefineResult
@@ -86,6 +86,20 @@ def coarse_hypotheses(
     return {k: v[order] for k, v in pool.items()}
 
 
+def smallest_stable(a: np.ndarray, k: int) -> np.ndarray:
+    """``np.argsort(a, kind="stable")[:k]`` of a 1-D array (ties by index, NaN last) without
+    sorting all of it: the values up to the k-th smallest (np.partition), then those sorted."""
+    if k <= 0:
+        return np.zeros(0, np.intp)
+    if len(a) <= 4 * k:
+        return np.argsort(a, kind="stable")[:k]
+    kth = np.partition(a, k - 1)[k - 1]
+    if np.isnan(kth):  # fewer than k numbers: NaNs among the first k, as argsort orders them
+        return np.argsort(a, kind="stable")[:k]
+    cand = np.flatnonzero(a <= kth)  # every value before the k-th, in index order
+    return cand[np.argsort(a[cand], kind="stable")[:k]]
+
+
 def _coarse_hypotheses_at(
     pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
 ) -> dict[str, np.ndarray]:
@@ -122,7 +136,7 @@ def _coarse_hypotheses_at(
         cx_all.append(cx)
         cy_all.append(cy)
     costs = np.stack(costs, axis=1)  # (S, 8)
-    flat = np.argsort(costs, axis=None, kind="stable")[:top_k]
+    flat = smallest_stable(costs.ravel(), top_k)
     flat = flat[np.isfinite(costs.ravel()[flat])]
     si, ji = np.divmod(flat, len(DIHEDRAL))
     a = np.stack(a_all, axis=1)[si, ji]
@@ -224,8 +238,9 @@ def coarse_scores(
         step = np.asarray(delta, dtype=np.float32)[:, None] / np.maximum(np.hypot(nx, ny), 1e-12)
         x, y = x + step * nx, y + step * ny
     res = obs.frame.resolution
-    inside = lookup(obs.footprint_u8, x, y, res, (0.0, 0.0), 0) > 0
-    near = (lookup(obs.edge_dt, x, y, res, (0.0, 0.0), 1e9) < tol) & inside
+    on_fp, d_edge = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), x, y, res, (0.0, 0.0))
+    inside = on_fp > 0
+    near = (d_edge < tol) & inside
     precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
     # recall
     tinv = -np.einsum("hij,hj->hi", ainv, t)

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from frslam_graph.raster import RasterFrame
 from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door_prior
-from frslam_graph.registration.mfr.geometry import lookup
+from frslam_graph.registration.mfr.geometry import lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
 from frslam_graph.registration.refine import RefineResult, refine
@@ -93,24 +94,35 @@ def placed_rooms_iou(
     ``frame``: enclosed regions the map has not observed) counts neither for nor against it."""
     if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
         return 0.0, ()
-    n = len(pm.ids)
-    labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True)
-    on = np.bincount(labels[footprint].ravel(), minlength=n + 1)[1:]
+    n = len(pm.ids)  # at most MAX_ROOMS = 64: the labels fit in uint8
+    labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True).astype(np.uint8)
+    on = _label_counts(labels, footprint, n)
     det = abs(np.linalg.det(matrix[:2, :2]))
     px_area = pm.room_areas * det / frame.resolution**2
-    off = np.zeros(n) if unexplored is None else np.bincount(labels[unexplored].ravel(), minlength=n + 1)[1:]
+    off = np.zeros(n) if unexplored is None else _label_counts(labels, unexplored, n)
     cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:
         return 0.0, rooms
-    sel = np.zeros(n + 1, bool)
-    sel[np.asarray(rooms) + 1] = True
-    placed = sel[labels]
-    inter = np.count_nonzero(placed & footprint)
-    union = np.count_nonzero(placed | footprint)
+    # pixel counts from the per-room counts (each pixel holds one label): the placed rooms'
+    # pixels on the footprint, all of them, and those on unexplored cells
+    sel = np.asarray(rooms)
+    lut = np.zeros(256, np.uint8)
+    lut[sel + 1] = 1
+    inter = int(on[sel].sum())
+    union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + int(np.count_nonzero(footprint)) - inter
     if unexplored is not None:
-        union -= np.count_nonzero(placed & unexplored)
+        union -= int(off[sel].sum())
     return (inter / union if union else 0.0), rooms
+
+
+def _label_counts(labels: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
+    """(n,) int64 pixel counts of the labels 1..n (uint8 image) on ``mask`` (bool, same shape):
+    ``np.bincount(labels[mask])[1:]``, by cv2.calcHist (float32 counts: exact below 2^24 pixels)."""
+    if labels.size >= 1 << 24:
+        return np.bincount(labels[mask].ravel(), minlength=n + 1)[1 : n + 1]
+    m8 = np.ascontiguousarray(mask).view(np.uint8)
+    return cv2.calcHist([labels], [0], m8, [n + 1], [0, n + 1]).ravel().astype(np.int64)[1:]
 
 
 def wall_precision_recall(
@@ -333,8 +345,9 @@ def face_distances(
     if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
         nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
         q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
-    inside = lookup(obs.footprint_u8, q[:, 0], q[:, 1], res, (0.0, 0.0), 0) > 0
-    d = lookup(obs.edge_dt, q[:, 0], q[:, 1], res, (0.0, 0.0), 1e9)[inside]
+    on_fp, d = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), q[:, 0], q[:, 1], res, (0.0, 0.0))
+    inside = on_fp > 0
+    d = d[inside]
     det = abs(float(np.linalg.det(a)))
     if det <= 0:
         return d, None, 0.0

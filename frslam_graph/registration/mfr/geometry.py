@@ -62,23 +62,34 @@ def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) 
 def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
     """Nearest-cell values of ``img`` (row 0 = lowest y; uint8 or float32) at metric points
     (x, y arrays of one shape, at most 32767 wide); ``fill`` outside (cv2.remap)."""
+    return lookups(((img, fill),), x, y, resolution, origin)[0]
+
+
+def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> list[np.ndarray]:
+    """:func:`lookup` of several (image, fill) pairs of one raster frame at the same points (the
+    cell coordinates computed once)."""
     shape = x.shape
     if x.size == 0:
-        return np.full(shape, fill, dtype=img.dtype)
+        return [np.full(shape, fill, dtype=img.dtype) for img, fill in imgs]
     x2 = x.reshape(shape[0], -1) if x.ndim == 2 else x.reshape(1, -1)
     y2 = y.reshape(x2.shape)
     inv = np.float32(1.0 / resolution)
-    mx = (x2 - np.float32(origin[0])) * inv - np.float32(0.5)
-    my = (y2 - np.float32(origin[1])) * inv - np.float32(0.5)
-    out = cv2.remap(
-        img,
-        mx.astype(np.float32),
-        my.astype(np.float32),
-        cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=float(fill),
-    )
-    return out.reshape(shape)
+    half = np.float32(0.5)
+    # (x - origin) * inv - 0.5 in place: the same dtypes and roundings, fewer temporaries
+    mx = x2 - np.float32(origin[0])
+    mx *= inv
+    mx -= half
+    my = y2 - np.float32(origin[1])
+    my *= inv
+    my -= half
+    mx = mx.astype(np.float32, copy=False)
+    my = my.astype(np.float32, copy=False)
+    return [
+        cv2.remap(
+            img, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=float(fill)
+        ).reshape(shape)
+        for img, fill in imgs
+    ]
 
 
 def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,6 +98,11 @@ def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndar
     t = t.astype(np.float32)
     p = pts.astype(np.float32)
     px, py = p[None, :, 0], p[None, :, 1]
-    x = a[:, 0, 0, None] * px + a[:, 0, 1, None] * py + t[:, 0, None]
-    y = a[:, 1, 0, None] * px + a[:, 1, 1, None] * py + t[:, 1, None]
+    # a00 * px + a01 * py + t0, left to right, in place (float32 roundings unchanged)
+    x = a[:, 0, 0, None] * px
+    x += a[:, 0, 1, None] * py
+    x += t[:, 0, None]
+    y = a[:, 1, 0, None] * px
+    y += a[:, 1, 1, None] * py
+    y += t[:, 1, None]
     return x, y
