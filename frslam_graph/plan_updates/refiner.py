@@ -237,12 +237,12 @@ class PlanRefiner:
         )
 
 
-__all__ = ["PlanRefiner", "Refinement"]
-
-
 def _runner_ups(reg: Any, move: np.ndarray) -> dict:
     """``reg``'s runner-up placements (``details["alternatives"]``) for its refinement, moved in
     ``map`` by ``move`` (3x3) as the refinement moves the plan: the recheck of a plan drawn off
     the building judges it against them (:meth:`RegistrationJudge.still_clearly_best`)."""
     alts = (getattr(reg, "details", None) or {}).get("alternatives", [])
     return {"alternatives": [{**a, "matrix": (move @ np.asarray(a["matrix"], float)).tolist()} for a in alts]}
+
+
+__all__ = ["PlanRefiner", "Refinement"]
