@@ -100,7 +100,7 @@ def main() -> None:
         delta = float(reg.details.get("delta_m") or 0.06)
         for who, m in (("MFR", reg.matrix), ("truth", truth)):
             gm = np.linalg.inv(obs.to_map) @ m
-            iou, _ = fine.placed_rooms_iou(pm, obs.frame, obs.footprint, gm, 0.5, obs.unexplored)
+            iou, _ = fine.placed_rooms_iou(pm, obs, gm, 0.5)
             row = f"   {who}: IoU {iou:.2f}"
             for tol in TOLERANCES:
                 p, r = fine.wall_precision_recall(pm, obs, gm, tol, 1000, delta=delta)

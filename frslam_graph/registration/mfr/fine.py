@@ -15,7 +15,6 @@ import math
 import cv2
 import numpy as np
 
-from frslam_graph.raster import RasterFrame
 from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door_prior
 from frslam_graph.registration.mfr.geometry import lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
@@ -82,24 +81,21 @@ def plausible(r: RefineResult, opts: dict) -> bool:
 
 
 def placed_rooms_iou(
-    pm: PlanModel,
-    frame: RasterFrame,
-    footprint: np.ndarray,
-    matrix: np.ndarray,
-    min_cover: float,
-    unexplored: np.ndarray | None = None,
+    pm: PlanModel, obs: MapObservation, matrix: np.ndarray, min_cover: float
 ) -> tuple[float, tuple[int, ...]]:
-    """IoU of the rooms the placement puts on the footprint (>= ``min_cover`` of their area) with
-    the footprint, and those rooms (indices). What a placement puts on ``unexplored`` cells (bool,
-    ``frame``: enclosed regions the map has not observed) counts neither for nor against it."""
+    """IoU of the rooms the placement (plan -> ``obs``'s grid frame) puts on the map's footprint
+    (>= ``min_cover`` of their area) with the footprint, and those rooms (indices). What it puts
+    on the map's unexplored cells (``obs.unexplored``: enclosed regions the map has not observed)
+    counts neither for nor against it."""
     if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
         return 0.0, ()
+    frame, footprint, unexplored = obs.frame, obs.footprint, obs.unexplored
     n = len(pm.ids)  # at most MAX_ROOMS = 64: the labels fit in uint8
     labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True).astype(np.uint8)
     on = _label_counts(labels, footprint, n)
     det = abs(np.linalg.det(matrix[:2, :2]))
     px_area = pm.room_areas * det / frame.resolution**2
-    off = np.zeros(n) if unexplored is None else _label_counts(labels, unexplored, n)
+    off = _label_counts(labels, unexplored, n)
     cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:
@@ -111,8 +107,7 @@ def placed_rooms_iou(
     lut[sel + 1] = 1
     inter = int(on[sel].sum())
     union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + int(np.count_nonzero(footprint)) - inter
-    if unexplored is not None:
-        union -= int(off[sel].sum())
+    union -= int(off[sel].sum())
     return (inter / union if union else 0.0), rooms
 
 
@@ -238,7 +233,7 @@ def structure_key(
     the door-width plausibility of its scale; and that IoU and the number of those rooms. The
     coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement shifted by a
     wall or a room above the right one on maps with partly seen rooms and thick walls."""
-    iou, rooms = placed_rooms_iou(pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"], obs.unexplored)
+    iou, rooms = placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
     prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
     scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
     return (

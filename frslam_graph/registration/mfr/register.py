@@ -225,9 +225,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     best.refined = r = fine.refine_final(pm, obs, r0, opts)
     if not fine.plausible(r, opts):
         return fail("degenerate fit (scales collapsed or exploded)")
-    best.score, best.rooms = fine.placed_rooms_iou(
-        pm, obs.frame, obs.footprint, r.matrix, opts["min_cover"], obs.unexplored
-    )
+    best.score, best.rooms = fine.placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
     prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
     ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened)
@@ -356,9 +354,7 @@ def _drawing_gate(pm, obs, best, chosen, screened, final, tol_f: float, opts: di
 
     def measure(matrix: np.ndarray, delta: float) -> tuple[float, float, int]:
         """IoU x precision x recall at ``tol``, the recall at the fixed tolerance, rooms placed."""
-        iou, rooms = fine.placed_rooms_iou(
-            pm, obs.frame, obs.footprint, matrix, opts["min_cover"], obs.unexplored
-        )
+        iou, rooms = fine.placed_rooms_iou(pm, obs, matrix, opts["min_cover"])
         (prec, rec), (_, rec_f) = shares(matrix, delta, (tol, tol_f))
         return iou * prec * rec, rec_f, len(rooms)
 
