@@ -92,6 +92,14 @@ def wall_pieces_seen_through(
     return xy[drop], dropped, rest
 
 
+def ignoring_pieces(relocaliser: Relocaliser, pts: np.ndarray, margin: float) -> Relocaliser:
+    """``relocaliser`` ignoring the wall pieces at ``pts`` (map metres, from
+    :func:`wall_pieces_seen_through` at free-space ``margin`` metres) over the band that test
+    looked in, at least the matcher's reach (:meth:`Relocaliser.ignoring`)."""
+    radius = max(2.0 * relocaliser.field.wall_offset + margin, relocaliser.params.truncation)
+    return relocaliser.ignoring(pts, radius)
+
+
 def rooms_seen_through(relocaliser: Relocaliser, grid, margin: float = 0.2) -> dict[str, tuple[int, int]]:
     """Per room of the registered plan (``relocaliser.plan``, map metres): (its interior wall
     pixels the map has observed, those the map has seen through), as

@@ -31,6 +31,7 @@ from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import Relocalisation, Relocaliser, RelocaliserParams
 from frslam_graph.plan_checks import (
+    ignoring_pieces,
     matrix_disagreement,
     occupied_points,
     rooms_seen_through,
@@ -382,9 +383,7 @@ class RegistrationJudge:
         nums.update(wall_pieces_dropped=dropped, walls_in_free_space_kept=rest)
         if dropped >= 0.5:
             return f"; the wall pieces seen through hold {dropped:.0%} of its observed walls: not a minority"
-        # the band the seen-through test looked in, at least the matcher's reach
-        radius = max(2.0 * relocaliser.field.wall_offset + margin, relocaliser.params.truncation)
-        part = relocaliser.ignoring(pts, radius)
+        part = ignoring_pieces(relocaliser, pts, margin)
         fit = part.fit_points(occ, fit_tol)
         nums["map_fit_kept"] = fit
         return part.plan, part, fit
@@ -526,9 +525,7 @@ class RegistrationJudge:
                 case.alike[key] = None
                 return None
             pts, _, _ = wall_pieces_seen_through(rel, case.grid, margin, self.config.max_walls_in_free_space)
-            case.alike[key] = rel.ignoring(
-                pts, max(2.0 * rel.field.wall_offset + margin, rel.params.truncation)
-            )
+            case.alike[key] = ignoring_pieces(rel, pts, margin)
         return case.alike[key]
 
     def _disambiguate(self, case: _Case, reg: Any) -> tuple[Any, Relocaliser] | None:

@@ -47,6 +47,7 @@ from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import RelocaliserParams
 from frslam_graph.plan_checks import (
+    ignoring_pieces,
     occupied_points,
     plan_seen,
     wall_pieces_seen_through,
@@ -382,7 +383,7 @@ class FloorPlanUpdater:
         if acc.drawing_tol > 0.0:
             pts, dropped, _ = wall_pieces_seen_through(rel, grid, margin, cfg.max_walls_in_free_space)
         if dropped < 0.5:
-            part = rel.ignoring(pts, max(2.0 * rel.field.wall_offset + margin, rel.params.truncation))
+            part = ignoring_pieces(rel, pts, margin)
             fit_tol = tolerances(cfg, self.priors.drift, acc.drawing_tol)[0]
             fit = part.fit_points(occupied_points(grid), fit_tol)
             if fit >= cfg.min_map_fit or self.judge.still_clearly_best(
