@@ -46,3 +46,9 @@ class AcceptedPlan:
 
 
 __all__ = ["AcceptedPlan"]
+
+
+def runner_ups(registration: Any) -> list[dict]:
+    """The registration's runner-up placements, best first (MFR's ``details["alternatives"]``:
+    each with its ``matrix``, plan -> ``map``); [] when it carries none."""
+    return list((getattr(registration, "details", None) or {}).get("alternatives", []))

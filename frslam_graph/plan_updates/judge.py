@@ -38,7 +38,7 @@ from frslam_graph.plan_checks import (
     wall_pieces_seen_through,
     walls_through_free_space,
 )
-from frslam_graph.plan_updates.accepted import AcceptedPlan
+from frslam_graph.plan_updates.accepted import AcceptedPlan, runner_ups
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.priors import INCONSISTENT_CHI2, gate_chi2
 from frslam_graph.registration import Registration
@@ -109,6 +109,11 @@ def drawing_tolerance(reg: Any) -> float:
     return float(details.get("drawn_tol_m", 0.0)) if details.get("drawn_ok") else 0.0
 
 
+def _runner_up_matrices(registration: Any) -> list[np.ndarray]:
+    """The registration's runner-up placements (:func:`runner_ups`) as 3x3 plan -> map matrices."""
+    return [np.asarray(a["matrix"], float) for a in runner_ups(registration)]
+
+
 @dataclass
 class _Case:
     """One registration under judgement: what the checks share."""
@@ -156,10 +161,7 @@ class RegistrationJudge:
         since the last accepted prior; ``n_keyframes``: keyframes seen by the updater."""
         case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
         case.drawing_tol = drawing_tolerance(reg)
-        case.alternatives = [
-            np.asarray(a["matrix"], float)
-            for a in (getattr(reg, "details", None) or {}).get("alternatives", [])
-        ]
+        case.alternatives = _runner_up_matrices(reg)
         if case.drawing_tol > 0.0:
             case.nums["drawing_tol"] = case.drawing_tol
         cfg = self.config
@@ -320,10 +322,7 @@ class RegistrationJudge:
         and each of its registration's runner-up placements, judged alike on this map, at most
         :data:`MAP_FIT_RUNNER_UP` of it."""
         case = _Case(ctx, keyframe, grid, {}, accepted, None, drift, 0, accepted.drawing_tol)
-        case.alternatives = [
-            np.asarray(a["matrix"], float)
-            for a in (getattr(accepted.registration, "details", None) or {}).get("alternatives", [])
-        ]
+        case.alternatives = _runner_up_matrices(accepted.registration)
         if fit < MAP_FIT_FLOOR or not case.alternatives:
             return False
         fit_tol = case.tolerances(self.config)[0]
@@ -540,10 +539,9 @@ class RegistrationJudge:
         rejection whichever one the scans would pick: the scan fits (most of the cost, ~1-2 s
         with the plan of another building) are skipped and ``placements_map_fit`` says why."""
         cfg, nums = self.config, case.nums
-        alts = [np.asarray(a["matrix"], float) for a in (reg.details or {}).get("alternatives", [])]
-        if cfg.disambiguate_margin <= 0.0 or not alts or case.accepted is not None:
+        if cfg.disambiguate_margin <= 0.0 or not case.alternatives or case.accepted is not None:
             return None
-        matrices = [np.asarray(reg.matrix, float), *alts]
+        matrices = [np.asarray(reg.matrix, float), *case.alternatives]
         relocalisers: list[Relocaliser | None] = []
         for m in matrices:
             try:

@@ -19,7 +19,7 @@ from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import FrslamError
 from frslam_graph.localisation.relocalisation import Relocaliser, RelocaliserParams, subsample
 from frslam_graph.plan_checks import fit_plan_scale
-from frslam_graph.plan_updates.accepted import AcceptedPlan
+from frslam_graph.plan_updates.accepted import AcceptedPlan, runner_ups
 from frslam_graph.plan_updates.evidence import ScanEvidence
 from frslam_graph.plan_updates.priors import (
     RELOC_MAX_AMBIGUITY,
@@ -241,8 +241,11 @@ def _runner_ups(reg: Any, move: np.ndarray) -> dict:
     """``reg``'s runner-up placements (``details["alternatives"]``) for its refinement, moved in
     ``map`` by ``move`` (3x3) as the refinement moves the plan: the recheck of a plan drawn off
     the building judges it against them (:meth:`RegistrationJudge.still_clearly_best`)."""
-    alts = (getattr(reg, "details", None) or {}).get("alternatives", [])
-    return {"alternatives": [{**a, "matrix": (move @ np.asarray(a["matrix"], float)).tolist()} for a in alts]}
+    return {
+        "alternatives": [
+            {**a, "matrix": (move @ np.asarray(a["matrix"], float)).tolist()} for a in runner_ups(reg)
+        ]
+    }
 
 
 __all__ = ["PlanRefiner", "Refinement"]
