@@ -121,6 +121,12 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
         )
 
 
+def _seed_at_screened(h: Hypothesis) -> Hypothesis:
+    """A wide-search seed at ``h``'s screened placement (its refined matrix), with its subset,
+    dihedral case and wall direction."""
+    return Hypothesis(h.mask, h.k, h.flipped, h.refined.matrix, 0.0, h.angle_index)
+
+
 def _register(plan, grid, opts: dict, t0: float) -> Registration:
     def fail(reason: str, **details: Any) -> Registration:
         return Registration.failure(reason, METHOD, time.perf_counter() - t0, **details)
@@ -163,12 +169,11 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         # the footprint is not the union of the placed rooms (or nothing passes the gate): the
         # moment-fitted scales may be far off. Search the best placement's scales widely, and
         # when nothing passes, the best rotations' too
-        own = Hypothesis(top.mask, top.k, top.flipped, top.refined.matrix, 0.0, top.angle_index)
+        own = _seed_at_screened(top)
         wide_searched = True
         if fails:
             if one_room:  # from the best placement of several rooms instead
-                h = next(h for h in chosen[1:] if h.placed_rooms >= 2)
-                base = Hypothesis(h.mask, h.k, h.flipped, h.refined.matrix, 0.0, h.angle_index)
+                base = _seed_at_screened(next(h for h in chosen[1:] if h.placed_rooms >= 2))
                 seeds = [base]
             else:
                 base = own
