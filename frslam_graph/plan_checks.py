@@ -166,14 +166,17 @@ def _wall_pixels(relocaliser: Relocaliser, grid, margin: float):
     xy = f.frame.to_world(np.column_stack((cols + 0.5, rows + 0.5)))
     # the wall's thickness: the first free-space sample behind the face (another room)
     depth = np.arange(res, MAX_WALL_THICKNESS_M + 2.0 * f.wall_offset + 1e-9, res)
-    behind = f.lookup((xy[:, None, :] - depth[None, :, None] * normal[:, None, :]).reshape(-1, 2), -1.0)
-    behind = behind[:, 0].reshape(len(xy), len(depth))
-    hit = (behind > 0) & (behind < 0.5 * IGNORED)  # a room, not the surroundings of an ignored piece
-    inner = hit.any(axis=1)
+    thick = np.full(len(xy), np.nan)
+    todo = np.arange(len(xy))
+    for d in depth:  # nearest first; only the pixels with no room behind them yet
+        behind = f.lookup(xy[todo] - d * normal[todo], -1.0)[:, 0]
+        hit = (behind > 0) & (behind < 0.5 * IGNORED)  # a room, not the surroundings of an ignored piece
+        thick[todo[hit]] = d
+        todo = todo[~hit]
+    inner = np.isfinite(thick)
     if not inner.any():
         return None
-    xy, normal = xy[inner], normal[inner]
-    thick = depth[np.argmax(hit[inner], axis=1)]
+    xy, normal, thick = xy[inner], normal[inner], thick[inner]
     if len(xy) > 20000:
         k = np.linspace(0, len(xy) - 1, 20000).round().astype(np.intp)
         xy, normal, thick = xy[k], normal[k], thick[k]
@@ -195,10 +198,13 @@ def _wall_pixels(relocaliser: Relocaliser, grid, margin: float):
     n_steps = int(
         np.ceil((front + MAX_WALL_THICKNESS_M + 2.0 * f.wall_offset + margin) / (0.5 * grid.resolution))
     )
-    t = np.linspace(0.0, 1.0, n_steps + 1)
-    offs = front - t[None, :] * (front + thick + margin)[:, None]  # (N, S) along the normal
-    pts = xy[:, None, :] + offs[:, :, None] * normal[:, None, :]
-    through = sample(free, pts.reshape(-1, 2)).reshape(len(xy), len(t)).all(axis=1)
+    span = front + thick + margin
+    todo = np.arange(len(xy))
+    for t in np.linspace(0.0, 1.0, n_steps + 1):  # along the normal; stop at the first cell not free
+        offs = front - t * span[todo]
+        todo = todo[sample(free, xy[todo] + offs[:, None] * normal[todo])]
+    through = np.zeros(len(xy), bool)
+    through[todo] = True
     return xy, normal, observed, through, thick
 
 
