@@ -108,7 +108,12 @@ def house(five_room_sim):
 
 def run_plan(house, spread: bool, parallel: bool = False):
     plan, run, m = house
-    cfg = FRSlamConfig().with_updates(loop_closure={"enabled": False}, updates={"spread_over_scans": spread})
+    # the registration in its keyframe's step (background_registration_s 0): these tests follow
+    # the relocalisations' steps
+    cfg = FRSlamConfig().with_updates(
+        loop_closure={"enabled": False},
+        updates={"spread_over_scans": spread, "background_registration_s": 0.0},
+    )
     upd = FloorPlanUpdater(
         plan, cfg.updates, register_fn=lambda p, g: Registration.from_matrix(m, score=0.9, ambiguity=0.2)
     )

@@ -79,6 +79,16 @@ class BackendContext:
         """Per keyframe: end points (M, 2) and sensor origin (2,), both in base_link."""
         return list(self.store.points), list(self.store.origins)
 
+    def frozen(self, index: int) -> FrozenContext:
+        """The keyframes as they are now, and keyframe ``index``'s marginal covariance, for work
+        that reads them from another thread while the backend goes on (:class:`FrozenContext`)."""
+        with self.guard("frozen"):
+            try:
+                cov = self.graph.marginal_covariance(index)
+            except Exception:  # noqa: BLE001 - a marginal may be unavailable right after a removal
+                cov = None
+            return FrozenContext(self.keyframes(), *self.keyframe_scans(), index, cov)
+
     def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid of the keyframe scans at the current estimates (see
         :meth:`FRSlam.occupancy_grid <frslam_graph.slam.FRSlam.occupancy_grid>`)."""
@@ -200,6 +210,58 @@ class BackendContext:
                 reason or "map frame re-expressed",
                 transform=np.asarray(transform, float).tolist(),
             )
+
+
+class FrozenContext:
+    """The keyframes of a :class:`BackendContext` frozen at one moment (:meth:`BackendContext.frozen`):
+    their poses in ``map`` and ``odom``, their scans (base_link; read-only views that later
+    keyframes never overwrite) and one keyframe's marginal covariance. It answers the reading
+    calls a check of a registration makes (``keyframe``, ``keyframes``, ``keyframe_scans``,
+    ``graph.estimates`` and ``graph.marginal_covariance``), so that check can run in another
+    thread while scans keep coming; it changes nothing."""
+
+    def __init__(
+        self,
+        infos: list[KeyframeInfo],
+        points: list[np.ndarray],
+        origins: list[np.ndarray],
+        index: int,
+        covariance: np.ndarray | None,
+    ) -> None:
+        self._infos = infos
+        self._points, self._origins = points, origins
+        self.graph = _FrozenGraph(np.array([k.pose_map for k in infos]).reshape(-1, 3), index, covariance)
+
+    def __len__(self) -> int:
+        return len(self._infos)
+
+    def keyframe(self, i: int) -> KeyframeInfo:
+        k = self._infos[i]
+        return KeyframeInfo(k.index, k.stamp, k.scan_index, k.pose_map.copy(), k.pose_odom.copy())
+
+    def keyframes(self) -> list[KeyframeInfo]:
+        return [self.keyframe(i) for i in range(len(self._infos))]
+
+    def keyframe_scans(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        return list(self._points), list(self._origins)
+
+
+class _FrozenGraph:
+    """The pose graph's estimates and one keyframe's marginal covariance, as frozen."""
+
+    def __init__(self, estimates: np.ndarray, index: int, covariance: np.ndarray | None) -> None:
+        self._estimates, self._index, self._covariance = estimates, index, covariance
+
+    def __len__(self) -> int:
+        return len(self._estimates)
+
+    def estimates(self) -> np.ndarray:
+        return self._estimates.copy()
+
+    def marginal_covariance(self, i: int | None = None) -> np.ndarray:
+        if i != self._index or self._covariance is None:
+            raise FrslamError(f"no frozen marginal covariance of keyframe {i}", where="keyframe")
+        return self._covariance.copy()
 
 
 @runtime_checkable

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -67,7 +69,7 @@ OBSTRUCTION_SPEED = 0.02
 OBSTRUCTION_TIME_S = 5.0  # s; how long progress must be slow to count as obstructed
 
 if TYPE_CHECKING:  # pragma: no cover
-    from frslam_graph.backend.context import BackendContext
+    from frslam_graph.backend.context import BackendContext, FrozenContext
     from frslam_graph.backend.decisions import DecisionEvent
     from frslam_graph.backend.keyframes import KeyframeInfo
 
@@ -90,6 +92,47 @@ UPDATE_KINDS = frozenset(
         "plan_refined",
     }
 )
+
+
+@dataclass
+class _Recheck:
+    """The accepted registration rechecked on the grown map: the event to record (``kind``:
+    ``plan_refined`` when its wall pieces seen through are dropped, ``registration_retracted``)
+    and the accepted registration afterwards (None: retracted)."""
+
+    kind: str
+    message: str
+    numbers: dict[str, float]
+    accepted: AcceptedPlan | None
+
+
+@dataclass
+class _Outcome:
+    """What a registration attempt found (it changed nothing): the map it registered on, the
+    recheck of the accepted registration, the registration (None: the method raised ``error``)
+    and the judge's verdict; ``seconds`` of work."""
+
+    grid: Any
+    recheck: _Recheck | None
+    registration: Any
+    error: str | None
+    numbers: dict[str, float] = field(default_factory=dict)
+    verdict: Verdict | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class _Attempt:
+    """A registration attempt made at ``keyframe`` (the map up to it) and not yet concluded: its
+    verdict is applied at the first keyframe stamped ``due`` or later (s, recording time).
+    ``outcome``: the background thread's Future, or the outcome when it ran in the step."""
+
+    keyframe: KeyframeInfo
+    reason: str
+    area: float  # m², mapped when it was made
+    dist: float  # m travelled when it was made
+    due: float
+    outcome: Future | _Outcome
 
 
 class FloorPlanUpdater:
@@ -121,6 +164,9 @@ class FloorPlanUpdater:
         self.refiner = PlanRefiner(plan, cfg, self.params, evidence)
         self.priors = PriorManager(cfg, self.travel, self.schedule, lambda: self.accepted, self.timings)
         self._pending_reg = None  # registrations waiting for confirmation (a list; see confirm_after_m)
+        self._attempt: _Attempt | None = None  # a registration not yet concluded
+        self._executor: ThreadPoolExecutor | None = None  # its background thread, made on first use
+        self._mapper = None  # the registrations' occupancy mapper (only the attempt in progress uses it)
         self._next_id = 0
         #: a refused final registration's placement (FloorPlan in map metres), for the figures
         self.final_placement = None
@@ -157,8 +203,10 @@ class FloorPlanUpdater:
 
     # ------------------------------------------------------------------ hooks
     def on_keyframe(self, ctx: BackendContext, keyframe: KeyframeInfo) -> None:
-        """Called by FRSlam after each keyframe is in the graph: register, refine the plan, or
-        relocalise (one of them), then backfill."""
+        """Called by FRSlam after each keyframe is in the graph: conclude the registration in
+        progress when due; register, refine the plan, or relocalise (one of them); then backfill.
+        While a registration is in progress the plan is neither registered again nor refined;
+        relocalisation on the accepted one goes on."""
         self._decisions = ctx.log
         if not self.config.enabled or self.plan is None:
             return
@@ -167,13 +215,23 @@ class FloorPlanUpdater:
         self.coverage.add_scan(keyframe.pose_map, ctx.keyframe_scans()[0][keyframe.index])
         self.timings["coverage"] += time.perf_counter() - t0
         obstructed = self._obstruction(ctx, keyframe)
+        if self._attempt is not None and float(keyframe.stamp) >= self._attempt.due:
+            ctx.deferred.run_all()
+            self._conclude(ctx, keyframe)
         dist = self.travel.dist
-        trigger = self.schedule.next_trigger(self.coverage.area, dist, obstructed, self.accepted is not None)
+        trigger = None
+        if self._attempt is None:
+            trigger = self.schedule.next_trigger(
+                self.coverage.area, dist, obstructed, self.accepted is not None
+            )
         if trigger is not None:
             ctx.deferred.run_all()
-            self._register(ctx, keyframe, trigger)
+            lag = self.config.background_registration_s
+            self._start(ctx, keyframe, trigger, lag)
+            if lag <= 0.0:
+                self._conclude(ctx, keyframe)
         elif self.accepted is not None:
-            if self.refiner.due(dist):
+            if self._attempt is None and self.refiner.due(dist):
                 ctx.deferred.run_all()
                 self.refiner.ran(dist, self._refine(ctx, keyframe))
             else:
@@ -193,6 +251,12 @@ class FloorPlanUpdater:
         is kept as :attr:`final_placement` for the run's figures."""
         self._decisions = ctx.log
         cfg = self.config
+        if self._attempt is not None:  # the registration in progress first, as if it were due
+            ctx.deferred.run_all()
+            self._conclude(ctx, ctx.keyframe(len(ctx.graph) - 1))
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
         if not cfg.enabled or self.plan is None or not cfg.final_refine or len(ctx.graph) == 0:
             return
         if self.accepted is None:
@@ -237,10 +301,13 @@ class FloorPlanUpdater:
 
     # ------------------------------------------------------------------ routing
     def _obstruction(self, ctx: BackendContext, keyframe: KeyframeInfo) -> bool:
-        """Whether progress is obstructed at this keyframe (a new obstruction is logged)."""
+        """Whether progress is obstructed at this keyframe (a new obstruction is logged; it
+        concludes the registration in progress, so that it may trigger the next one)."""
         obstructed, newly = self.travel.obstruction(float(keyframe.stamp))
         if newly:
             ctx.deferred.run_all()  # what it triggers drains them anyway: their events first
+            if self._attempt is not None:
+                self._conclude(ctx, keyframe)
             record(
                 ctx,
                 float(keyframe.stamp),
@@ -251,27 +318,88 @@ class FloorPlanUpdater:
         return obstructed
 
     def _register(self, ctx: BackendContext, keyframe: KeyframeInfo, trigger: Trigger):
-        """Register the plan on the map and route the judge's verdict; the registration (None
+        """Register the plan on the map now and route the judge's verdict; the registration (None
         when the method raised)."""
-        cfg = self.config
-        t0 = time.perf_counter()
-        area = self.coverage.area
-        self.schedule.attempted(trigger, area, self.travel.dist)
-        stamp, i = float(keyframe.stamp), keyframe.index
-        reason = trigger.reason
+        self._start(ctx, keyframe, trigger, 0.0)
+        return self._conclude(ctx, keyframe)
+
+    def _start(self, ctx: BackendContext, keyframe: KeyframeInfo, trigger: Trigger, lag: float) -> None:
+        """Start a registration attempt on the map up to ``keyframe``, concluded at the first
+        keyframe ``lag`` seconds of recording later (0: now, in this step). It reads the backend
+        through a frozen view (:meth:`BackendContext.frozen`) and changes nothing, so it runs in a
+        background thread; when it is concluded depends only on the stamps, so the run's results
+        do not depend on how fast it ran."""
+        area, dist = self.coverage.area, self.travel.dist
+        self.schedule.attempted(trigger, area, dist)
+        reason, keep = trigger.reason, None
         if trigger.local:
-            grid = self._local_grid(ctx)
+            d = np.asarray(self.travel.kf_dist)
+            keep = np.nonzero(d >= dist - LOCAL_MAP_DISTANCE)[0]
             reason += f"; on the map of the last {LOCAL_MAP_DISTANCE:.0f} m"
+        args = (
+            ctx.frozen(keyframe.index),
+            keyframe,
+            keep,
+            self.accepted,
+            self._pending_reg,
+            self.priors.drift,
+            dist,
+            len(self.travel.kf_dist),
+            area,
+        )
+        if lag > 0.0:
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="frslam-registration")
+            outcome: Future | _Outcome = self._executor.submit(self._attempt_on, *args)
         else:
-            grid = ctx.occupancy_grid(cfg.map_resolution, free_space=True)
-        if self.accepted is not None:
-            self._recheck_accepted(ctx, keyframe, grid)
+            outcome = self._attempt_on(*args)
+        self._attempt = _Attempt(keyframe, reason, area, dist, float(keyframe.stamp) + lag, outcome)
+
+    def _attempt_on(
+        self,
+        view: FrozenContext,
+        keyframe: KeyframeInfo,
+        keep: np.ndarray | None,
+        accepted: AcceptedPlan | None,
+        pending: Any,
+        drift: float,
+        dist: float,
+        n_kf: int,
+        area: float,
+    ) -> _Outcome:
+        """The work of a registration attempt (any thread; it changes nothing the backend or the
+        other collaborators read): the map of the keyframes (``keep``: only those; None: all),
+        the recheck of ``accepted``, the registration and the judge's verdict."""
+        from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS, OccupancyMapper, occupancy_grid  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        cfg = self.config
+        pts, origins = view.keyframe_scans()
+        est = view.graph.estimates()
+        if keep is not None:
+            grid = occupancy_grid(
+                est[keep],
+                [pts[k] for k in keep],
+                [origins[k] for k in keep],
+                cfg.map_resolution,
+                **FREE_SPACE_WEIGHTS,
+            )
+        else:
+            if self._mapper is None:
+                self._mapper = OccupancyMapper(cfg.map_resolution, **FREE_SPACE_WEIGHTS)
+            self._mapper.update(est, pts, origins)
+            grid = self._mapper.grid()
+        recheck = None
+        if accepted is not None:
+            recheck = self._recheck(view, keyframe, grid, accepted, drift)
+            if recheck is not None:
+                accepted = recheck.accepted
+                if accepted is None:  # retracted: the gate's drift allowance restarts from 0 m
+                    drift = dist
         try:
             reg = self.register_fn(self.plan, grid)
         except FrslamError as exc:
-            record(ctx, stamp, "register", f"{reason}; registration failed: {exc}", i, False, area=area)
-            self.timings["register"] += time.perf_counter() - t0
-            return None
+            return _Outcome(grid, recheck, None, str(exc), seconds=time.perf_counter() - t0)
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
         if reg.ok:  # the placement itself (plan -> map): a run's log says what was judged
             nums.update(
@@ -280,15 +408,28 @@ class FloorPlanUpdater:
                 scale_x=float(reg.scale[0]),
                 scale_y=float(reg.scale[1]),
             )
-        n_kf = len(self.travel.kf_dist)
-        verdict = self.judge.judge(
-            ctx, keyframe, reg, grid, nums, self.accepted, self._pending_reg, self.priors.drift, n_kf
-        )
-        self.timings["register"] += time.perf_counter() - t0
+        verdict = self.judge.judge(view, keyframe, reg, grid, nums, accepted, pending, drift, n_kf)
+        return _Outcome(grid, recheck, reg, None, nums, verdict, time.perf_counter() - t0)
+
+    def _conclude(self, ctx: BackendContext, now: KeyframeInfo):
+        """Apply the registration attempt in progress (waiting for it if it is not done) at
+        keyframe ``now``: the recheck's retraction, then the judge's verdict; the registration
+        (None when the method raised)."""
+        att, self._attempt = self._attempt, None
+        out = att.outcome if isinstance(att.outcome, _Outcome) else att.outcome.result()
+        self.timings["register"] += out.seconds
+        keyframe, reason, area = att.keyframe, att.reason, att.area
+        stamp, i = float(keyframe.stamp), keyframe.index
+        if out.recheck is not None:
+            self._apply_recheck(ctx, keyframe, out.recheck)
+        if out.registration is None:
+            record(ctx, stamp, "register", f"{reason}; registration failed: {out.error}", i, False, area=area)
+            return None
+        reg, verdict = out.registration, out.verdict
         if verdict.pending is not KEEP:
             self._pending_reg = verdict.pending
         if verdict.outcome == "accept":
-            self._accept(ctx, keyframe, verdict, reason, grid)
+            self._accept(ctx, keyframe, verdict, reason, out.grid, att.dist, now.index)
             return reg
         record(ctx, stamp, "register", f"{reason}; {verdict.why}", i, False, **verdict.numbers)
         if verdict.outcome == "refine":  # the same placement fitted to more data
@@ -305,18 +446,27 @@ class FloorPlanUpdater:
         return reg
 
     def _accept(
-        self, ctx: BackendContext, keyframe: KeyframeInfo, verdict: Verdict, reason: str, grid
+        self,
+        ctx: BackendContext,
+        keyframe: KeyframeInfo,
+        verdict: Verdict,
+        reason: str,
+        grid,
+        dist: float,
+        now: int,
     ) -> None:
-        """A new accepted registration: it replaces the previous one (whose priors are re-anchored
-        on it); the current scan's relocalisation becomes its first prior; backfill follows. Its
-        event also says how far the robot had travelled (``distance_m``, metres) and how much of
-        the registered plan's room area the map ``grid`` had seen (``plan_seen``, 0..1)."""
+        """A new accepted registration made on the map up to ``keyframe``: it replaces the
+        previous one (whose priors are re-anchored on it); that keyframe's relocalisation becomes
+        its first prior; backfill of the keyframes before keyframe ``now`` follows. Its event also
+        says how far the robot had travelled when it was made (``distance_m``, metres: ``dist``)
+        and how much of the registered plan's room area the map ``grid`` had seen
+        (``plan_seen``, 0..1)."""
         stamp, i = float(keyframe.stamp), keyframe.index
         msg, kind = f"{reason}; accepted", "register"
         if self.accepted is not None:
             msg, kind = f"{reason}; replaces registration {self.accepted.id}", "registration_replaced"
         seen = plan_seen(verdict.plan_map, grid)
-        record(ctx, stamp, kind, msg, i, True, **verdict.numbers, distance_m=self.travel.dist, plan_seen=seen)
+        record(ctx, stamp, kind, msg, i, True, **verdict.numbers, distance_m=dist, plan_seen=seen)
         previous = self.accepted
         self.accepted = AcceptedPlan(
             self._next_id,
@@ -332,7 +482,7 @@ class FloorPlanUpdater:
             self.priors.reanchor(ctx, previous)
         self.priors.offer(ctx, keyframe, verdict.relocalisation, "registration accepted")
         self.priors.relocalised_now()
-        self.priors.queue_backfill(ctx, i)
+        self.priors.queue_backfill(ctx, now)
 
     def _refine(self, ctx: BackendContext, keyframe: KeyframeInfo, final: bool = False) -> bool:
         """The scale refinement, then (``align_to_start``) the move to the start; whether the
@@ -361,50 +511,41 @@ class FloorPlanUpdater:
             self.priors.reanchor(ctx, previous, r.reanchor)
         return True
 
-    def _recheck_accepted(self, ctx: BackendContext, keyframe: KeyframeInfo, grid) -> None:
-        """Retract the accepted registration when the grown map contradicts it (its walls cross
-        space the robot has seen free): its priors are removed and the next registration is
-        judged as a first one. A plan known to be drawn off the building (``drawing_tol`` > 0:
-        its registration needed a tolerance from its residual) whose wall pieces seen through are
-        a minority of its observed walls, the rest still explaining the map as its acceptance
-        required (``min_map_fit``, or clearly more than its runner-up placements:
-        :meth:`RegistrationJudge.still_clearly_best`), loses those pieces instead (later
-        relocalisations ignore them). An accurately drawn plan
-        is retracted: there a wall the map sees through is a wrong placement (e.g. the mirror of
-        a near-symmetric plan, which differs by a wall the first scans had not seen)."""
+    def _recheck(
+        self, view: FrozenContext, keyframe: KeyframeInfo, grid, acc: AcceptedPlan, drift: float
+    ) -> _Recheck | None:
+        """The accepted registration ``acc`` rechecked on the grown map (any thread; changes
+        nothing): None when it stands, else what :meth:`_apply_recheck` does. It is retracted
+        when the map contradicts it (its walls cross space the robot has seen free): its priors
+        are removed and the next registration is judged as a first one. A plan known to be drawn
+        off the building (``drawing_tol`` > 0: its registration needed a tolerance from its
+        residual) whose wall pieces seen through are a minority of its observed walls, the rest
+        still explaining the map as its acceptance required (``min_map_fit``, or clearly more
+        than its runner-up placements: :meth:`RegistrationJudge.still_clearly_best`), loses those
+        pieces instead (later relocalisations ignore them). An accurately drawn plan is
+        retracted: there a wall the map sees through is a wrong placement (e.g. the mirror of a
+        near-symmetric plan, which differs by a wall the first scans had not seen)."""
         cfg = self.config
-        acc = self.accepted
-        margin = tolerances(cfg, self.priors.drift, acc.drawing_tol)[1]
+        margin = tolerances(cfg, drift, acc.drawing_tol)[1]
         crossing = walls_through_free_space(acc.relocaliser, grid, margin)
         if crossing <= cfg.retract_walls_in_free_space:
-            return
+            return None
         rel = acc.relocaliser
         pts, dropped, fit = np.zeros((0, 2)), 1.0, float("nan")
         if acc.drawing_tol > 0.0:
             pts, dropped, _ = wall_pieces_seen_through(rel, grid, margin, cfg.max_walls_in_free_space)
         if dropped < 0.5:
             part = ignoring_pieces(rel, pts, margin)
-            fit_tol = tolerances(cfg, self.priors.drift, acc.drawing_tol)[0]
+            fit_tol = tolerances(cfg, drift, acc.drawing_tol)[0]
             fit = part.fit_points(occupied_points(grid), fit_tol)
-            if fit >= cfg.min_map_fit or self.judge.still_clearly_best(
-                ctx, keyframe, grid, acc, self.priors.drift, fit
-            ):
-                record(
-                    ctx,
-                    keyframe.stamp,
+            if fit >= cfg.min_map_fit or self.judge.still_clearly_best(view, keyframe, grid, acc, drift, fit):
+                return _Recheck(
                     "plan_refined",
                     f"registration {acc.id}: {crossing:.0%} of its observed walls cross free space; the wall "
                     f"pieces seen through ({dropped:.0%} of them) dropped, the rest explains {fit:.0%} of the map",
-                    keyframe.index,
-                    True,
-                    walls_in_free_space=crossing,
-                    wall_pieces_dropped=dropped,
-                    map_fit_kept=fit,
+                    {"walls_in_free_space": crossing, "wall_pieces_dropped": dropped, "map_fit_kept": fit},
+                    AcceptedPlan(acc.id, acc.registration, acc.plan, part, acc.map_fit, acc.drawing_tol),
                 )
-                self.accepted = AcceptedPlan(
-                    acc.id, acc.registration, acc.plan, part, acc.map_fit, acc.drawing_tol
-                )
-                return
         why = (
             f"registration {acc.id} contradicted by the map: {crossing:.0%} of its observed walls "
             f"cross free space > {cfg.retract_walls_in_free_space:.0%}"
@@ -416,34 +557,16 @@ class FloorPlanUpdater:
                 else f"; without the pieces seen through its walls explain {fit:.0%} of the map < "
                 f"{cfg.min_map_fit:.0%}, and not clearly more than its runner-up placements"
             )
-        record(
-            ctx,
-            keyframe.stamp,
-            "registration_retracted",
-            why,
-            keyframe.index,
-            False,
-            walls_in_free_space=crossing,
-        )
-        self.accepted = None
-        self.priors.retract(ctx, acc, why)
+        return _Recheck("registration_retracted", why, {"walls_in_free_space": crossing}, None)
 
-    def _local_grid(self, ctx: BackendContext):
-        """Occupancy grid (map frame) of the keyframes of the last ``LOCAL_MAP_DISTANCE`` metres
-        travelled: less drift accumulated inside it than in the whole map."""
-        from frslam_graph.backend.mapping import FREE_SPACE_WEIGHTS, occupancy_grid  # noqa: PLC0415
-
-        d = np.asarray(self.travel.kf_dist)
-        keep = np.nonzero(d >= self.travel.dist - LOCAL_MAP_DISTANCE)[0]
-        pts, origins = ctx.keyframe_scans()
-        est = ctx.graph.estimates()
-        return occupancy_grid(
-            est[keep],
-            [pts[k] for k in keep],
-            [origins[k] for k in keep],
-            self.config.map_resolution,
-            **FREE_SPACE_WEIGHTS,
-        )
+    def _apply_recheck(self, ctx: BackendContext, keyframe: KeyframeInfo, r: _Recheck) -> None:
+        """Record the recheck of the accepted registration and act on it: its pieces dropped, or
+        retracted (its priors removed as wrong)."""
+        acc = self.accepted
+        record(ctx, keyframe.stamp, r.kind, r.message, keyframe.index, r.accepted is not None, **r.numbers)
+        self.accepted = r.accepted
+        if r.accepted is None:
+            self.priors.retract(ctx, acc, r.message)
 
 
 __all__ = ["UPDATE_KINDS", "FloorPlanUpdater"]
