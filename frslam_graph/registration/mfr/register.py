@@ -29,16 +29,20 @@ Steps
    starts from its placement, and when it fails the gate also from the best placement of each of
    the ``wide_seeds`` best (dihedral case, wall direction) and from its own seven other dihedral
    turns (:func:`coarse.turned_seeds`); when the screened best places one plan room (refused as
-   under-determined) and another places several, from that one and its turns instead. Its
+   under-determined) and another places several, from that one and its turns instead. A best
+   the answer would flag ambiguous (``ambiguous_at``) counts as failing the gate. Its
    placements that cover the footprint with plan rooms (IoU >= ``WIDE_MIN_IOU``) are screened
    with the others.
-4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored; the best
+4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored (the next
+   ``refine_k`` too when every one places a single room, or the best does not beat the others by
+   :data:`DRAWN_MARGIN`: the coarse key can rank the right placement a few places lower); the best
    is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
    two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
    the rooms it places on the footprint; ``ambiguity`` = best re-score of a different placement
-   (or unrefined coarse key, scaled) / the best's; ``details["alternatives"]`` hold up to
-   ``alternatives`` runner-up placements (relative score, plan -> map matrix) for a caller that
-   can tell them apart with other data; failure when IoU × precision × recall or the recall is
+   (or unrefined coarse key, scaled) / the best's, at least what the first screening gave (a
+   further search finds wrong placements that beat the first ones too);
+   ``details["alternatives"]`` hold up to ``alternatives`` runner-up placements (relative score,
+   plan -> map matrix) for a caller that can tell them apart with other data; failure when IoU × precision × recall or the recall is
    too low, unless the placement passes at the drawing tolerance (:data:`DRAWN_TOL_PER_RMS`:
    a tolerance that grows with the fit's residual, and a margin over the determined runner-ups);
    failure too when the placement is under-determined: one room stretched over a map whose walls
@@ -158,13 +162,34 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     chosen, covered = fine.choose_distinct(hyps, obs, opts["refine_k"])
     tol_f = max(3.0 * obs.frame.resolution, 0.1)
     fine.screen(pm, obs, chosen, opts, tol_f)
+    # how doubtful the first screening left the answer: whatever is searched further, the answer
+    # stays at least as doubtful (the search finds wrong placements that beat the first ones too:
+    # on maps of another building it turned refusals into acceptances)
+    ambiguity_first = _ambiguity(chosen, hyps, covered, chosen[0].refined.matrix, obs)
+    if ambiguity_first > DRAWN_MARGIN:
+        # the coarse key ranks placements on an 80-cell footprint at the plan's wall centres: the
+        # right one can rank a few distinct placements lower and screen clearly best. When every
+        # screened placement puts one room on the map (refused as under-determined) or the best
+        # does not beat the others by MFR's margin of a clear best (the drawing gate's), screen
+        # the next distinct ones too
+        more, covered = fine.choose_distinct(hyps, obs, len(chosen) + opts["refine_k"])
+        extra = more[len(chosen) :]
+        if extra:
+            fine.screen(pm, obs, extra, opts, tol_f)
+            chosen = sorted(chosen + extra, key=lambda h: -h.quick)
+    ambiguity_now = (
+        ambiguity_first
+        if len(chosen) <= opts["refine_k"]
+        else _ambiguity(chosen, hyps, covered, chosen[0].refined.matrix, obs)
+    )
     n_wide, wide_searched = 0, False
     top = chosen[0]
     # a placement of one plan room stretched over the map is refused as under-determined
     # (:func:`_determined`), but it can outscore the screened placements of several rooms, whose
     # moment-fitted scales are 10-40 % off: it must not stop the search from them
     one_room = top.placed_rooms < 2 and any(h.placed_rooms >= 2 for h in chosen[1:])
-    fails = top.quick < opts["min_score"] or one_room
+    # a best the answer would flag ambiguous is no decision either: search as when none passes
+    fails = top.quick < opts["min_score"] or one_room or ambiguity_now >= opts["ambiguous_at"]
     if opts["wide_seeds"] > 0 and (fails or top.coarse_iou < opts["search_below_iou"]):
         # the footprint is not the union of the placed rooms (or nothing passes the gate): the
         # moment-fitted scales may be far off. Search the best placement's scales widely, and
@@ -233,7 +258,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     best.score, best.rooms = fine.placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
     prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
-    ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened)
+    ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened, ambiguity_first)
     alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
     t_fine = time.perf_counter()
     fixed_ok = quality >= opts["min_score"] and rec >= opts["min_recall"]
