@@ -525,3 +525,20 @@ def test_speed_helpers_match_numpy() -> None:
     labels = rng.integers(0, 27, (120, 90)).astype(np.uint8)
     mask = rng.random((120, 90)) < 0.4
     assert np.array_equal(_label_counts(labels, mask, 26), np.bincount(labels[mask], minlength=27)[1:])
+
+
+def test_the_plan_side_is_prepared_once_per_plan_object(plan):
+    # the plan updates register one FloorPlan again and again as the map grows: its prepared
+    # model is reused (read-only), and the registration is the same as from a fresh copy
+    from frslam_graph.registration.mfr import register as mfr
+
+    grid = ring_map(plan, truth_matrix(False, 30.0), EXPLORED)
+    first = register(plan, grid)
+    pm = mfr._prepared(plan, "doors")
+    assert mfr._prepared(plan, "doors") is pm and not pm.samples.flags.writeable
+    again = register(plan, grid)
+    fresh = register(synthetic_plan(), grid)
+    assert mfr._prepared(plan, "touch") is not pm
+    for reg in (again, fresh):
+        assert reg.ok == first.ok and np.array_equal(reg.matrix, first.matrix)
+        assert reg.ambiguity == first.ambiguity
