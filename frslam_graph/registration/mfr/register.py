@@ -35,14 +35,14 @@ Steps
    with the others.
 4. Fine: the best ``refine_k`` distinct placements are refined coarsely and re-scored (the next
    ``refine_k`` too when the best does not beat the others by :data:`DRAWN_MARGIN`: the coarse
-   key can rank the right placement a few places lower); the best
-   is refined at full resolution (:mod:`frslam_graph.registration.refine`: rotation, translation,
-   two scales along the plan's wall directions and the wall offset) and scored: ``score`` = IoU of
-   the rooms it places on the footprint; ``ambiguity`` = best re-score of a different placement
-   (or unrefined coarse key, scaled) / the best's, at least what the first screening gave (a
-   further search finds wrong placements that beat the first ones too);
-   ``details["alternatives"]`` hold up to ``alternatives`` runner-up placements (relative score,
-   plan -> map matrix) for a caller that can tell them apart with other data; failure when IoU × precision × recall or the recall is
+   key can rank the right placement a few places lower); the best is refined at full resolution
+   (:mod:`frslam_graph.registration.refine`: rotation, translation, two scales along the plan's
+   wall directions and the wall offset) and scored: ``score`` = IoU of the rooms it places on the
+   footprint; ``ambiguity`` = best re-score of a different placement (or unrefined coarse key,
+   scaled) / the best's, at least what the first screening gave (a further search finds wrong
+   placements that beat the first ones too); ``details["alternatives"]`` hold up to
+   ``alternatives`` runner-up placements (relative score, plan -> map matrix) for a caller that
+   can tell them apart with other data; failure when IoU × precision × recall or the recall is
    too low, unless the placement passes at the drawing tolerance (:data:`DRAWN_TOL_PER_RMS`:
    a tolerance that grows with the fit's residual, and a margin over the determined runner-ups);
    failure too when the placement is under-determined: one room stretched over a map whose walls
