@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 import weakref
 from typing import Any
@@ -131,21 +132,26 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
 # first: the plan updates register one plan again and again as the map grows, and the plan side
 # (rings, moments, boundary samples, distance transforms, room subsets' graph) is a sixth of a
 # registration's CPU time on plans of <= 12 rooms
+# (a memo of a pure function of a frozen input, like functools.lru_cache; the lock because the plan
+# updates register in a background thread and several runs may share a process)
 _PREPARED: list[tuple[weakref.ref, str, PlanModel]] = []
 _PREPARED_KEEP = 4
+_PREPARED_LOCK = threading.Lock()
 
 
 def _prepared(plan, adjacency: str) -> PlanModel:
     """:func:`prepare_plan` of ``plan`` (a FloorPlan, frozen), reused while the same object is
     registered again; its arrays are read-only (a registration must not change them)."""
-    for ref, mode, pm in _PREPARED:
-        if ref() is plan and mode == adjacency:
-            return pm
+    with _PREPARED_LOCK:
+        for ref, mode, pm in _PREPARED:
+            if ref() is plan and mode == adjacency:
+                return pm
     pm = prepare_plan(plan, adjacency=adjacency)
     for f in dataclasses.fields(pm):
         _read_only(getattr(pm, f.name))
-    _PREPARED.insert(0, (weakref.ref(plan), adjacency, pm))
-    del _PREPARED[_PREPARED_KEEP:]
+    with _PREPARED_LOCK:
+        _PREPARED.insert(0, (weakref.ref(plan), adjacency, pm))
+        del _PREPARED[_PREPARED_KEEP:]
     return pm
 
 
