@@ -168,9 +168,11 @@ def refine(
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
     jac = np.empty((len(p), 6))
+    # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
+    tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
     for stage, c in enumerate(stage_scales):
         free_delta = stage >= fixed_delta_stages
-        kn = None
+        kn = cand = None
         for it in range(iterations):
             cth, sth = math.cos(x[0]), math.sin(x[0])
             # plan point scaled and flipped: (ex * px, f * ey * py), then rotated
@@ -204,7 +206,15 @@ def refine(
                 nl = np.maximum(np.hypot(mx, my), 1e-12)
                 mx, my = mx / nl, my / nl
                 lx, ly = cth * mx - sth * my, sth * mx + cth * my
-                jm, rm, wm = _wall_terms(map_walls, x, bx, by, lx, ly, ax, ay, cth, sth, res, c, free_delta)
+                if cand is None or it % 3 == 0:  # candidates: the cells taken into the plan frame
+                    dx, dy = map_walls[:, 0] - x[1], map_walls[:, 1] - x[2]
+                    u = np.column_stack([cth * dx + sth * dy, f * (cth * dy - sth * dx)])
+                    u *= np.array([sx / math.exp(x[3]), sy / math.exp(x[4])])
+                    k = min(WALL_NEIGHBOURS, len(p))
+                    cand = tree.query(u, k=k)[1].reshape(len(u), k)
+                jm, rm, wm = _wall_terms(
+                    map_walls, cand, x, bx, by, lx, ly, ax, ay, cth, sth, res, c, free_delta
+                )
                 wm *= float((w_all > 0).sum()) / max(len(rm), 1)  # equal total weight
                 jwm = jm * wm[:, None]
                 jtj = jtj + jm.T @ jwm
@@ -267,6 +277,7 @@ WALL_NEIGHBOURS = 4
 
 def _wall_terms(
     walls: np.ndarray,
+    jj: np.ndarray,
     x: np.ndarray,
     bx: np.ndarray,
     by: np.ndarray,
@@ -281,17 +292,15 @@ def _wall_terms(
     free_delta: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Map-to-plan term of :func:`refine`: (K, 6) Jacobian, (K,) residuals (metres) and Cauchy
-    weights of the map wall points ``walls`` (K, 2) against the lines of their nearest plan boundary
-    samples (``bx + tx``, ``by + ty``: the samples turned and scaled, without the wall offset;
-    ``nx``, ``ny`` their inward unit normals in the map; ``ax``, ``ay`` the scaled plan coordinates).
-    A wall cell's centre lies ``delta`` + half a cell (``res``) inside the room from the boundary."""
+    weights of the map wall points ``walls`` (K, 2) against the lines of plan boundary samples
+    (``bx + tx``, ``by + ty``: the samples turned and scaled, without the wall offset; ``nx``,
+    ``ny`` their inward unit normals in the map; ``ax``, ``ay`` the scaled plan coordinates): of
+    each cell's candidates ``jj`` (K, k sample indices, the nearest), the one whose line and side
+    fit best (a wall between two plan rooms has samples of both on its centre line, with opposite
+    normals). A wall cell's centre lies ``delta`` + half a cell (``res``) inside the room from the
+    boundary."""
     px, py = bx + x[1], by + x[2]
     off = float(x[5]) + 0.5 * res
-    # of the few nearest samples, the one whose line and side fit best: a wall between two plan
-    # rooms has samples of both on its centre line, with opposite normals
-    k = min(WALL_NEIGHBOURS, len(px))
-    _, jj = cKDTree(np.column_stack([px, py])).query(walls, k=k)
-    jj = jj.reshape(len(walls), k)
     sdk = (walls[:, :1] - px[jj]) * nx[jj] + (walls[:, 1:] - py[jj]) * ny[jj]
     pick = np.argmin(np.abs(sdk - off), axis=1)
     j = jj[np.arange(len(walls)), pick]
