@@ -146,6 +146,52 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
         assert line.inlier_fractions(scan, poses, dist).tolist() == want  # all poses at once
 
 
+def test_icp_nearest_candidates_answer_as_the_tree():
+    """ICP's nearest neighbours kept from one query (_NearestCandidates) equal a fresh k-d tree
+    query at every move: small ones (the refinement's iterations), large ones (points asked to
+    the tree again), on a noisy room and on a lattice (ties at equal distances), with one
+    candidate or fewer per point."""
+    from scipy.spatial import cKDTree
+
+    from frslam_graph.loop_closure.submap_matching import (
+        _exact_nearest_offsets,
+        _NearestCandidates,
+        transform_points,
+    )
+
+    class Counting(cKDTree):
+        asked = 0
+
+        def query(self, x, *a, **k):
+            Counting.asked += len(x)
+            return super().query(x, *a, **k)
+
+    rng = np.random.default_rng(6)
+    local, scan = _noisy_room()
+    lattice = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2) * 0.1
+    cases = [(local, scan), (lattice, lattice + 0.05), (lattice[:3], rng.uniform(0.0, 0.3, (50, 2)))]
+    asked = []
+    for ref, query in cases:
+        tree = Counting(ref)
+        near = _NearestCandidates(tree, ref, query, 0.4, 4)
+        Counting.asked = 0
+        moves = [np.zeros(3), np.array([0.05, 0.0, 0.0])]  # the lattice: ties on the cell borders
+        moves += list(rng.normal(0.0, [0.01, 0.01, 0.003], (20, 3)))
+        moves += list(rng.normal(0.0, [0.2, 0.2, 0.05], (10, 3)))
+        for move in moves:
+            moved = transform_points(move, query)
+            for dist in (0.3, 0.15, 0.05):
+                got = near.nearest_offsets(moved, dist)
+                undecided = Counting.asked  # the points it asked the tree again
+                want = _exact_nearest_offsets(tree, ref, moved, dist)
+                Counting.asked = undecided
+                for a, b in zip(got, want, strict=True):
+                    np.testing.assert_array_equal(a, b)
+        asked.append(Counting.asked / (len(moves) * 3 * len(query)))
+    assert 0.0 < asked[0] < 0.5  # the room: some points asked again (the large moves), most not
+    assert asked[1] > 0.5  # the lattice's ties: asked
+
+
 def test_line_map_breaks_ties_as_the_distance_transform():
     """Every neighbourhood of an empty cell (255 patterns of occupied neighbours, each cell's
     point at a random place in it): LineMap's cell look-up answers with the neighbour

@@ -426,6 +426,58 @@ def _exact_nearest_offsets(
     return sel, j, ps, ps - ref_points[j]
 
 
+class _NearestCandidates:
+    """Exact nearest reference points of query points that move a little: ICP's iterations.
+
+    A k-d tree query costs ~100 us for a scan's few hundred points, six times per scan in the
+    odometry's refinement. Its answers are kept from one query, at the query points' first
+    positions ``start`` (N, 2): their ``k`` nearest reference points within ``reach`` (m). A
+    point that has since moved by delta is at least ``bound - delta`` from every reference point
+    outside its ``k`` >= 2 candidates (``bound``: the k-th one's distance, ``reach`` when it has fewer);
+    when its nearest candidate is nearer than that, with no tie (1e-9 m) with the next candidate,
+    the bound or ``max_distance``, it is its exact nearest neighbour; when both are beyond
+    ``max_distance``, it has none. The few points left undecided are asked to the tree: the same
+    answers as :func:`_exact_nearest_offsets` on the tree, whatever the moves (tested)."""
+
+    def __init__(self, tree: cKDTree, ref_points: np.ndarray, start: np.ndarray, reach: float, k: int):
+        d, idx = tree.query(start, k=k, distance_upper_bound=reach)
+        found = np.isfinite(d)
+        self.tree, self.ref_points, self.start = tree, ref_points, start
+        self.bound = np.where(found[:, -1], d[:, -1], reach)
+        self.idx = np.where(found, idx, 0)
+        self.cx = np.where(found, ref_points[self.idx, 0], np.inf)  # missing candidates: infinitely far
+        self.cy = np.where(found, ref_points[self.idx, 1], np.inf)
+        self.indices = np.unique(self.idx[found])  # every reference point a query may be given
+
+    def nearest_offsets(
+        self, points: np.ndarray, max_distance: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """As :func:`_exact_nearest_offsets` for ``points`` (N, 2): the start points moved."""
+        dx = self.cx - points[:, :1]
+        dy = self.cy - points[:, 1:]
+        d2 = dx * dx + dy * dy
+        two = np.partition(d2, 1, axis=1)  # k >= 2: the nearest and the next candidate
+        c, c2 = np.sqrt(two[:, 0]), np.sqrt(two[:, 1])
+        moved = points - self.start
+        safe = self.bound - np.hypot(moved[:, 0], moved[:, 1]) - _TIE
+        near = (c < safe) & (c2 > c + _TIE)  # the nearest candidate is the nearest point
+        sure = (near & (np.abs(c - max_distance) > _TIE)) | (
+            (safe > max_distance + _TIE) & (c > max_distance + _TIE)
+        )
+        j = self.idx[np.arange(len(points)), d2.argmin(axis=1)]
+        hit = sure & (c < max_distance)
+        if not sure.all():
+            ask = np.flatnonzero(~sure)
+            d, jj = self.tree.query(points[ask], distance_upper_bound=max_distance)
+            ok = np.isfinite(d)
+            hit[ask] = ok
+            j[ask[ok]] = jj[ok]
+        sel = np.flatnonzero(hit)
+        j = j[sel]
+        ps = points[sel]
+        return sel, j, ps, ps - self.ref_points[j]
+
+
 class LineMap:
     """Reference points (M, 2) with a k-d tree and line normals, no grid: for point-to-line ICP
     (:func:`icp_point_to_line`) and inlier counts only. The odometry's local map, rebuilt every
@@ -511,6 +563,13 @@ class LineMap:
         hit = found.any(axis=0) & (np.hypot(off[:, 0], off[:, 1]) <= distance)
         return np.count_nonzero(hit.reshape(len(poses), len(query)), axis=1) / len(query)
 
+
+# icp_point_to_line's nearest neighbours (_NearestCandidates): candidates per query point, and
+# reach beyond the association distance (m); more = fewer points asked to the tree again, a
+# slower first query (FR079's refinement: 0.7 % asked again)
+_CANDIDATES = 4
+_CANDIDATE_MARGIN = 0.1
+_TIE = 1e-9  # m; distances closer than this are a tie (asked to the tree), far above rounding
 
 # LineMap.inlier_fraction's cells (dx, dy; dy -1 = the previous grid row): the query's own, the
 # sides, the corners, in the order cv2.distanceTransformWithLabels (5×5 mask, one label per
@@ -714,9 +773,16 @@ def icp_point_to_line(
         return None
     x = np.asarray(pose, dtype=np.float64).copy()
     h = None
+    near = None
     for it in range(iterations):
         dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
-        sel, j, p, off = ref.exact_nearest_offsets(transform_points(x, query), dmax)
+        moved = transform_points(x, query)
+        if near is None:  # exact nearest neighbours from candidates (_NearestCandidates)
+            near = _NearestCandidates(
+                ref.tree, ref.points, moved, max_distance + _CANDIDATE_MARGIN, _CANDIDATES
+            )
+            ref.line_normals(near.indices)  # the normals the iterations may need, in one batch
+        sel, j, p, off = near.nearest_offsets(moved, dmax)
         if len(sel) < 10:
             return None
         n, q = ref.line_normals(j)
