@@ -265,3 +265,22 @@ def test_the_wheel_model_lets_the_refined_scan_carry_each_step(test_data):
     assert default.matched == former.matched == 51
     assert default.trans_mean < 0.9 * former.trans_mean
     assert default.rot_mean <= former.rot_mean
+
+
+def test_stable_order_and_first_of_each_are_numpys():
+    """stable_order (key and index packed into one int64, sorted by value) is np.argsort's stable
+    order, and first_of_each np.unique's first indices: duplicates, negative keys, keys too wide
+    to pack (argsorted), one key."""
+    from frslam_graph.loop_closure.submap_matching import first_of_each, stable_order
+
+    rng = np.random.default_rng(7)
+    keys = [
+        rng.integers(-50, 50, 3000),  # many duplicates
+        rng.integers(-(1 << 40), 1 << 40, 2000),
+        rng.integers(-(1 << 62), 1 << 62, 500),  # too wide: argsorted
+        np.array([5]),
+    ]
+    for key in keys:
+        np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
+        np.testing.assert_array_equal(first_of_each(key), np.unique(key, return_index=True)[1])
+    assert len(stable_order(np.zeros(0, np.int64))) == 0

@@ -111,14 +111,39 @@ def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
+def stable_order(key: np.ndarray) -> np.ndarray:
+    """``np.argsort(key, kind="stable")`` of an int64 array (N,), the same indices, ~3x faster:
+    each key and its index packed into one int64 (key - min above the index's bits) and sorted
+    by value. Keys spanning too wide a range for that are argsorted."""
+    n = len(key)
+    if n == 0:
+        return np.zeros(0, np.intp)
+    lo = int(key.min())
+    bits = max(int(n - 1).bit_length(), 1)
+    if int(key.max()) - lo >= 1 << (62 - bits):
+        return np.argsort(key, kind="stable")
+    packed = np.sort(((key - lo) << bits) | np.arange(n, dtype=np.int64))
+    return (packed & ((1 << bits) - 1)).astype(np.intp)
+
+
+def first_of_each(key: np.ndarray) -> np.ndarray:
+    """``np.unique(key, return_index=True)[1]`` of an int64 array (N,), N >= 1: the index of each
+    distinct key's first occurrence, in key order."""
+    order = stable_order(key)
+    ks = key[order]
+    first = np.empty(len(ks), bool)
+    first[0] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    return order[first]
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """The first point of each occupied voxel (order kept)."""
     if len(points) == 0:
         return np.zeros((0, 2))
     cells = np.floor(points / voxel).astype(np.int64)
     h = cells[:, 0] * 73856093 ^ cells[:, 1] * 19349663
-    _, idx = np.unique(h, return_index=True)
-    return points[np.sort(idx)]
+    return points[np.sort(first_of_each(h))]
 
 
 def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
@@ -134,8 +159,8 @@ def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
     i -= i.min()
     j -= j.min()
     key = i * (int(j.max()) + 1) + j
-    # np.unique(key, return_inverse=True, return_counts=True), a third cheaper
-    order = np.argsort(key)
+    # np.unique(key, return_inverse=True, return_counts=True), two thirds cheaper
+    order = stable_order(key)
     ks = key[order]
     first = np.empty(len(ks), bool)
     first[0] = True
@@ -447,7 +472,9 @@ class _NearestCandidates:
         self.idx = np.where(found, idx, 0)
         self.cx = np.where(found, ref_points[self.idx, 0], np.inf)  # missing candidates: infinitely far
         self.cy = np.where(found, ref_points[self.idx, 1], np.inf)
-        self.indices = np.unique(self.idx[found])  # every reference point a query may be given
+        given = np.zeros(len(ref_points), bool)
+        given[self.idx[found]] = True
+        self.indices = np.flatnonzero(given)  # every reference point a query may be given
 
     def nearest_offsets(
         self, points: np.ndarray, max_distance: float
@@ -511,7 +538,9 @@ class LineMap:
         """Normals (len(j), 2) and line qualities (len(j),) of the reference points ``j``."""
         new = j[~self._known[j]]
         if len(new):
-            new = np.unique(new)
+            ask = np.zeros(len(self.points), bool)
+            ask[new] = True
+            new = np.flatnonzero(ask)  # np.unique(new)
             self._normals[new], self._quality[new] = _normals(self.points, self.tree, at=new)
             self._known[new] = True
         return self._normals[j], self._quality[j]
@@ -527,7 +556,7 @@ class LineMap:
             w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
             ij = np.floor((pts - lo) / res).astype(int)
             flat = ij[:, 1] * w + ij[:, 0]
-            order = np.argsort(flat, kind="stable")
+            order = stable_order(flat)
             fs = flat[order]
             last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
             owner = np.full(w * h, -1, np.int32)
@@ -928,11 +957,13 @@ __all__ = [
     "LineMap",
     "ReferenceSubmap",
     "ScanMatch",
+    "first_of_each",
     "icp_point_to_line",
     "match_scan",
     "match_scan_steps",
     "point_bounds",
     "rigid_points",
+    "stable_order",
     "transform_points",
     "voxel_downsample",
 ]
