@@ -108,6 +108,7 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
     """The refinement's local map (LineMap: k-d tree, normals on first use, occupied cells, no
     distance transform) gives the same points, exact nearest neighbours, normals, point-to-line
     ICP result and inlier fractions as the ReferenceSubmap it replaced, bit for bit."""
+    from frslam_graph.loop_closure import submap_matching
     from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap, icp_point_to_line
 
     local, scan = _noisy_room()
@@ -144,6 +145,8 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
         want = [grid.inlier_fraction(scan, pose, dist) for pose in poses]
         assert [line.inlier_fraction(scan, pose, dist) for pose in poses] == want
         assert line.inlier_fractions(scan, poses, dist).tolist() == want  # all poses at once
+    # the look-up's grid, kept between calls (and maps), is left blank
+    assert np.all(submap_matching._blank_grid(1) == -1)
 
 
 def test_icp_nearest_candidates_answer_as_the_tree():

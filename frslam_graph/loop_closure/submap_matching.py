@@ -90,6 +90,15 @@ def _scratch(slot: int, shape: tuple[int, ...], dtype: type) -> np.ndarray:
     return buf[:n].view(dtype).reshape(shape)
 
 
+def _blank_grid(n: int) -> np.ndarray:
+    """This thread's int32 grid of at least ``n`` cells, all -1 (a caller sets the cells it uses
+    and sets them back to -1 before it returns); grown to the largest request."""
+    grid: np.ndarray | None = getattr(_SCRATCH, "blank", None)
+    if grid is None or len(grid) < n:
+        grid = _SCRATCH.blank = np.full(n, -1, np.int32)
+    return grid
+
+
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (M, 2) given in the frame ``pose`` (x, y, theta) -> the frame ``pose`` lives in."""
     return rigid_points(
@@ -545,10 +554,10 @@ class LineMap:
             self._known[new] = True
         return self._normals[j], self._quality[j]
 
-    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray]:
-        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, and per cell
-        (flat, raster order) the point it keeps (the last one in it, as ``owner[cells] =
-        arange`` keeps it), -1 where no point is."""
+    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the occupied
+        cells (flat, raster order) and the point each keeps (the last one in it, as
+        ``owner[cells] = arange`` keeps it)."""
         if self._grid_cells is None:
             pts, res = self.points, self.resolution
             lo, hi = point_bounds(pts)
@@ -559,9 +568,7 @@ class LineMap:
             order = stable_order(flat)
             fs = flat[order]
             last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
-            owner = np.full(w * h, -1, np.int32)
-            owner[fs[last]] = order[last]
-            self._grid_cells = (lo, w, h, owner)
+            self._grid_cells = (lo, w, h, fs[last], order[last].astype(np.int32))
         return self._grid_cells
 
     def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
@@ -577,7 +584,7 @@ class LineMap:
         refinement's test of its result against its start)."""
         if len(self.points) == 0 or len(query) == 0:
             return np.zeros(len(poses))
-        lo, w, h, grid = self._occupied()
+        lo, w, h, cells, owners = self._occupied()
         p = np.concatenate([transform_points(pose, query) for pose in poses])
         ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
         iy = np.floor((p[:, 1] - lo[1]) / self.resolution).astype(np.int64)
@@ -585,7 +592,14 @@ class LineMap:
         cy = iy[None, :] + _CELL_ORDER[:, 1:]
         inside = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
         inside &= ((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[None, :]  # the query's cell in the grid
-        who = grid[np.where(inside, cy * w + cx, 0)]
+        # the point per cell (-1: none) on a grid kept between calls, blank outside them: filling
+        # a fresh one cost more than the look-ups (~1.5 MB, its pages zero-filled by the kernel)
+        grid = _blank_grid(w * h)
+        grid[cells] = owners
+        try:
+            who = grid[np.where(inside, cy * w + cx, 0)]
+        finally:
+            grid[cells] = -1
         found = inside & (who >= 0)
         first = found.argmax(axis=0)
         off = p - self.points[np.maximum(who[first, np.arange(len(p))], 0)]
