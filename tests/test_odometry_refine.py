@@ -108,6 +108,7 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
     """The refinement's local map (LineMap: k-d tree, normals on first use, occupied cells, no
     distance transform) gives the same points, exact nearest neighbours, normals, point-to-line
     ICP result and inlier fractions as the ReferenceSubmap it replaced, bit for bit."""
+    from frslam_graph.loop_closure import submap_matching
     from frslam_graph.loop_closure.submap_matching import LineMap, ReferenceSubmap, icp_point_to_line
 
     local, scan = _noisy_room()
@@ -144,6 +145,54 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
         want = [grid.inlier_fraction(scan, pose, dist) for pose in poses]
         assert [line.inlier_fraction(scan, pose, dist) for pose in poses] == want
         assert line.inlier_fractions(scan, poses, dist).tolist() == want  # all poses at once
+    # the look-up's grid, kept between calls (and maps), is left blank
+    assert np.all(submap_matching._blank_grid(1) == -1)
+
+
+def test_icp_nearest_candidates_answer_as_the_tree():
+    """ICP's nearest neighbours kept from one query (_NearestCandidates) equal a fresh k-d tree
+    query at every move: small ones (the refinement's iterations), large ones (points asked to
+    the tree again), on a noisy room and on a lattice (ties at equal distances), with one
+    candidate or fewer per point."""
+    from scipy.spatial import cKDTree
+
+    from frslam_graph.loop_closure.submap_matching import (
+        _exact_nearest_offsets,
+        _NearestCandidates,
+        transform_points,
+    )
+
+    class Counting(cKDTree):
+        asked = 0
+
+        def query(self, x, *a, **k):
+            Counting.asked += len(x)
+            return super().query(x, *a, **k)
+
+    rng = np.random.default_rng(6)
+    local, scan = _noisy_room()
+    lattice = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2) * 0.1
+    cases = [(local, scan), (lattice, lattice + 0.05), (lattice[:3], rng.uniform(0.0, 0.3, (50, 2)))]
+    asked = []
+    for ref, query in cases:
+        tree = Counting(ref)
+        near = _NearestCandidates(tree, ref, query, 0.4, 4)
+        Counting.asked = 0
+        moves = [np.zeros(3), np.array([0.05, 0.0, 0.0])]  # the lattice: ties on the cell borders
+        moves += list(rng.normal(0.0, [0.01, 0.01, 0.003], (20, 3)))
+        moves += list(rng.normal(0.0, [0.2, 0.2, 0.05], (10, 3)))
+        for move in moves:
+            moved = transform_points(move, query)
+            for dist in (0.3, 0.15, 0.05):
+                got = near.nearest_offsets(moved, dist)
+                undecided = Counting.asked  # the points it asked the tree again
+                want = _exact_nearest_offsets(tree, ref, moved, dist)
+                Counting.asked = undecided
+                for a, b in zip(got, want, strict=True):
+                    np.testing.assert_array_equal(a, b)
+        asked.append(Counting.asked / (len(moves) * 3 * len(query)))
+    assert 0.0 < asked[0] < 0.5  # the room: some points asked again (the large moves), most not
+    assert asked[1] > 0.5  # the lattice's ties: asked
 
 
 def test_line_map_breaks_ties_as_the_distance_transform():
@@ -219,3 +268,22 @@ def test_the_wheel_model_lets_the_refined_scan_carry_each_step(test_data):
     assert default.matched == former.matched == 51
     assert default.trans_mean < 0.9 * former.trans_mean
     assert default.rot_mean <= former.rot_mean
+
+
+def test_stable_order_and_first_of_each_are_numpys():
+    """stable_order (key and index packed into one int64, sorted by value) is np.argsort's stable
+    order, and first_of_each np.unique's first indices: duplicates, negative keys, keys too wide
+    to pack (argsorted), one key."""
+    from frslam_graph.loop_closure.submap_matching import first_of_each, stable_order
+
+    rng = np.random.default_rng(7)
+    keys = [
+        rng.integers(-50, 50, 3000),  # many duplicates
+        rng.integers(-(1 << 40), 1 << 40, 2000),
+        rng.integers(-(1 << 62), 1 << 62, 500),  # too wide: argsorted
+        np.array([5]),
+    ]
+    for key in keys:
+        np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
+        np.testing.assert_array_equal(first_of_each(key), np.unique(key, return_index=True)[1])
+    assert len(stable_order(np.zeros(0, np.int64))) == 0

@@ -90,6 +90,15 @@ def _scratch(slot: int, shape: tuple[int, ...], dtype: type) -> np.ndarray:
     return buf[:n].view(dtype).reshape(shape)
 
 
+def _blank_grid(n: int) -> np.ndarray:
+    """This thread's int32 grid of at least ``n`` cells, all -1 (a caller sets the cells it uses
+    and sets them back to -1 before it returns); grown to the largest request."""
+    grid: np.ndarray | None = getattr(_SCRATCH, "blank", None)
+    if grid is None or len(grid) < n:
+        grid = _SCRATCH.blank = np.full(n, -1, np.int32)
+    return grid
+
+
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (M, 2) given in the frame ``pose`` (x, y, theta) -> the frame ``pose`` lives in."""
     return rigid_points(
@@ -111,14 +120,39 @@ def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
+def stable_order(key: np.ndarray) -> np.ndarray:
+    """``np.argsort(key, kind="stable")`` of an int64 array (N,), the same indices, ~3x faster:
+    each key and its index packed into one int64 (key - min above the index's bits) and sorted
+    by value. Keys spanning too wide a range for that are argsorted."""
+    n = len(key)
+    if n == 0:
+        return np.zeros(0, np.intp)
+    lo = int(key.min())
+    bits = max(int(n - 1).bit_length(), 1)
+    if int(key.max()) - lo >= 1 << (62 - bits):
+        return np.argsort(key, kind="stable")
+    packed = np.sort(((key - lo) << bits) | np.arange(n, dtype=np.int64))
+    return (packed & ((1 << bits) - 1)).astype(np.intp)
+
+
+def first_of_each(key: np.ndarray) -> np.ndarray:
+    """``np.unique(key, return_index=True)[1]`` of an int64 array (N,), N >= 1: the index of each
+    distinct key's first occurrence, in key order."""
+    order = stable_order(key)
+    ks = key[order]
+    first = np.empty(len(ks), bool)
+    first[0] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    return order[first]
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """The first point of each occupied voxel (order kept)."""
     if len(points) == 0:
         return np.zeros((0, 2))
     cells = np.floor(points / voxel).astype(np.int64)
     h = cells[:, 0] * 73856093 ^ cells[:, 1] * 19349663
-    _, idx = np.unique(h, return_index=True)
-    return points[np.sort(idx)]
+    return points[np.sort(first_of_each(h))]
 
 
 def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
@@ -134,8 +168,8 @@ def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
     i -= i.min()
     j -= j.min()
     key = i * (int(j.max()) + 1) + j
-    # np.unique(key, return_inverse=True, return_counts=True), a third cheaper
-    order = np.argsort(key)
+    # np.unique(key, return_inverse=True, return_counts=True), two thirds cheaper
+    order = stable_order(key)
     ks = key[order]
     first = np.empty(len(ks), bool)
     first[0] = True
@@ -426,6 +460,60 @@ def _exact_nearest_offsets(
     return sel, j, ps, ps - ref_points[j]
 
 
+class _NearestCandidates:
+    """Exact nearest reference points of query points that move a little: ICP's iterations.
+
+    A k-d tree query costs ~100 us for a scan's few hundred points, six times per scan in the
+    odometry's refinement. Its answers are kept from one query, at the query points' first
+    positions ``start`` (N, 2): their ``k`` nearest reference points within ``reach`` (m). A
+    point that has since moved by delta is at least ``bound - delta`` from every reference point
+    outside its ``k`` >= 2 candidates (``bound``: the k-th one's distance, ``reach`` when it has fewer);
+    when its nearest candidate is nearer than that, with no tie (1e-9 m) with the next candidate,
+    the bound or ``max_distance``, it is its exact nearest neighbour; when both are beyond
+    ``max_distance``, it has none. The few points left undecided are asked to the tree: the same
+    answers as :func:`_exact_nearest_offsets` on the tree, whatever the moves (tested)."""
+
+    def __init__(self, tree: cKDTree, ref_points: np.ndarray, start: np.ndarray, reach: float, k: int):
+        d, idx = tree.query(start, k=k, distance_upper_bound=reach)
+        found = np.isfinite(d)
+        self.tree, self.ref_points, self.start = tree, ref_points, start
+        self.bound = np.where(found[:, -1], d[:, -1], reach)
+        self.idx = np.where(found, idx, 0)
+        self.cx = np.where(found, ref_points[self.idx, 0], np.inf)  # missing candidates: infinitely far
+        self.cy = np.where(found, ref_points[self.idx, 1], np.inf)
+        given = np.zeros(len(ref_points), bool)
+        given[self.idx[found]] = True
+        self.indices = np.flatnonzero(given)  # every reference point a query may be given
+
+    def nearest_offsets(
+        self, points: np.ndarray, max_distance: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """As :func:`_exact_nearest_offsets` for ``points`` (N, 2): the start points moved."""
+        dx = self.cx - points[:, :1]
+        dy = self.cy - points[:, 1:]
+        d2 = dx * dx + dy * dy
+        two = np.partition(d2, 1, axis=1)  # k >= 2: the nearest and the next candidate
+        c, c2 = np.sqrt(two[:, 0]), np.sqrt(two[:, 1])
+        moved = points - self.start
+        safe = self.bound - np.hypot(moved[:, 0], moved[:, 1]) - _TIE
+        near = (c < safe) & (c2 > c + _TIE)  # the nearest candidate is the nearest point
+        sure = (near & (np.abs(c - max_distance) > _TIE)) | (
+            (safe > max_distance + _TIE) & (c > max_distance + _TIE)
+        )
+        j = self.idx[np.arange(len(points)), d2.argmin(axis=1)]
+        hit = sure & (c < max_distance)
+        if not sure.all():
+            ask = np.flatnonzero(~sure)
+            d, jj = self.tree.query(points[ask], distance_upper_bound=max_distance)
+            ok = np.isfinite(d)
+            hit[ask] = ok
+            j[ask[ok]] = jj[ok]
+        sel = np.flatnonzero(hit)
+        j = j[sel]
+        ps = points[sel]
+        return sel, j, ps, ps - self.ref_points[j]
+
+
 class LineMap:
     """Reference points (M, 2) with a k-d tree and line normals, no grid: for point-to-line ICP
     (:func:`icp_point_to_line`) and inlier counts only. The odometry's local map, rebuilt every
@@ -459,15 +547,17 @@ class LineMap:
         """Normals (len(j), 2) and line qualities (len(j),) of the reference points ``j``."""
         new = j[~self._known[j]]
         if len(new):
-            new = np.unique(new)
+            ask = np.zeros(len(self.points), bool)
+            ask[new] = True
+            new = np.flatnonzero(ask)  # np.unique(new)
             self._normals[new], self._quality[new] = _normals(self.points, self.tree, at=new)
             self._known[new] = True
         return self._normals[j], self._quality[j]
 
-    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray]:
-        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, and per cell
-        (flat, raster order) the point it keeps (the last one in it, as ``owner[cells] =
-        arange`` keeps it), -1 where no point is."""
+    def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+        """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the occupied
+        cells (flat, raster order) and the point each keeps (the last one in it, as
+        ``owner[cells] = arange`` keeps it)."""
         if self._grid_cells is None:
             pts, res = self.points, self.resolution
             lo, hi = point_bounds(pts)
@@ -475,12 +565,10 @@ class LineMap:
             w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
             ij = np.floor((pts - lo) / res).astype(int)
             flat = ij[:, 1] * w + ij[:, 0]
-            order = np.argsort(flat, kind="stable")
+            order = stable_order(flat)
             fs = flat[order]
             last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
-            owner = np.full(w * h, -1, np.int32)
-            owner[fs[last]] = order[last]
-            self._grid_cells = (lo, w, h, owner)
+            self._grid_cells = (lo, w, h, fs[last], order[last].astype(np.int32))
         return self._grid_cells
 
     def inlier_fraction(self, query: np.ndarray, pose: np.ndarray, distance: float) -> float:
@@ -496,7 +584,7 @@ class LineMap:
         refinement's test of its result against its start)."""
         if len(self.points) == 0 or len(query) == 0:
             return np.zeros(len(poses))
-        lo, w, h, grid = self._occupied()
+        lo, w, h, cells, owners = self._occupied()
         p = np.concatenate([transform_points(pose, query) for pose in poses])
         ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
         iy = np.floor((p[:, 1] - lo[1]) / self.resolution).astype(np.int64)
@@ -504,13 +592,27 @@ class LineMap:
         cy = iy[None, :] + _CELL_ORDER[:, 1:]
         inside = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
         inside &= ((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[None, :]  # the query's cell in the grid
-        who = grid[np.where(inside, cy * w + cx, 0)]
+        # the point per cell (-1: none) on a grid kept between calls, blank outside them: filling
+        # a fresh one cost more than the look-ups (~1.5 MB, its pages zero-filled by the kernel)
+        grid = _blank_grid(w * h)
+        grid[cells] = owners
+        try:
+            who = grid[np.where(inside, cy * w + cx, 0)]
+        finally:
+            grid[cells] = -1
         found = inside & (who >= 0)
         first = found.argmax(axis=0)
         off = p - self.points[np.maximum(who[first, np.arange(len(p))], 0)]
         hit = found.any(axis=0) & (np.hypot(off[:, 0], off[:, 1]) <= distance)
         return np.count_nonzero(hit.reshape(len(poses), len(query)), axis=1) / len(query)
 
+
+# icp_point_to_line's nearest neighbours (_NearestCandidates): candidates per query point, and
+# reach beyond the association distance (m); more = fewer points asked to the tree again, a
+# slower first query (FR079's refinement: 0.7 % asked again)
+_CANDIDATES = 4
+_CANDIDATE_MARGIN = 0.1
+_TIE = 1e-9  # m; distances closer than this are a tie (asked to the tree), far above rounding
 
 # LineMap.inlier_fraction's cells (dx, dy; dy -1 = the previous grid row): the query's own, the
 # sides, the corners, in the order cv2.distanceTransformWithLabels (5×5 mask, one label per
@@ -714,9 +816,24 @@ def icp_point_to_line(
         return None
     x = np.asarray(pose, dtype=np.float64).copy()
     h = None
+    # the odometry's refinement (LineMap) starts at KISS-ICP's pose and moves millimetres: its
+    # nearest neighbours come from one query's candidates (_NearestCandidates; FR079: 1.31 ->
+    # 1.05 ms per ICP); the loop-closure matcher starts at a correlative-search peak and moves
+    # more: there the candidates were slower (1.63 -> 1.75 ms), it asks the tree every iteration
+    candidates = isinstance(ref, LineMap)
+    near = None
     for it in range(iterations):
         dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
-        sel, j, p, off = ref.exact_nearest_offsets(transform_points(x, query), dmax)
+        moved = transform_points(x, query)
+        if not candidates:
+            sel, j, p, off = ref.exact_nearest_offsets(moved, dmax)
+        else:
+            if near is None:
+                near = _NearestCandidates(
+                    ref.tree, ref.points, moved, max_distance + _CANDIDATE_MARGIN, _CANDIDATES
+                )
+                ref.line_normals(near.indices)  # the normals the iterations may need, in one batch
+            sel, j, p, off = near.nearest_offsets(moved, dmax)
         if len(sel) < 10:
             return None
         n, q = ref.line_normals(j)
@@ -862,11 +979,13 @@ __all__ = [
     "LineMap",
     "ReferenceSubmap",
     "ScanMatch",
+    "first_of_each",
     "icp_point_to_line",
     "match_scan",
     "match_scan_steps",
     "point_bounds",
     "rigid_points",
+    "stable_order",
     "transform_points",
     "voxel_downsample",
 ]

@@ -45,6 +45,7 @@ from frslam_graph.errors import RecordingError
 from frslam_graph.loop_closure.submap_matching import (
     LineMap,
     cell_means,
+    first_of_each,
     icp_point_to_line,
     transform_points,
 )
@@ -189,7 +190,7 @@ def scan_geometry(points: np.ndarray, voxel_size: float, neighbours: int = 2) ->
     # one point per voxel
     cx = np.floor(px / voxel_size).astype(np.int64)
     cy = np.floor(py / voxel_size).astype(np.int64)
-    _, first = np.unique(cx * 2_000_003 + cy, return_index=True)
+    first = first_of_each(cx * 2_000_003 + cy)
     px, py, nx, ny = px[first], py[first], nx[first], ny[first]
     J = np.column_stack((nx, ny, ny * px - nx * py))
     H = J.T @ J
