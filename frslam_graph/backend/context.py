@@ -25,7 +25,7 @@ import numpy as np
 from frslam_graph.backend.decisions import PRIOR_REMOVAL_CAUSES, DecisionLog, PriorRemoval
 from frslam_graph.backend.deferred import DeferredSteps
 from frslam_graph.backend.graph import PoseGraph, PriorHandle
-from frslam_graph.backend.keyframes import KeyframeInfo, KeyframeStore
+from frslam_graph.backend.keyframes import KeyframeInfo, KeyframeStore, StoredKeyframe
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, FrslamError, RecordingError
 from frslam_graph.se2 import compose, inverse
@@ -87,7 +87,9 @@ class BackendContext:
                 cov = self.graph.marginal_covariance(index)
             except Exception:  # noqa: BLE001 - a marginal may be unavailable right after a removal
                 cov = None
-            return FrozenContext(self.keyframes(), *self.keyframe_scans(), index, cov)
+            n = len(self.store)
+            estimates = self.graph.estimates() if n else np.zeros((0, 3))
+            return FrozenContext([self.store[i] for i in range(n)], estimates, index, cov)
 
     def occupancy_grid(self, resolution: float = 0.05, free_space: bool = False):
         """LiDAR occupancy grid of the keyframe scans at the current estimates (see
@@ -214,36 +216,24 @@ class BackendContext:
 
 class FrozenContext:
     """The keyframes of a :class:`BackendContext` frozen at one moment (:meth:`BackendContext.frozen`):
-    their poses in ``map`` and ``odom``, their scans (base_link; read-only views that later
-    keyframes never overwrite) and one keyframe's marginal covariance. It answers the reading
-    calls a check of a registration makes (``keyframe``, ``keyframes``, ``keyframe_scans``,
-    ``graph.estimates`` and ``graph.marginal_covariance``), so that check can run in another
-    thread while scans keep coming; it changes nothing."""
+    their stored records (stamp, odom pose, scan in base_link: never changed once stored; the
+    points are read-only views later keyframes never overwrite), their estimates in ``map`` and
+    one keyframe's marginal covariance. It answers the reading calls a check of a registration
+    makes (``keyframe``, ``keyframe_scans``, ``graph.estimates``, ``graph.marginal_covariance``),
+    so that check can run in another thread while scans keep coming; it changes nothing."""
 
     def __init__(
-        self,
-        infos: list[KeyframeInfo],
-        points: list[np.ndarray],
-        origins: list[np.ndarray],
-        index: int,
-        covariance: np.ndarray | None,
+        self, stored: list[StoredKeyframe], estimates: np.ndarray, index: int, covariance: np.ndarray | None
     ) -> None:
-        self._infos = infos
-        self._points, self._origins = points, origins
-        self.graph = _FrozenGraph(np.array([k.pose_map for k in infos]).reshape(-1, 3), index, covariance)
-
-    def __len__(self) -> int:
-        return len(self._infos)
+        self._stored = stored
+        self.graph = _FrozenGraph(estimates, index, covariance)
 
     def keyframe(self, i: int) -> KeyframeInfo:
-        k = self._infos[i]
-        return KeyframeInfo(k.index, k.stamp, k.scan_index, k.pose_map.copy(), k.pose_odom.copy())
-
-    def keyframes(self) -> list[KeyframeInfo]:
-        return [self.keyframe(i) for i in range(len(self._infos))]
+        kf = self._stored[i]
+        return KeyframeInfo(i, kf.stamp, kf.scan_index, self.graph.estimate(i), kf.pose_odom.copy())
 
     def keyframe_scans(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        return list(self._points), list(self._origins)
+        return [kf.points for kf in self._stored], [kf.sensor_origin for kf in self._stored]
 
 
 class _FrozenGraph:
@@ -252,8 +242,8 @@ class _FrozenGraph:
     def __init__(self, estimates: np.ndarray, index: int, covariance: np.ndarray | None) -> None:
         self._estimates, self._index, self._covariance = estimates, index, covariance
 
-    def __len__(self) -> int:
-        return len(self._estimates)
+    def estimate(self, i: int) -> np.ndarray:
+        return self._estimates[i].copy()
 
     def estimates(self) -> np.ndarray:
         return self._estimates.copy()

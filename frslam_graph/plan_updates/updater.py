@@ -40,7 +40,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -116,7 +116,6 @@ class _Outcome:
     recheck: _Recheck | None
     registration: Any
     error: str | None
-    numbers: dict[str, float] = field(default_factory=dict)
     verdict: Verdict | None = None
     seconds: float = 0.0
 
@@ -227,9 +226,10 @@ class FloorPlanUpdater:
         if trigger is not None:
             ctx.deferred.run_all()
             lag = self.config.background_registration_s
-            self._start(ctx, keyframe, trigger, lag)
-            if lag <= 0.0:
-                self._conclude(ctx, keyframe)
+            if lag > 0.0:
+                self._start(ctx, keyframe, trigger, lag)
+            else:
+                self._register(ctx, keyframe, trigger)
         elif self.accepted is not None:
             if self._attempt is None and self.refiner.due(dist):
                 ctx.deferred.run_all()
@@ -409,7 +409,7 @@ class FloorPlanUpdater:
                 scale_y=float(reg.scale[1]),
             )
         verdict = self.judge.judge(view, keyframe, reg, grid, nums, accepted, pending, drift, n_kf)
-        return _Outcome(grid, recheck, reg, None, nums, verdict, time.perf_counter() - t0)
+        return _Outcome(grid, recheck, reg, None, verdict, time.perf_counter() - t0)
 
     def _conclude(self, ctx: BackendContext, now: KeyframeInfo):
         """Apply the registration attempt in progress (waiting for it if it is not done) at
@@ -526,7 +526,7 @@ class FloorPlanUpdater:
         retracted: there a wall the map sees through is a wrong placement (e.g. the mirror of a
         near-symmetric plan, which differs by a wall the first scans had not seen)."""
         cfg = self.config
-        margin = tolerances(cfg, drift, acc.drawing_tol)[1]
+        fit_tol, margin = tolerances(cfg, drift, acc.drawing_tol)
         crossing = walls_through_free_space(acc.relocaliser, grid, margin)
         if crossing <= cfg.retract_walls_in_free_space:
             return None
@@ -536,7 +536,6 @@ class FloorPlanUpdater:
             pts, dropped, _ = wall_pieces_seen_through(rel, grid, margin, cfg.max_walls_in_free_space)
         if dropped < 0.5:
             part = ignoring_pieces(rel, pts, margin)
-            fit_tol = tolerances(cfg, drift, acc.drawing_tol)[0]
             fit = part.fit_points(occupied_points(grid), fit_tol)
             if fit >= cfg.min_map_fit or self.judge.still_clearly_best(view, keyframe, grid, acc, drift, fit):
                 return _Recheck(
