@@ -432,10 +432,12 @@ def test_halmstad_apartment_placement_polished_past_its_mirror_image(shared_data
 
 
 def test_restarts_leave_a_doubtful_match_doubtful(test_data):
-    # plan 07e11ad2 against a tango-style map of another flat (tools/bench_real.py's `--parts
-    # other`, case 6 at 100 %): the screened best scores 0.448 and its runner-up 0.428 (flagged
-    # ambiguous); the restarts raise them to 0.488 and 0.438 and the ambiguity fell to 0.896,
-    # under the flag. Polishing must not make a doubtful answer look sure
+    # plan 07e11ad2 against a thick-style map of another flat (tools/bench_real.py's `--parts
+    # other`, case 6 at 100 %, drawn with another seed): flagged ambiguous (0.903) as screened;
+    # without the floor the restarts polish the best further than its runner-ups and the
+    # ambiguity falls to 0.857, under the flag (the case of session 12, a tango map, no longer
+    # shows it since the map makers draw their walls centred on the plan's boundaries).
+    # Polishing must not make a doubtful answer look sure
     from conftest import load_tool
     from frslam_graph.datasets.simulator import Distortion, House
 
@@ -444,9 +446,9 @@ def test_restarts_leave_a_doubtful_match_doubtful(test_data):
     bench = load_tool("bench_real")
     plan = FloorPlan.load(next((test_data / "r2v").glob("07e11ad2b598*.txt")))
     other = FloorPlan.load(next((test_data / "r2v").glob("000966a2577f*.txt")))
-    dist = Distortion.random(np.random.default_rng([0, 6, 5]), rotation="step90", plan_bounds=other.bounds)
+    dist = Distortion.random(np.random.default_rng([0, 6, 5, 2]), rotation="step90", plan_bounds=other.bounds)
     grid, _, _ = bench.styled_map(
-        House.from_plan(other, dist), "tango", 1.0, np.random.default_rng([0, 6, 100, len("tango")])
+        House.from_plan(other, dist), "thick", 1.0, np.random.default_rng([0, 6, 100, len("thick"), 2])
     )
     reg = register(plan, grid)
     assert not reg.ok or reg.details["ambiguous"]

@@ -272,6 +272,26 @@ def _smooth_noise(shape: tuple[int, int], rng: np.random.Generator, sigma_cells:
     return f / max(float(f.std()), 1e-9)
 
 
+def wall_cells(plan: Any, frame: Any, thick: float) -> np.ndarray:
+    """(H, W) bool: the cells of ``frame`` whose centre lies within half a wall of a room boundary
+    of ``plan`` (metres), the wall centred on the boundary as the plan draws it.
+
+    Half a wall is ``(round(thick / 2 / resolution) + 0.5)`` cells: on average as many cells
+    across as the disc of that radius dilating a one-cell edge. That edge (the first cell past
+    each change of room label along +x and +y) put every wall half a cell off its boundary, in
+    +x and +y: the map then showed the rooms shifted by (0.025, 0.025) m from the truth, and
+    the IoU_a of right placements lost 2.6 points to it."""
+    import shapely
+
+    from frslam_graph.raster import rasterise_polygons
+
+    half = (round(0.5 * thick / frame.resolution) + 0.5) * frame.resolution
+    lines = shapely.MultiLineString(
+        [np.asarray(ring.coords) for r in plan.rooms for ring in (r.polygon.exterior, *r.polygon.interiors)]
+    )
+    return rasterise_polygons([lines.buffer(half)], frame).astype(bool)
+
+
 def styled_map(house: Any, style: str, share: float, rng: np.random.Generator, resolution: float = 0.05):
     """(OccupancyGrid, explored room ids, covered share: the plan's area in explored rooms the map
     shows) of ``house`` (simulator House, used for its metric plan and its door graph only)
@@ -290,11 +310,7 @@ def styled_map(house: Any, style: str, share: float, rng: np.random.Generator, r
     inside = labels > 0
     # walls: room boundaries grown to the style's thickness, door openings cut out
     thick = rng.uniform(0.15, 0.35) if style == "thick" else rng.uniform(0.08, 0.2)
-    edge = np.zeros(labels.shape, np.uint8)
-    lab = labels.astype(np.int32)
-    edge[:, 1:] |= (lab[:, 1:] != lab[:, :-1]).astype(np.uint8)
-    edge[1:, :] |= (lab[1:, :] != lab[:-1, :]).astype(np.uint8)
-    wall = cv2.dilate(edge, _disc(0.5 * thick / resolution)).astype(bool)
+    wall = wall_cells(hplan, frame, thick)
     # door openings across the wall between the door's two rooms (R2V door segments may lie up to
     # a wall's width off the rooms' shared boundary: the opening reaches them, as the simulator's)
     doors = []
