@@ -54,15 +54,15 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+from _paths import REPO, SHARED_DATA  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 PY = sys.executable
 FRSLAM = [PY, "-c", "import sys; from frslam_graph.cli import main; sys.exit(main())"]
 TIMEOUT_S = 30.0
 RSS_TARGET_MB = 1024.0
 RSS_GUARD_MB = 2048.0
-SHARED = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED = SHARED_DATA
 if not SHARED.is_dir():
     SHARED = Path("/work/shared/data")
 

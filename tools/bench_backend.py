@@ -51,7 +51,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import resource
 import statistics
 import sys
@@ -61,9 +60,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_paths.py, also when loaded by a test
+from _paths import REPO, SHARED_DATA  # noqa: E402
+
 sys.path.insert(0, str(REPO / "tests"))
-sys.path.insert(0, str(REPO / "tools"))
 
 from _sweep import Sweep, SweepError  # noqa: E402
 from frslam_graph.datasets import Scan  # noqa: E402
@@ -75,7 +75,7 @@ from frslam_graph.odometry.motion_model import between  # noqa: E402
 from frslam_graph.offline import process  # noqa: E402
 from frslam_graph.slam import FRSlam  # noqa: E402
 
-R2V_DIR = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "floorplans" / "r2v"
+R2V_DIR = SHARED_DATA / "floorplans" / "r2v"
 WRONG_FRAC = 0.25
 # Regimes of section 2: simulator options (beyond beams / rate / route) and backend config.
 REGIMES = {

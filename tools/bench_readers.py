@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import bz2
-import os
 import shutil
 import statistics
 import struct
@@ -23,9 +22,8 @@ import time
 import warnings
 from pathlib import Path
 
+from _paths import SHARED_DATA  # noqa: E402
 from frslam_graph.datasets import RecordingWarning, open_recording
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def read_all(path: Path) -> tuple[int, float]:
@@ -92,7 +90,7 @@ def main() -> None:
     ap.add_argument(
         "--data",
         type=Path,
-        default=Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data")),
+        default=SHARED_DATA,
     )
     args = ap.parse_args()
     rows = []

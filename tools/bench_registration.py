@@ -37,7 +37,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import sys
 import time
 import traceback
@@ -49,10 +48,8 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_sweep.py, also when loaded by a test
+from _paths import SHARED_DATA as DEFAULT_DATA  # noqa: E402
 from _sweep import Sweep, SweepError  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 ALL_METHODS = ("paper", "mfr", "orb", "sift", "akaze", "ecc")
 LABELS = {

@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
+from _paths import SHARED_DATA
 from frslam_graph.datasets.simulator import (
     Distortion,
     House,
@@ -33,11 +32,7 @@ from frslam_graph.datasets.simulator import (
 
 from frslam_graph.floorplan import FloorPlan
 
-SHARED = (
-    Path(os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-    / "floorplans"
-    / "r2v"
-)
+SHARED = SHARED_DATA / "floorplans" / "r2v"
 
 
 def _houses(n: int, seed: int) -> list[tuple[str, House, np.ndarray]]:

@@ -76,17 +76,10 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/_sweep.py, also when loaded by a test
+from _paths import LOGS  # noqa: E402
+from _paths import SHARED_DATA as DATA  # noqa: E402
 from _sweep import Sweep, SweepError  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("FRSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
-# name -> (recording, relations) under DATA
-LOGS = {
-    "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
-    "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),
-    "fr079": ("carmen/fr079.clf.bz2", "carmen/fr079.relations"),
-    "intel.bag": ("bags/intel.bag", "carmen/intel.relations"),
-}
 # Hess et al., "Real-Time Loop Closure in 2D LIDAR SLAM" (ICRA 2016), Table I, as quoted in
 # ../shared/data/README.md (Intel, FR079). ACES: the README gives "about 0.04 m for both" and asks
 # to check the paper; 0.0375 m is the figure the project has used as its target. Not re-checked.

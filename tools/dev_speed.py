@@ -12,23 +12,14 @@ from __future__ import annotations
 import argparse
 import cProfile
 import json
-import os
 import resource
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-
-DATA = Path(
-    os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
-)
-LOGS = {
-    "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
-    "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),
-    "fr079": ("carmen/fr079.clf.bz2", "carmen/fr079.relations"),
-    "intel.bag": ("bags/intel.bag", "carmen/intel.relations"),
-}
+from _paths import LOGS  # noqa: E402
+from _paths import SHARED_DATA as DATA  # noqa: E402
 
 
 def main() -> None:

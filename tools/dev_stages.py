@@ -18,23 +18,18 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import os
 import resource
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _paths import LOGS as SHARED_LOGS  # noqa: E402
+from _paths import SHARED_DATA as DATA  # noqa: E402
 
-DATA = Path(
-    os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
-)
 TESTS = Path(__file__).resolve().parents[1] / "tests" / "data"
 LOGS = {
-    "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
-    "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),
-    "fr079": ("carmen/fr079.clf.bz2", "carmen/fr079.relations"),
-    "intel.bag": ("bags/intel.bag", "carmen/intel.relations"),
+    **SHARED_LOGS,
     # 250 scans of FR079 in the repository: a check of this script in seconds
     "fr079_250": (TESTS / "fr079_250.clf.bz2", TESTS / "fr079_250.relations"),
 }

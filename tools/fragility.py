@@ -18,21 +18,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-DATA = Path(
-    os.environ.get("FRSLAM_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
-)
-LOGS = {
-    "aces": ("carmen/aces.clf.bz2", "carmen/aces.relations"),
-    "intel": ("carmen/intel.clf.bz2", "carmen/intel.relations"),
-    "fr079": ("carmen/fr079.clf.bz2", "carmen/fr079.relations"),
-    "intel.bag": ("bags/intel.bag", "carmen/intel.relations"),
-}
+from _paths import LOGS  # noqa: E402
+from _paths import SHARED_DATA as DATA  # noqa: E402
+
 #: nearby configurations (overrides of the default): the wheel model around its default (8 %/m,
 #: 8 mm floor; session 6 measured these), and the former fraction with the current floor
 VARIANTS: dict[str, dict] = {

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
+from _paths import REPO as ROOT  # noqa: E402
+from _paths import SHARED_DATA  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 
@@ -43,7 +43,7 @@ def main() -> None:
     ap.add_argument(
         "--data",
         type=Path,
-        default=Path(os.environ.get("FRSLAM_SHARED_DATA", ROOT.parent / "shared" / "data")),
+        default=SHARED_DATA,
     )
     ap.add_argument("--matrix", type=Path, default=None, help="JSON with a 'matrix' (plan -> map)")
     ap.add_argument("--out", type=Path, required=True)

@@ -17,13 +17,13 @@ interior walls the map has seen through at margin 0.2 / 0.4 m, ``max_walls_in_fr
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
+from _paths import REPO as ROOT  # noqa: E402
+from _paths import SHARED_DATA  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 TOLERANCES = (0.15, 0.25, 0.35, 0.5)
 
@@ -69,7 +69,7 @@ def main() -> None:
     ap.add_argument(
         "--data",
         type=Path,
-        default=Path(os.environ.get("FRSLAM_SHARED_DATA", ROOT.parent / "shared" / "data")),
+        default=SHARED_DATA,
     )
     ap.add_argument("--dir", type=Path, required=True, help="folder of the snapshot maps")
     ap.add_argument("--scans", type=int, nargs="*", default=[])
