@@ -14,7 +14,7 @@ from frslam_graph.backend.context import BackendContext, BackendHook
 from frslam_graph.backend.decisions import DecisionLog
 from frslam_graph.config import UpdatesConfig
 from frslam_graph.errors import ConfigError
-from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge
+from frslam_graph.plan_updates.judge import RegistrationJudge
 from frslam_graph.plan_updates.schedule import REGISTER_GROWTH_FRAC, RegistrationSchedule
 from frslam_graph.plan_updates.updater import FloorPlanUpdater
 from frslam_graph.slam import FRSlam
@@ -83,7 +83,7 @@ def test_judge_returns_a_verdict_and_writes_nothing():
         (SimpleNamespace(ok=True, reason="", doubt=None, score=cfg.min_score / 2, ambiguity=0.0), "score"),
     ):
         v = judge.judge(ctx, kf, reg, None, {"area": 12.0}, None, None, 0.0, 4)
-        assert v.outcome == "reject" and v.why.startswith(why) and v.pending is KEEP
+        assert v.outcome == "reject" and v.why.startswith(why) and v.pending is None
         assert v.numbers == {"area": 12.0}
     assert len(ctx.log) == 0
 

@@ -68,17 +68,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.keyframes import KeyframeInfo
 
 
-#: Verdict.pending when the verdict leaves the registration awaiting confirmation as it was
-KEEP = object()
-
-
 @dataclass
 class Verdict:
     """``accept`` (a new accepted registration; ``relocalisation`` of the current scan on it),
     ``refine`` (the same placement fitted to more data replaces the accepted one) or ``reject``
-    (``why``). ``pending``: the registrations awaiting confirmation afterwards (a list of at most
-    :data:`CONFIRM_CANDIDATES`, or None; :data:`KEEP`:
-    unchanged)."""
+    (``why``). ``pending``: the registrations awaiting confirmation afterwards (at most
+    :data:`CONFIRM_CANDIDATES`, oldest first; empty: none), or None: unchanged."""
 
     outcome: Literal["accept", "refine", "reject"]
     why: str
@@ -88,7 +83,7 @@ class Verdict:
     relocaliser: Relocaliser | None = None
     relocalisation: Relocalisation | None = None
     map_fit: float = float("nan")
-    pending: Any = KEEP
+    pending: tuple[Registration, ...] | None = None
 
 
 def tolerances(config: UpdatesConfig, drift: float, drawing_tol: float = 0.0) -> tuple[float, float]:
@@ -123,7 +118,7 @@ class _Case:
     grid: Any
     nums: dict[str, float]
     accepted: AcceptedPlan | None
-    pending: Any
+    pending: tuple[Registration, ...]
     drift: float  # metres since the last accepted prior
     n_keyframes: int
     drawing_tol: float = 0.0  # m, the registration's (drawing_tolerance)
@@ -152,12 +147,12 @@ class RegistrationJudge:
         grid: Any,
         numbers: dict[str, float],
         accepted: AcceptedPlan | None,
-        pending: Any,
+        pending: tuple[Registration, ...],
         drift: float,
         n_keyframes: int,
     ) -> Verdict:
         """The verdict on ``reg`` (registration plan -> map) made on ``grid`` (the map); ``numbers``
-        start its numbers; ``pending``: the registrations awaiting confirmation (list or None); ``drift``: metres
+        start its numbers; ``pending``: the registrations awaiting confirmation (oldest first); ``drift``: metres
         since the last accepted prior; ``n_keyframes``: keyframes seen by the updater."""
         case = _Case(ctx, keyframe, grid, dict(numbers), accepted, pending, drift, n_keyframes)
         case.drawing_tol = drawing_tolerance(reg)
@@ -472,10 +467,10 @@ class RegistrationJudge:
                 # agrees must confirm this one (as for loop closures with large corrections)
                 # the candidates: the last CONFIRM_CANDIDATES registrations that passed every
                 # other check (one odd placement in between does not reset the evidence)
-                waiting = list(case.pending or [])
+                waiting = case.pending
                 if not waiting:
                     why = f"{case.drift:.0f} m travelled without a prior: waiting for a second registration that agrees"
-                    return self._reject(case, why, pending=[reg])
+                    return self._reject(case, why, pending=(reg,))
                 disp = min(matrix_disagreement(self.plan, p.matrix, reg.matrix) for p in waiting)
                 nums["disagreement"] = disp
                 if disp > cfg.agree_tol:
@@ -483,9 +478,9 @@ class RegistrationJudge:
                         case,
                         f"{case.drift:.0f} m travelled without a prior: disagrees with the previous "
                         f"{len(waiting)} registration(s) (RMS {disp:.2f} m at best); waiting for one that agrees",
-                        pending=[*waiting, reg][-CONFIRM_CANDIDATES:],
+                        pending=(*waiting, reg)[-CONFIRM_CANDIDATES:],
                     )
-        return Verdict("accept", "accepted", nums, reg, plan_map, relocaliser, reloc, fit, pending=None)
+        return Verdict("accept", "accepted", nums, reg, plan_map, relocaliser, reloc, fit, pending=())
 
     def _clearly_best_on_the_scans(self, case: _Case, q: float) -> bool:
         """A plan drawn off the building (``drawing_tol`` > 0) in a cluttered building cannot fit
@@ -575,7 +570,7 @@ class RegistrationJudge:
 
     # ------------------------------------------------------------------ verdicts
     @staticmethod
-    def _reject(case: _Case, why: str, pending: Any = KEEP) -> Verdict:
+    def _reject(case: _Case, why: str, pending: tuple[Registration, ...] | None = None) -> Verdict:
         return Verdict("reject", why, case.nums, pending=pending)
 
     @staticmethod
@@ -589,4 +584,4 @@ class RegistrationJudge:
         return Verdict("refine", why, case.nums, reg, plan_map, relocaliser, None, fit)
 
 
-__all__ = ["KEEP", "RegistrationJudge", "Verdict", "tolerances"]
+__all__ = ["RegistrationJudge", "Verdict", "tolerances"]

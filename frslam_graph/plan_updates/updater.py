@@ -57,7 +57,7 @@ from frslam_graph.plan_checks import (
 )
 from frslam_graph.plan_updates.accepted import AcceptedPlan
 from frslam_graph.plan_updates.evidence import ScanEvidence
-from frslam_graph.plan_updates.judge import KEEP, RegistrationJudge, Verdict, tolerances
+from frslam_graph.plan_updates.judge import RegistrationJudge, Verdict, tolerances
 from frslam_graph.plan_updates.priors import HeldReanchor, PriorManager, record
 from frslam_graph.plan_updates.refiner import PlanRefiner, Refinement
 from frslam_graph.plan_updates.schedule import LOCAL_MAP_DISTANCE, RegistrationSchedule, Trigger
@@ -72,6 +72,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext, FrozenContext
     from frslam_graph.backend.decisions import DecisionEvent
     from frslam_graph.backend.keyframes import KeyframeInfo
+    from frslam_graph.registration import Registration
 
 #: the kinds of decision the updater records (``register``: a registration was attempted, its
 #: message says accepted / why not; ``prior_conflict``: many priors contradicted at once, none
@@ -162,7 +163,8 @@ class FloorPlanUpdater:
         self.judge = RegistrationJudge(plan, cfg, self.params, evidence)
         self.refiner = PlanRefiner(plan, cfg, self.params, evidence)
         self.priors = PriorManager(cfg, self.travel, self.schedule, lambda: self.accepted, self.timings)
-        self._pending_reg = None  # registrations waiting for confirmation (a list; see confirm_after_m)
+        # registrations waiting for confirmation, oldest first (see confirm_after_m)
+        self._pending_reg: tuple[Registration, ...] = ()
         self._attempt: _Attempt | None = None  # a registration not yet concluded
         self._executor: ThreadPoolExecutor | None = None  # its background thread, made on first use
         self._mapper = None  # the registrations' occupancy mapper (only the attempt in progress uses it)
@@ -361,7 +363,7 @@ class FloorPlanUpdater:
         keyframe: KeyframeInfo,
         keep: np.ndarray | None,
         accepted: AcceptedPlan | None,
-        pending: Any,
+        pending: tuple[Registration, ...],
         drift: float,
         dist: float,
         n_kf: int,
@@ -426,7 +428,7 @@ class FloorPlanUpdater:
             record(ctx, stamp, "register", f"{reason}; registration failed: {out.error}", i, False, area=area)
             return None
         reg, verdict = out.registration, out.verdict
-        if verdict.pending is not KEEP:
+        if verdict.pending is not None:
             self._pending_reg = verdict.pending
         if verdict.outcome == "accept":
             self._accept(ctx, keyframe, verdict, reason, out.grid, att.dist, now.index)
