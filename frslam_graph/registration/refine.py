@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from frslam_graph.registration.result import matrix_from_params
 
@@ -129,6 +130,7 @@ def refine(
     fixed_delta_stages: int = 1,
     scales: tuple[float, ...] = (0.4, 0.15, 0.05),
     iterations: int = 8,
+    map_walls: np.ndarray | None = None,
 ) -> RefineResult:
     """Gauss-Newton/LM on boundary ``points`` (N, 2, plan units) with unit inward ``normals``
     (N, 2, plan frame); see the module docstring.
@@ -138,6 +140,17 @@ def refine(
     it is held fixed in the first ``fixed_delta_stages`` stages (wide robust scales would trade it
     against the scales). ``correlation``: how many neighbouring points share one independent error
     (inflates the covariance).
+
+    ``map_walls`` (K, 2, map metres; e.g. the map's wall-side free cells): a second, map-to-plan
+    term. The boundary term alone is one-sided: a sample deep in free space (a doorway, a wall
+    drawn off the building, free space seen through a window) keeps pulling outward through the
+    Cauchy tail, while a sample pushed beyond the map's wall loses its room-side free test and
+    stops pulling back, so the scales drift up (Halmstad E5: +1..+5 %). Each map wall cell must
+    lie ``delta`` + half a cell inside the room from the line of a near plan boundary sample (the
+    best of the :data:`WALL_NEIGHBOURS` nearest; the same Cauchy scale, which also bounds the pull
+    of furniture and clutter); an over-scaled plan leaves them unexplained. The two terms get
+    equal total weight (the cells' weights scaled by the number of boundary samples that count
+    over K).
     """
     p = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -155,9 +168,11 @@ def refine(
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
     jac = np.empty((len(p), 6))
+    # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
+    tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
     for stage, c in enumerate(stage_scales):
         free_delta = stage >= fixed_delta_stages
-        kn = None
+        kn = cand = None
         for it in range(iterations):
             cth, sth = math.cos(x[0]), math.sin(x[0])
             # plan point scaled and flipped: (ex * px, f * ey * py), then rotated
@@ -185,6 +200,25 @@ def refine(
             jw = jac * w_all[:, None]
             jtj = jac.T @ jw
             jtr = jw.T @ r
+            if map_walls is not None:
+                # the plan's lines' normals under the scales (inverse transpose), in the map
+                mx, my = n0 * math.exp(-x[3]), n1 * math.exp(-x[4])
+                nl = np.maximum(np.hypot(mx, my), 1e-12)
+                mx, my = mx / nl, my / nl
+                lx, ly = cth * mx - sth * my, sth * mx + cth * my
+                if cand is None or it % 3 == 0:  # candidates: the cells taken into the plan frame
+                    dx, dy = map_walls[:, 0] - x[1], map_walls[:, 1] - x[2]
+                    u = np.column_stack([cth * dx + sth * dy, f * (cth * dy - sth * dx)])
+                    u *= np.array([sx / math.exp(x[3]), sy / math.exp(x[4])])
+                    k = min(WALL_NEIGHBOURS, len(p))
+                    cand = tree.query(u, k=k)[1].reshape(len(u), k)
+                jm, rm, wm = _wall_terms(
+                    map_walls, cand, x, bx, by, lx, ly, ax, ay, cth, sth, res, c, free_delta
+                )
+                wm *= float((w_all > 0).sum()) / max(len(rm), 1)  # equal total weight
+                jwm = jm * wm[:, None]
+                jtj = jtj + jm.T @ jwm
+                jtr = jtr + jwm.T @ rm
             # Gaussian prior on delta, relative to a residual noise of half a pixel
             jtj[5, 5] += prior_w
             jtr[5] += prior_w * (x[5] - delta0)
@@ -235,6 +269,51 @@ def refine(
         covariance=cov3,
         covariance_full=covf,
     )
+
+
+# map wall cells matched to the best of this many nearest plan boundary samples (:func:`_wall_terms`)
+WALL_NEIGHBOURS = 4
+
+
+def _wall_terms(
+    walls: np.ndarray,
+    jj: np.ndarray,
+    x: np.ndarray,
+    bx: np.ndarray,
+    by: np.ndarray,
+    nx: np.ndarray,
+    ny: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    cth: float,
+    sth: float,
+    res: float,
+    c: float,
+    free_delta: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map-to-plan term of :func:`refine`: (K, 6) Jacobian, (K,) residuals (metres) and Cauchy
+    weights of the map wall points ``walls`` (K, 2) against the lines of plan boundary samples
+    (``bx + tx``, ``by + ty``: the samples turned and scaled, without the wall offset; ``nx``,
+    ``ny`` their inward unit normals in the map; ``ax``, ``ay`` the scaled plan coordinates): of
+    each cell's candidates ``jj`` (K, k sample indices, the nearest), the one whose line and side
+    fit best (a wall between two plan rooms has samples of both on its centre line, with opposite
+    normals). A wall cell's centre lies ``delta`` + half a cell (``res``) inside the room from the
+    boundary."""
+    px, py = bx + x[1], by + x[2]
+    off = float(x[5]) + 0.5 * res
+    sdk = (walls[:, :1] - px[jj]) * nx[jj] + (walls[:, 1:] - py[jj]) * ny[jj]
+    pick = np.argmin(np.abs(sdk - off), axis=1)
+    j = jj[np.arange(len(walls)), pick]
+    rm = sdk[np.arange(len(walls)), pick] - off
+    gx, gy = -nx[j], -ny[j]  # d r / d (sample position)
+    jm = np.empty((len(rm), 6))
+    jm[:, 0] = gy * (px[j] - x[1]) - gx * (py[j] - x[2])
+    jm[:, 1] = gx
+    jm[:, 2] = gy
+    jm[:, 3] = (gx * cth + gy * sth) * ax[j]
+    jm[:, 4] = (gy * cth - gx * sth) * ay[j]
+    jm[:, 5] = -1.0 if free_delta else 0.0
+    return jm, rm, 1.0 / (1.0 + (rm * (1.0 / c)) ** 2)
 
 
 def ring_edges(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
