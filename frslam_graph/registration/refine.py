@@ -170,6 +170,12 @@ def refine(
     jac = np.empty((len(p), 6))
     # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
     tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
+    # convergence: steps under 2e-4 m, 2e-6 rad, 2e-5 in the log scales; 10x those two-sided (its
+    # candidates, renewed every third iteration, keep it hopping by ~0.3 mm: it rarely went under)
+    tol = 1.0 if map_walls is None else 10.0
+    if map_walls is not None:
+        wall_x, wall_y = map_walls[:, 0], map_walls[:, 1]
+        k_walls = min(WALL_NEIGHBOURS, len(p))
     for stage, c in enumerate(stage_scales):
         free_delta = stage >= fixed_delta_stages
         kn = cand = None
@@ -201,20 +207,15 @@ def refine(
             jtj = jac.T @ jw
             jtr = jw.T @ r
             if map_walls is not None:
-                # the plan's lines' normals under the scales (inverse transpose), in the map
-                mx, my = n0 * math.exp(-x[3]), n1 * math.exp(-x[4])
-                nl = np.maximum(np.hypot(mx, my), 1e-12)
-                mx, my = mx / nl, my / nl
-                lx, ly = cth * mx - sth * my, sth * mx + cth * my
+                # the cells in the plan's scaled axes, as (ax, ay): R^T (cell - t)
+                dx, dy = wall_x - x[1], wall_y - x[2]
+                vx, vy = cth * dx + sth * dy, cth * dy - sth * dx
+                e3, e4 = math.exp(-x[3]), math.exp(-x[4])
                 if cand is None or it % 3 == 0:  # candidates: the cells taken into the plan frame
-                    dx, dy = map_walls[:, 0] - x[1], map_walls[:, 1] - x[2]
-                    u = np.column_stack([cth * dx + sth * dy, f * (cth * dy - sth * dx)])
-                    u *= np.array([sx / math.exp(x[3]), sy / math.exp(x[4])])
-                    k = min(WALL_NEIGHBOURS, len(p))
-                    cand = tree.query(u, k=k)[1].reshape(len(u), k)
-                jm, rm, wm = _wall_terms(
-                    map_walls, cand, x, bx, by, lx, ly, ax, ay, cth, sth, res, c, free_delta
-                )
+                    u = np.column_stack([vx * (sx * e3), vy * (f * sy * e4)])
+                    cand = tree.query(u, k=k_walls)[1].reshape(len(u), k_walls)
+                jm, rm, wm = _wall_terms(vx, vy, cand, n0, n1, ax, ay, e3, e4, cth, sth, x[5] + 0.5 * res, c)
+                jm[:, 5] = -1.0 if free_delta else 0.0
                 wm *= float((w_all > 0).sum()) / max(len(rm), 1)  # equal total weight
                 jwm = jm * wm[:, None]
                 jtj = jtj + jm.T @ jwm
@@ -234,9 +235,9 @@ def refine(
             x = x + step
             x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper
             if (
-                abs(step[0]) < 2e-6
-                and abs(step[1]) + abs(step[2]) < 2e-4
-                and abs(step[3]) + abs(step[4]) < 2e-5
+                abs(step[0]) < 2e-6 * tol
+                and abs(step[1]) + abs(step[2]) < 2e-4 * tol
+                and abs(step[3]) + abs(step[4]) < 2e-5 * tol
             ):
                 break
     wsum = float(w_all.sum())
@@ -276,43 +277,45 @@ WALL_NEIGHBOURS = 4
 
 
 def _wall_terms(
-    walls: np.ndarray,
+    vx: np.ndarray,
+    vy: np.ndarray,
     jj: np.ndarray,
-    x: np.ndarray,
-    bx: np.ndarray,
-    by: np.ndarray,
-    nx: np.ndarray,
-    ny: np.ndarray,
+    n0: np.ndarray,
+    n1: np.ndarray,
     ax: np.ndarray,
     ay: np.ndarray,
+    e3: float,
+    e4: float,
     cth: float,
     sth: float,
-    res: float,
+    off: float,
     c: float,
-    free_delta: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Map-to-plan term of :func:`refine`: (K, 6) Jacobian, (K,) residuals (metres) and Cauchy
-    weights of the map wall points ``walls`` (K, 2) against the lines of plan boundary samples
-    (``bx + tx``, ``by + ty``: the samples turned and scaled, without the wall offset; ``nx``,
-    ``ny`` their inward unit normals in the map; ``ax``, ``ay`` the scaled plan coordinates): of
-    each cell's candidates ``jj`` (K, k sample indices, the nearest), the one whose line and side
-    fit best (a wall between two plan rooms has samples of both on its centre line, with opposite
-    normals). A wall cell's centre lies ``delta`` + half a cell (``res``) inside the room from the
-    boundary."""
-    px, py = bx + x[1], by + x[2]
-    off = float(x[5]) + 0.5 * res
-    sdk = (walls[:, :1] - px[jj]) * nx[jj] + (walls[:, 1:] - py[jj]) * ny[jj]
-    pick = np.argmin(np.abs(sdk - off), axis=1)
-    j = jj[np.arange(len(walls)), pick]
-    rm = sdk[np.arange(len(walls)), pick] - off
-    gx, gy = -nx[j], -ny[j]  # d r / d (sample position)
+    """Map-to-plan term of :func:`refine`: (K, 6) Jacobian (its delta column left to the caller),
+    (K,) residuals (metres) and Cauchy weights of the map wall cells, given turned into the plan's
+    scaled axes (``vx``, ``vy``: R^T (cell - t), metres), against the lines of plan boundary
+    samples (``ax``, ``ay``: scaled and flipped plan coordinates; ``n0``, ``n1``: plan normals,
+    flipped; the lines' normals scale by ``e3``, ``e4`` = exp(-log scales)): of each cell's
+    candidates ``jj`` (K, k sample indices, the nearest), the one whose line and side fit best (a
+    wall between two plan rooms has samples of both on its centre line, with opposite normals). A
+    wall cell's centre lies ``off`` (delta + half a cell) inside the room from the boundary. The
+    same as in the map frame (a rotation keeps distances and cross products), fewer operations."""
+    mx, my = n0[jj] * e3, n1[jj] * e4
+    nl = np.maximum(np.hypot(mx, my), 1e-12)
+    axj, ayj = ax[jj], ay[jj]
+    sdk = ((vx[:, None] - axj) * mx + (vy[:, None] - ayj) * my) / nl
+    # the best candidate of each cell, as a flat index into the (K, k) arrays
+    pick = np.argmin(np.abs(sdk - off), axis=1) + np.arange(0, sdk.size, sdk.shape[1])
+    rm = sdk.take(pick) - off
+    nlj = nl.take(pick)
+    mxj, myj = mx.take(pick) / nlj, my.take(pick) / nlj  # the line's unit normal (scaled axes)
+    axp, ayp = axj.take(pick), ayj.take(pick)
     jm = np.empty((len(rm), 6))
-    jm[:, 0] = gy * (px[j] - x[1]) - gx * (py[j] - x[2])
-    jm[:, 1] = gx
-    jm[:, 2] = gy
-    jm[:, 3] = (gx * cth + gy * sth) * ax[j]
-    jm[:, 4] = (gy * cth - gx * sth) * ay[j]
-    jm[:, 5] = -1.0 if free_delta else 0.0
+    jm[:, 0] = mxj * ayp - myj * axp
+    jm[:, 1] = sth * myj - cth * mxj
+    jm[:, 2] = -(sth * mxj + cth * myj)
+    jm[:, 3] = -mxj * axp
+    jm[:, 4] = -myj * ayp
     return jm, rm, 1.0 / (1.0 + (rm * (1.0 / c)) ** 2)
 
 
