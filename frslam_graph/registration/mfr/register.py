@@ -307,14 +307,19 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     t_fine = time.perf_counter()
     fixed_ok = quality >= opts["min_score"] and rec >= opts["min_recall"]
     gate = {} if fixed_ok else _drawing_gate(pm, obs, best, chosen, r0, r, tol_f, opts)
-    # the answer: the same screened placement fitted two-sided (the map's walls pull too), whose
-    # scales the free space beyond doorways and windows does not drag outwards. The acceptance
-    # above judges the one-sided fit: its thresholds were set on it, and the two-sided fit
-    # explains more of any map's walls by construction (on another building's maps it raised the
-    # accepted share, tools/README.md)
-    ans = fine.refine_final(pm, obs, r0, opts, walls=True)
-    if ans is r0:  # a degenerate two-sided fit: the one-sided one
-        ans = r
+    # the answer: the one-sided fit, unless it drew the plan outwards. A plan room's boundary lies
+    # ``delta`` outside the free space it encloses (a wall's half-thickness, >= 0); a fit that
+    # puts it more than half a cell (the rasterisation) inside the free space contradicts its
+    # own model: samples deep in free space (doorways, space seen through windows) pulled the
+    # scales outwards (Halmstad's Tango maps: delta -0.07..-0.10 m, scales +1..+5 %). Then the
+    # same screened placement fitted two-sided (the map's walls pull too) is the answer. The
+    # acceptance above judges the one-sided fit: its thresholds were set on it, and the
+    # two-sided fit explains more of any map's walls by construction (tools/README.md)
+    ans = r
+    if r.delta < -0.5 * obs.frame.resolution:
+        ans = fine.refine_final(pm, obs, r0, opts, walls=True)
+        if ans is r0:  # a degenerate two-sided fit: the one-sided one
+            ans = r
 
     matrix = obs.to_map @ ans.matrix
     cov = ans.covariance
