@@ -18,7 +18,7 @@ from frslam_graph.occupancy import OccupancyGrid
 from frslam_graph.raster import RasterFrame, rasterise_plan
 from frslam_graph.registration import matrix_from_params, params_from_matrix, register
 from frslam_graph.registration.evaluation import iou_a
-from tests.test_registration import EXPLORED, U, synthetic_plan, truth_matrix
+from tests.test_registration import EXPLORED, U, ring_map, synthetic_plan, truth_matrix
 
 
 def _rooms_and_walls(house, frame, thickness: float, res: float) -> tuple[np.ndarray, np.ndarray]:
@@ -545,3 +545,45 @@ def test_halmstad_office_maps_fitted_two_sided_keep_the_scale(shared_data, name)
     )
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0
     assert abs(row["scale_err"]) < 0.02 and row["err_ratio"] < 2.0
+
+
+def _count_two_sided(monkeypatch) -> list[float]:
+    """Patch MFR's final fit to log its two-sided fits (the map's resolution, one per fit)."""
+    from frslam_graph.registration.mfr import fine
+
+    calls: list[float] = []
+    final = fine.refine_final
+
+    def counting(pm, obs, screened, opts, *, walls=False):
+        if walls:
+            calls.append(obs.frame.resolution)
+        return final(pm, obs, screened, opts, walls=walls)
+
+    monkeypatch.setattr(fine, "refine_final", counting)
+    return calls
+
+
+@pytest.mark.parametrize("flipped, k", [(False, 0), (True, 3)])
+def test_walls_seen_where_the_plan_draws_them_keep_the_one_sided_answer(monkeypatch, flipped, k):
+    # every wall seen, none beyond the plan's: the one-sided fit's wall offset is a wall's
+    # half-thickness (>= 0), nothing pulled it outwards; the answer is that fit, not the two-sided
+    # one (which cost the simulator's regime-B runs with plans: house 00dd 0.018 -> 0.028 m ATE)
+    plan = synthetic_plan()
+    calls = _count_two_sided(monkeypatch)
+    reg = register(plan, ring_map(plan, truth_matrix(flipped, 90.0 * k), EXPLORED))
+    assert reg.ok, reg.reason
+    assert reg.details["delta_m"] > -0.025
+    assert calls == []
+
+
+def test_free_space_past_the_drawn_walls_gives_the_two_sided_answer(monkeypatch):
+    # the outer walls unseen and free space past them: the one-sided fit puts the plan's walls
+    # inside the free space (wall offset below minus half a cell); then the answer is fitted
+    # two-sided
+    plan = office_row_plan()
+    truth = matrix_from_params(False, 0.0, 0.025, 0.025, 3.0, -2.0)
+    calls = _count_two_sided(monkeypatch)
+    reg = register(plan, seen_through_map(plan, truth, beyond=0.6))
+    assert reg.ok, reg.reason
+    assert len(calls) == 1
+    assert abs(params_from_matrix(reg.matrix)[2] / 0.025 - 1.0) < 0.01
