@@ -576,14 +576,25 @@ def test_walls_seen_where_the_plan_draws_them_keep_the_one_sided_answer(monkeypa
     assert calls == []
 
 
-def test_free_space_past_the_drawn_walls_gives_the_two_sided_answer(monkeypatch):
+def test_free_space_past_the_drawn_walls_takes_the_two_sided_scales(monkeypatch):
     # the outer walls unseen and free space past them: the one-sided fit puts the plan's walls
-    # inside the free space (wall offset below minus half a cell); then the answer is fitted
-    # two-sided
+    # inside the free space (wall offset below minus half a cell) and comes out too long; the
+    # answer takes the scales of the two-sided fit and keeps the one-sided rotation and flip
+    from frslam_graph.registration.mfr import fine
+
     plan = office_row_plan()
-    truth = matrix_from_params(False, 0.0, 0.025, 0.025, 3.0, -2.0)
+    truth = matrix_from_params(False, math.radians(200.0), 0.025, 0.025, 3.0, -2.0)
+    grid = seen_through_map(plan, truth, beyond=0.6)
     calls = _count_two_sided(monkeypatch)
-    reg = register(plan, seen_through_map(plan, truth, beyond=0.6))
+    reg = register(plan, grid)
     assert reg.ok, reg.reason
     assert len(calls) == 1
-    assert abs(params_from_matrix(reg.matrix)[2] / 0.025 - 1.0) < 0.01
+    final = fine.refine_final
+    monkeypatch.setattr(
+        fine, "refine_final", lambda pm, obs, s, opts, walls=False: s if walls else final(pm, obs, s, opts)
+    )
+    one = register(plan, grid)  # the one-sided answer (main's before the gate)
+    f1, rot1, sx1, _, _, _ = params_from_matrix(one.matrix)
+    f2, rot2, sx2, _, _, _ = params_from_matrix(reg.matrix)
+    assert f1 == f2 and abs(rot1 - rot2) < 1e-9
+    assert sx1 / 0.025 - 1.0 > 0.015 and abs(sx2 / 0.025 - 1.0) < 0.01

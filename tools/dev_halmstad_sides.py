@@ -1,5 +1,6 @@
-"""Dev diagnosis (session 13): the Halmstad maps registered with the one-sided and the two-sided
-final fit; per map the one-sided fit's wall offset and both answers' scale / point errors.
+"""Dev diagnosis (session 13): the Halmstad maps registered with the one-sided final fit and with
+the current answer (``two``); per map the one-sided fit's wall offset ``d1``, the two-sided fit's
+``d2`` (m) and both answers' scale / point errors.
 
     FRSLAM_SHARED_DATA=/work/shared/data python tools/dev_halmstad_sides.py [--only E5_04]
 """

@@ -1,5 +1,6 @@
 """Dev diagnosis (session 13): every registration of one simulated house's plan run, with the
-one-sided and the two-sided MFR answer on the same map, against the simulator's truth.
+one-sided and the current MFR answer (``two``; at fed0866 the full two-sided fit) on the same
+map, against the simulator's truth; ``d1`` is the one-sided fit's wall offset (m).
 
     python tools/dev_regime_regs.py --house 00dd --regime B --answer one|two [--out X.json]
 
