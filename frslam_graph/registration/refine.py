@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from frslam_graph.registration.result import matrix_from_params
 
@@ -129,6 +130,7 @@ def refine(
     fixed_delta_stages: int = 1,
     scales: tuple[float, ...] = (0.4, 0.15, 0.05),
     iterations: int = 8,
+    map_walls: np.ndarray | None = None,
 ) -> RefineResult:
     """Gauss-Newton/LM on boundary ``points`` (N, 2, plan units) with unit inward ``normals``
     (N, 2, plan frame); see the module docstring.
@@ -138,6 +140,17 @@ def refine(
     it is held fixed in the first ``fixed_delta_stages`` stages (wide robust scales would trade it
     against the scales). ``correlation``: how many neighbouring points share one independent error
     (inflates the covariance).
+
+    ``map_walls`` (K, 2, map metres; e.g. the map's wall-side free cells): a second, map-to-plan
+    term. The boundary term alone is one-sided: a sample deep in free space (a doorway, a wall
+    drawn off the building, free space seen through a window) keeps pulling outward through the
+    Cauchy tail, while a sample pushed beyond the map's wall loses its room-side free test and
+    stops pulling back, so the scales drift up (Halmstad E5: +1..+5 %). Each map wall cell must
+    lie ``delta`` + half a cell inside the room from the line of a near plan boundary sample (the
+    best of the :data:`WALL_NEIGHBOURS` nearest; the same Cauchy scale, which also bounds the pull
+    of furniture and clutter); an over-scaled plan leaves them unexplained. The two terms get
+    equal total weight (the cells' weights scaled by the number of boundary samples that count
+    over K).
     """
     p = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -155,9 +168,17 @@ def refine(
     px, py = p[:, 0], p[:, 1]
     n0, n1 = nrm[:, 0], f * nrm[:, 1]
     jac = np.empty((len(p), 6))
+    # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
+    tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
+    # convergence: steps under 2e-4 m, 2e-6 rad, 2e-5 in the log scales; 10x those two-sided (its
+    # candidates, renewed every third iteration, keep it hopping by ~0.3 mm: it rarely went under)
+    tol = 1.0 if map_walls is None else 10.0
+    if map_walls is not None:
+        wall_x, wall_y = map_walls[:, 0], map_walls[:, 1]
+        k_walls = min(WALL_NEIGHBOURS, len(p))
     for stage, c in enumerate(stage_scales):
         free_delta = stage >= fixed_delta_stages
-        kn = None
+        kn = cand = None
         for it in range(iterations):
             cth, sth = math.cos(x[0]), math.sin(x[0])
             # plan point scaled and flipped: (ex * px, f * ey * py), then rotated
@@ -185,6 +206,20 @@ def refine(
             jw = jac * w_all[:, None]
             jtj = jac.T @ jw
             jtr = jw.T @ r
+            if map_walls is not None:
+                # the cells in the plan's scaled axes, as (ax, ay): R^T (cell - t)
+                dx, dy = wall_x - x[1], wall_y - x[2]
+                vx, vy = cth * dx + sth * dy, cth * dy - sth * dx
+                e3, e4 = math.exp(-x[3]), math.exp(-x[4])
+                if cand is None or it % 3 == 0:  # candidates: the cells taken into the plan frame
+                    u = np.column_stack([vx * (sx * e3), vy * (f * sy * e4)])
+                    cand = tree.query(u, k=k_walls)[1].reshape(len(u), k_walls)
+                jm, rm, wm = _wall_terms(vx, vy, cand, n0, n1, ax, ay, e3, e4, cth, sth, x[5] + 0.5 * res, c)
+                jm[:, 5] = -1.0 if free_delta else 0.0
+                wm *= float((w_all > 0).sum()) / max(len(rm), 1)  # equal total weight
+                jwm = jm * wm[:, None]
+                jtj = jtj + jm.T @ jwm
+                jtr = jtr + jwm.T @ rm
             # Gaussian prior on delta, relative to a residual noise of half a pixel
             jtj[5, 5] += prior_w
             jtr[5] += prior_w * (x[5] - delta0)
@@ -200,9 +235,9 @@ def refine(
             x = x + step
             x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper
             if (
-                abs(step[0]) < 2e-6
-                and abs(step[1]) + abs(step[2]) < 2e-4
-                and abs(step[3]) + abs(step[4]) < 2e-5
+                abs(step[0]) < 2e-6 * tol
+                and abs(step[1]) + abs(step[2]) < 2e-4 * tol
+                and abs(step[3]) + abs(step[4]) < 2e-5 * tol
             ):
                 break
     wsum = float(w_all.sum())
@@ -235,6 +270,53 @@ def refine(
         covariance=cov3,
         covariance_full=covf,
     )
+
+
+# map wall cells matched to the best of this many nearest plan boundary samples (:func:`_wall_terms`)
+WALL_NEIGHBOURS = 4
+
+
+def _wall_terms(
+    vx: np.ndarray,
+    vy: np.ndarray,
+    jj: np.ndarray,
+    n0: np.ndarray,
+    n1: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    e3: float,
+    e4: float,
+    cth: float,
+    sth: float,
+    off: float,
+    c: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map-to-plan term of :func:`refine`: (K, 6) Jacobian (its delta column left to the caller),
+    (K,) residuals (metres) and Cauchy weights of the map wall cells, given turned into the plan's
+    scaled axes (``vx``, ``vy``: R^T (cell - t), metres), against the lines of plan boundary
+    samples (``ax``, ``ay``: scaled and flipped plan coordinates; ``n0``, ``n1``: plan normals,
+    flipped; the lines' normals scale by ``e3``, ``e4`` = exp(-log scales)): of each cell's
+    candidates ``jj`` (K, k sample indices, the nearest), the one whose line and side fit best (a
+    wall between two plan rooms has samples of both on its centre line, with opposite normals). A
+    wall cell's centre lies ``off`` (delta + half a cell) inside the room from the boundary. The
+    same as in the map frame (a rotation keeps distances and cross products), fewer operations."""
+    mx, my = n0[jj] * e3, n1[jj] * e4
+    nl = np.maximum(np.hypot(mx, my), 1e-12)
+    axj, ayj = ax[jj], ay[jj]
+    sdk = ((vx[:, None] - axj) * mx + (vy[:, None] - ayj) * my) / nl
+    # the best candidate of each cell, as a flat index into the (K, k) arrays
+    pick = np.argmin(np.abs(sdk - off), axis=1) + np.arange(0, sdk.size, sdk.shape[1])
+    rm = sdk.take(pick) - off
+    nlj = nl.take(pick)
+    mxj, myj = mx.take(pick) / nlj, my.take(pick) / nlj  # the line's unit normal (scaled axes)
+    axp, ayp = axj.take(pick), ayj.take(pick)
+    jm = np.empty((len(rm), 6))
+    jm[:, 0] = mxj * ayp - myj * axp
+    jm[:, 1] = sth * myj - cth * mxj
+    jm[:, 2] = -(sth * mxj + cth * myj)
+    jm[:, 3] = -mxj * axp
+    jm[:, 4] = -myj * ayp
+    return jm, rm, 1.0 / (1.0 + (rm * (1.0 / c)) ** 2)
 
 
 def ring_edges(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -35,9 +35,11 @@ def refine_from(
     spacing_px: float,
     max_points: int,
     iterations: int,
+    walls: bool = False,
 ) -> RefineResult:
     """Refine the placement ``matrix`` (plan -> grid frame) on a subsample of the plan's boundary
-    samples about ``spacing_px`` map cells apart (at most ``max_points``).
+    samples about ``spacing_px`` map cells apart (at most ``max_points``); ``walls``: the map's
+    wall-side cells pull too (the two-sided fit, :func:`refine`'s ``map_walls``).
 
     The scales act along the plan's wall directions: the plan is first turned by ``-pm.angle``
     (zero for plans drawn axis-aligned); the result's matrix includes that turn.
@@ -66,6 +68,7 @@ def refine_from(
         fixed_delta_stages=sum(1 for c in scales if c > 0.16),
         # one independent wall error per 0.5 m of wall
         correlation=0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9),
+        map_walls=obs.edge_points if walls else None,
     )
     r.pre = pre
     return r
@@ -304,9 +307,12 @@ def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict,
         h.quick, h.placed_iou, h.placed_rooms = q
 
 
-def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict) -> RefineResult:
+def refine_final(
+    pm: PlanModel, obs: MapObservation, screened: RefineResult, opts: dict, *, walls: bool = False
+) -> RefineResult:
     """The screened placement refined at full resolution (``sample_px``, ``max_points``,
-    ``iterations``, robust scale 0.05 m); the screened one when that final fit is degenerate."""
+    ``iterations``, robust scale 0.05 m); the screened one when that final fit is degenerate.
+    ``walls``: two-sided (the map's walls pull too; see :func:`refine_from`)."""
     r = refine_from(
         pm,
         obs,
@@ -317,6 +323,7 @@ def refine_final(pm: PlanModel, obs: MapObservation, screened: RefineResult, opt
         spacing_px=opts["sample_px"],
         max_points=opts["max_points"],
         iterations=opts["iterations"],
+        walls=walls,
     )
     return r if plausible(r, opts) else screened
 
