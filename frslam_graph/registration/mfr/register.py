@@ -295,9 +295,12 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
     if not _determined(len(best.rooms), r.n_points, rec):
         # one room stretched over the map (refused as under-determined) outscored the screened
-        # placements of several rooms: answer with the best of those instead, flagged ambiguous
-        # (the one-room placement stays its runner-up and alternative, scoring above it)
-        several = next((h for h in chosen[1:] if h.placed_rooms >= 2 and h.quick > 0.0), None)
+        # placements of several rooms: answer with the best of those when it is within MFR's
+        # margin of a clear best (DRAWN_MARGIN), flagged ambiguous (the one-room placement stays
+        # its runner-up and alternative, scoring above it)
+        several = next(
+            (h for h in chosen[1:] if h.placed_rooms >= 2 and h.quick >= DRAWN_MARGIN * best.quick), None
+        )
         if several is not None:
             best.refined = r0
             chosen.remove(several)
