@@ -25,7 +25,8 @@ Steps
    explained by plan walls) × exit agreement × door-width plausibility, all vectorised over the
    hypotheses (cv2.remap lookups). A poor best fit triggers a scale/shift search.
    When the screened best (step 4) covers the footprint poorly (coarse IoU below
-   ``search_below_iou``) or fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
+   ``search_below_iou``) or explains few of the map's walls (:data:`SEARCH_BELOW_RECALL`), or
+   fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
    starts from its placement, and when it fails the gate also from the best placement of each of
    the ``wide_seeds`` best (dihedral case, wall direction) and from its own seven other dihedral
    turns (:func:`coarse.turned_seeds`); when the screened best places one plan room (refused as
@@ -46,7 +47,9 @@ Steps
    too low, unless the placement passes at the drawing tolerance (:data:`DRAWN_TOL_PER_RMS`:
    a tolerance that grows with the fit's residual, and a margin over the determined runner-ups);
    failure too when the placement is under-determined: one room stretched over a map whose walls
-   it does not explain, or fitted on a handful of points (:func:`_determined`).
+   it does not explain, or fitted on a handful of points (:func:`_determined`), unless a screened
+   placement of several rooms scores within :data:`DRAWN_MARGIN` of it: that one is the answer,
+   flagged ambiguous.
 """
 
 from __future__ import annotations
