@@ -64,6 +64,7 @@ class Hypothesis:
     quick: float = 0.0  # the same after the screening refinement
     placed_iou: float = 0.0  # IoU of the rooms the screened placement puts on the footprint
     placed_rooms: int = 0  # how many rooms it puts there
+    recall: float = 1.0  # share of the map's walls the screened placement explains
     score: float = 0.0
     rooms: tuple[int, ...] = ()
 

@@ -224,16 +224,17 @@ def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: d
     for h, q, b in zip(chosen, quick, bad, strict=True):
         h.quick = 0.0 if b or not np.isfinite(q) else float(q)
         if h.quick > 0.0:  # ranked by what the gate measures, not by the coarse grid's key
-            h.quick, h.placed_iou, h.placed_rooms = structure_key(pm, obs, h.refined, opts, tol)
+            h.quick, h.placed_iou, h.placed_rooms, h.recall = structure_key(pm, obs, h.refined, opts, tol)
     chosen.sort(key=lambda h: -h.quick)
 
 
 def structure_key(
     pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float
-) -> tuple[float, float, int]:
+) -> tuple[float, float, int, float]:
     """The acceptance gate's measure of a refined placement: IoU of the rooms it places on the
     full-resolution footprint × wall precision × recall at its wall faces (``tol`` metres), times
-    the door-width plausibility of its scale; and that IoU and the number of those rooms. The
+    the door-width plausibility of its scale; and that IoU, the number of those rooms and that
+    recall. The
     coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement shifted by a
     wall or a room above the right one on maps with partly seen rooms and thick walls."""
     iou, rooms = placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
@@ -243,6 +244,7 @@ def structure_key(
         float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0]),
         float(iou),
         len(rooms),
+        float(rec),
     )
 
 
@@ -254,8 +256,8 @@ POLISH_STEP = 0.05
 def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict, tol: float) -> None:
     """Restart the screened placement of ``h`` with its two plan-axis scales changed jointly by
     ``POLISH_STEP`` (x (1 + s)^{-1, 0, 1} each, the plan point on the footprint's centroid kept
-    in place), refine each start as :func:`screen` does, and adopt the best (coarse key at its
-    wall faces, tolerance ``tol`` metres) when its :func:`structure_key` beats ``h.quick``.
+    in place), refine each start as :func:`screen` does, and adopt the best by
+    :func:`structure_key` (tolerance ``tol`` metres) when it beats ``h.quick``.
 
     On maps seeing rooms in part the screening refinement stops a few per cent off in scale
     and aspect (a wall of the next room pulls one axis), and a placement shifted by a wall fits
@@ -290,21 +292,14 @@ def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict,
                 starts.append(rr)
     if not starts:
         return
-    _, key = coarse_scores(
-        pm,
-        obs,
-        np.stack([s.matrix for s in starts]),
-        np.full(len(starts), np.uint64(h.mask)),
-        opts["door_width_m"],
-        tol=tol,
-        matched_cover=opts["min_cover"],
-        delta=np.array([s.delta for s in starts]),
-    )
-    cand = starts[int(np.argmax(key))]
-    q = structure_key(pm, obs, cand, opts, tol)
+    # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
+    # restart a wall off above one near the truth scoring it half as high
+    keys = [structure_key(pm, obs, s, opts, tol) for s in starts]
+    best = int(np.argmax([k[0] for k in keys]))
+    cand, q = starts[best], keys[best]
     if q[0] > h.quick:
         h.refined = cand
-        h.quick, h.placed_iou, h.placed_rooms = q
+        h.quick, h.placed_iou, h.placed_rooms, h.recall = q
 
 
 def refine_final(

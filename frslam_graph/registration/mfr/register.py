@@ -25,7 +25,8 @@ Steps
    explained by plan walls) × exit agreement × door-width plausibility, all vectorised over the
    hypotheses (cv2.remap lookups). A poor best fit triggers a scale/shift search.
    When the screened best (step 4) covers the footprint poorly (coarse IoU below
-   ``search_below_iou``) or fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
+   ``search_below_iou``) or explains few of the map's walls (:data:`SEARCH_BELOW_RECALL`), or
+   fails the gate, a wide scale/shift search (:func:`coarse.wide_search`)
    starts from its placement, and when it fails the gate also from the best placement of each of
    the ``wide_seeds`` best (dihedral case, wall direction) and from its own seven other dihedral
    turns (:func:`coarse.turned_seeds`); when the screened best places one plan room (refused as
@@ -46,12 +47,13 @@ Steps
    too low, unless the placement passes at the drawing tolerance (:data:`DRAWN_TOL_PER_RMS`:
    a tolerance that grows with the fit's residual, and a margin over the determined runner-ups);
    failure too when the placement is under-determined: one room stretched over a map whose walls
-   it does not explain, or fitted on a handful of points (:func:`_determined`). The matrix
-   returned is the one-sided fit's, unless that fit put the plan's walls inside the map's free
-   space (wall offset below minus half a cell: free space beyond the drawn walls dragged its
-   scales outwards); then it takes the scales of the same screened placement refined two-sided
-   (the map's wall cells pull onto the plan's walls too). The acceptance judges the one-sided
-   fit, as its thresholds were set.
+   it does not explain, or fitted on a handful of points (:func:`_determined`), unless a screened
+   placement of several rooms scores within :data:`DRAWN_MARGIN` of it: that one is the answer,
+   flagged ambiguous. The matrix returned is the one-sided fit's, unless that fit put the plan's
+   walls inside the map's free space (wall offset below minus half a cell: free space beyond the
+   drawn walls dragged its scales outwards); then it takes the scales of the same screened
+   placement refined two-sided (the map's wall cells pull onto the plan's walls too). The
+   acceptance judges the one-sided fit, as its thresholds were set.
 """
 
 from __future__ import annotations
@@ -237,7 +239,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     one_room = top.placed_rooms < 2 and any(h.placed_rooms >= 2 for h in chosen[1:])
     # a best the answer would flag ambiguous is no decision either: search as when none passes
     fails = top.quick < opts["min_score"] or one_room or ambiguity_now >= opts["ambiguous_at"]
-    if opts["wide_seeds"] > 0 and (fails or top.coarse_iou < opts["search_below_iou"]):
+    if opts["wide_seeds"] > 0 and (fails or _unexplained(top, opts)):
         # the footprint is not the union of the placed rooms (or nothing passes the gate): the
         # moment-fitted scales may be far off. Search the best placement's scales widely, and
         # when nothing passes, the best rotations' too
@@ -288,7 +290,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             chosen, covered = _merge(chosen, wide, hyps, covered, obs)
             n_wide = len(wide)
     ambiguity_screened = 0.0
-    if chosen[0].coarse_iou < opts["search_below_iou"]:
+    if _unexplained(chosen[0], opts):
         # rooms seen in part: the screening refinement stops in the basin of its start, with
         # the scales a few per cent off; polish every screened placement alike (the ambiguity
         # compares them) and rank them again. The restarts do not land alike (a best polished
@@ -298,12 +300,23 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             fine.polish_scales(pm, obs, h, opts, tol_f)
         chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
-    r0 = best.refined
-    best.refined = r = fine.refine_final(pm, obs, r0, opts)
+    r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
+    if not _determined(len(best.rooms), r.n_points, rec):
+        # one room stretched over the map (refused as under-determined) outscored the screened
+        # placements of several rooms: answer with the best of those when it is within MFR's
+        # margin of a clear best (DRAWN_MARGIN), flagged ambiguous (the one-room placement stays
+        # its runner-up and alternative, scoring above it)
+        several = next(
+            (h for h in chosen[1:] if h.placed_rooms >= 2 and h.quick >= DRAWN_MARGIN * best.quick), None
+        )
+        if several is not None:
+            best.refined = r0
+            chosen.remove(several)
+            chosen.insert(0, several)
+            best = several
+            r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
     if not fine.plausible(r, opts):
         return fail("degenerate fit (scales collapsed or exploded)")
-    best.score, best.rooms = fine.placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
-    prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
     quality = best.score * prec * rec
     ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened, ambiguity_first)
     alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
@@ -422,6 +435,28 @@ DRAWN_MARGIN = 0.8
 # than a handful of boundary points; one room stretched over a larger map is not
 ONE_ROOM_MIN_POINTS = 60
 ONE_ROOM_MIN_RECALL = 0.9
+
+
+# the share of the map's walls below which a screened best leaves them unexplained (searched as a
+# poor coverage is): right placements at 50 % completeness explain 0.77-1.0 (p5 0.80)
+SEARCH_BELOW_RECALL = 0.8
+
+
+def _unexplained(h: Hypothesis, opts: dict) -> bool:
+    """Whether the screened placement ``h`` leaves the map poorly explained: it covers the
+    footprint poorly (coarse IoU below ``search_below_iou``) or its walls (recall below
+    :data:`SEARCH_BELOW_RECALL`)."""
+    return h.coarse_iou < opts["search_below_iou"] or h.recall < SEARCH_BELOW_RECALL
+
+
+def _final(pm, obs, best: Hypothesis, opts: dict, tol_f: float):
+    """Refine ``best``'s screened placement at full resolution (sets ``best.refined``, ``score``
+    and ``rooms``): (the screened fit, the final fit, wall precision and recall at ``tol_f``)."""
+    r0 = best.refined
+    best.refined = r = fine.refine_final(pm, obs, r0, opts)
+    best.score, best.rooms = fine.placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
+    prec, rec = fine.wall_precision_recall(pm, obs, r.matrix, tol_f, 1000, delta=r.delta)
+    return r0, r, prec, rec
 
 
 def _determined(n_rooms: int, n_points: int, recall: float) -> bool:
