@@ -16,26 +16,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_real as br  # noqa: E402
+from _fit_capture import CAPTURE, MODE  # noqa: E402  (installs the capturing final fit)
 
 from frslam_graph.floorplan import FloorPlan  # noqa: E402
 from frslam_graph.occupancy import OccupancyGrid  # noqa: E402
 from frslam_graph.registration import register  # noqa: E402
-from frslam_graph.registration.mfr import register as mfr_register  # noqa: E402
-
-MODE = {"answer": "two"}
-CAPTURE: dict = {}
-_orig_final = mfr_register.fine.refine_final
-
-
-def _final(pm, obs, screened, opts, *, walls=False):
-    if walls and MODE["answer"] == "one":
-        return screened
-    r = _orig_final(pm, obs, screened, opts, walls=walls)
-    CAPTURE["two" if walls else "one"] = r
-    return r
-
-
-mfr_register.fine.refine_final = _final
 
 
 def main() -> None:

@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_backend as bb  # noqa: E402
+from _fit_capture import CAPTURE, MODE  # noqa: E402  (installs the capturing final fit)
 from frslam_graph.datasets.simulator import SimulationOptions, simulate_run  # noqa: E402
 
 from frslam_graph.config import FRSlamConfig  # noqa: E402
@@ -30,23 +31,7 @@ from frslam_graph.floorplan import FloorPlan  # noqa: E402
 from frslam_graph.offline import process  # noqa: E402
 from frslam_graph.plan_updates.updater import FloorPlanUpdater  # noqa: E402
 from frslam_graph.registration import register  # noqa: E402
-from frslam_graph.registration.mfr import register as mfr_register  # noqa: E402
 from frslam_graph.slam import FRSlam  # noqa: E402
-
-MODE = {"answer": "two"}
-CAPTURE: dict = {}
-_orig_final = mfr_register.fine.refine_final
-
-
-def _final(pm, obs, screened, opts, *, walls=False):
-    if walls and MODE["answer"] == "one":
-        return screened  # -> the one-sided answer
-    r = _orig_final(pm, obs, screened, opts, walls=walls)
-    CAPTURE["two" if walls else "one"] = r
-    return r
-
-
-mfr_register.fine.refine_final = _final
 
 
 def rigid_align(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
