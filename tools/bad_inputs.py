@@ -63,8 +63,6 @@ TIMEOUT_S = 30.0
 RSS_TARGET_MB = 1024.0
 RSS_GUARD_MB = 2048.0
 SHARED = SHARED_DATA
-if not SHARED.is_dir():
-    SHARED = Path("/work/shared/data")
 
 
 @dataclass
