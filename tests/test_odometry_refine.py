@@ -184,7 +184,7 @@ def test_icp_nearest_candidates_answer_as_the_tree():
         for move in moves:
             moved = transform_points(move, query)
             for dist in (0.3, 0.15, 0.05):
-                got = near.nearest_offsets(moved, dist)
+                got = near.exact_nearest_offsets(moved, dist)
                 undecided = Counting.asked  # the points it asked the tree again
                 want = _exact_nearest_offsets(tree, ref, moved, dist)
                 Counting.asked = undecided

@@ -390,12 +390,12 @@ class ReferenceSubmap:
         """Normals (len(j), 2) and line qualities (len(j),) of the reference points ``j``."""
         return self.normals[j], self.quality[j]
 
-    def correspondences(self, start: np.ndarray, max_distance: float) -> _TreeNearest:
+    def correspondences(self, start: np.ndarray, max_distance: float) -> ReferenceSubmap:
         """ICP's nearest reference points for query points starting at ``start`` (N, 2): the
-        loop-closure matcher starts at a correlative-search peak and moves centimetres per
-        iteration, so each iteration asks the k-d tree (:class:`_NearestCandidates` was slower
-        there: FR079 1.63 -> 1.75 ms per ICP)."""
-        return _TreeNearest(self.tree, self.points)
+        submap itself (:meth:`exact_nearest_offsets`). The loop-closure matcher starts at a
+        correlative-search peak and moves centimetres per iteration, so each iteration asks the
+        k-d tree (:class:`_NearestCandidates` was slower there: FR079 1.63 -> 1.75 ms per ICP)."""
+        return self
 
     def nearest_points(self, points: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
         """(indices into ``points`` with a reference point within max_distance, those reference
@@ -467,18 +467,6 @@ def _exact_nearest_offsets(
     return sel, j, ps, ps - ref_points[j]
 
 
-class _TreeNearest:
-    """:func:`_exact_nearest_offsets` on one k-d tree, query by query."""
-
-    def __init__(self, tree: cKDTree | None, ref_points: np.ndarray):
-        self.tree, self.ref_points = tree, ref_points
-
-    def nearest_offsets(
-        self, points: np.ndarray, max_distance: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        return _exact_nearest_offsets(self.tree, self.ref_points, points, max_distance)
-
-
 class _NearestCandidates:
     """Exact nearest reference points of query points that move a little: ICP's iterations.
 
@@ -504,7 +492,7 @@ class _NearestCandidates:
         given[self.idx[found]] = True
         self.indices = np.flatnonzero(given)  # every reference point a query may be given
 
-    def nearest_offsets(
+    def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """As :func:`_exact_nearest_offsets` for ``points`` (N, 2): the start points moved."""
@@ -852,7 +840,7 @@ def icp_point_to_line(
         moved = transform_points(x, query)
         if near is None:
             near = ref.correspondences(moved, max_distance)
-        sel, j, p, off = near.nearest_offsets(moved, dmax)
+        sel, j, p, off = near.exact_nearest_offsets(moved, dmax)
         if len(sel) < 10:
             return None
         n, q = ref.line_normals(j)

@@ -234,9 +234,9 @@ def structure_key(
     """The acceptance gate's measure of a refined placement: IoU of the rooms it places on the
     full-resolution footprint × wall precision × recall at its wall faces (``tol`` metres), times
     the door-width plausibility of its scale; and that IoU, the number of those rooms and that
-    recall. The
-    coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement shifted by a
-    wall or a room above the right one on maps with partly seen rooms and thick walls."""
+    recall. The coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement
+    shifted by a wall or a room above the right one on maps with partly seen rooms and thick
+    walls."""
     iou, rooms = placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
     prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
     scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))

@@ -449,7 +449,9 @@ def _unexplained(h: Hypothesis, opts: dict) -> bool:
     return h.coarse_iou < opts["search_below_iou"] or h.recall < SEARCH_BELOW_RECALL
 
 
-def _final(pm, obs, best: Hypothesis, opts: dict, tol_f: float):
+def _final(
+    pm: PlanModel, obs, best: Hypothesis, opts: dict, tol_f: float
+) -> tuple[RefineResult, RefineResult, float, float]:
     """Refine ``best``'s screened placement at full resolution (sets ``best.refined``, ``score``
     and ``rooms``): (the screened fit, the final fit, wall precision and recall at ``tol_f``)."""
     r0 = best.refined
