@@ -94,6 +94,18 @@ def test_a_damaged_image_gives_our_line_only_not_opencvs(tmp_path, capfd):
     assert err.startswith("error:") and "damaged" in err
 
 
+def test_opencv_4_without_utils_logging_is_silenced_through_set_log_level(monkeypatch, tmp_path, capsys):
+    """pyproject admits OpenCV >= 4.10, whose cv2.utils has no ``logging``: the CLI must not crash."""
+    import types
+
+    levels = []
+    monkeypatch.setattr(cv2, "utils", types.SimpleNamespace(), raising=False)
+    monkeypatch.setattr(cv2, "setLogLevel", levels.append, raising=False)
+    assert main(["plan", "show", str(tmp_path / "missing.json"), "--out", str(tmp_path / "p.png")]) == 2
+    assert levels == [0]
+    assert "missing.json" in capsys.readouterr().err
+
+
 def test_a_binary_file_named_clf_gives_a_short_line(tmp_path, capsys):
     junk = tmp_path / "junk.clf"
     junk.write_bytes(np.random.default_rng(7).integers(0, 256, 20_000, dtype=np.uint8).tobytes())

@@ -97,11 +97,16 @@ def _one_line(text: str) -> str:
 
 def _quiet_opencv() -> None:
     """OpenCV prints its own ``[ WARN:0@...]`` / ``[ERROR:0@...]`` lines on stderr (a damaged PNG)
-    before the CLI's one line that names the file: only the CLI's stays."""
+    before the CLI's one line that names the file: only the CLI's stays. OpenCV 4 has its log level
+    as ``cv2.setLogLevel``, OpenCV 5 as ``cv2.utils.logging.setLogLevel``."""
     os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
     import cv2
 
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)  # OpenCV 5
+    if logging is not None:
+        logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    elif hasattr(cv2, "setLogLevel"):  # OpenCV 4 (pyproject admits >= 4.10): no cv2.utils.logging
+        cv2.setLogLevel(0)  # LOG_LEVEL_SILENT
 
 
 def main(argv: list[str] | None = None) -> int:
