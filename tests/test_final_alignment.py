@@ -87,8 +87,9 @@ def test_finish_adds_the_constraints_and_rounds_zero_or_no_loop_closure_turn_it_
     odom = sw.drifting_odometry(truth, scale=0.02)
     scans, amin, inc = sw.scans_along(world, truth, max_range=15.0)
     events, errors = {}, {}
-    for rounds in (0, 2, "off"):
+    for rounds in (0, 2, "off", "default"):
         lc = {"enabled": False} if rounds == "off" else {"final_alignment_rounds": rounds}
+        lc = {} if rounds == "default" else lc
         slam = FRSlam({"loop_closure": lc})
         for row, o, r in zip(truth, odom, scans, strict=True):
             slam.add_scan(row[0], r, amin, inc, odom=tuple(o))
@@ -97,6 +98,9 @@ def test_finish_adds_the_constraints_and_rounds_zero_or_no_loop_closure_turn_it_
         errors[rounds] = np.hypot(*(est[:, 1:3] - truth[:, 1:3]).T).mean()
     assert events[0] == [] and events["off"] == []  # off, and off with loop closure
     assert len(events[2]) == 2
+    # one round by default: a second one, matching again at the re-optimised estimate, moved the
+    # real logs' relation errors by <= 0.0001 m for 3-6 % of their run time (tools/README.md)
+    assert len(events["default"]) == 1 and errors["default"] <= errors[0] + 0.005
     assert all(e.data["constraints"] > 0 for e in events[2])
     assert errors[2] <= errors[0] + 0.005
 

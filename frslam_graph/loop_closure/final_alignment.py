@@ -9,7 +9,7 @@ headings whose fields of view overlap) are matched by point-to-line ICP, started
 current estimate, of the keyframe's query submap (itself and its neighbours) onto the other's
 reference submap. A match that converges with most points on the reference and moves the
 estimate by little is a between-factor under a Huber kernel; the graph is re-optimised (LM
-batch) and the constraints are computed again at the new estimate (``final_alignment_rounds``).
+batch); with ``final_alignment_rounds`` 2 the constraints are computed again at the new estimate.
 
 A keyframe that no such ICP ties to another pass may lie beyond the ICP's reach: the online closer
 tied the place once, then the odometry slipped while the robot stayed there (ACES: KISS-ICP lost
