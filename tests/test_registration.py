@@ -542,3 +542,17 @@ def test_the_plan_side_is_prepared_once_per_plan_object(plan):
     for reg in (again, fresh):
         assert reg.ok == first.ok and np.array_equal(reg.matrix, first.matrix)
         assert reg.ambiguity == first.ambiguity
+
+
+def test_room_counts_in_blocks_equal_the_whole_product() -> None:
+    # the coarse IoU's per-room counts run in blocks of hypotheses (one BLAS thread each): the
+    # same float32 counts as the one product, also across a block boundary
+    from frslam_graph.registration.mfr.coarse import ONE_THREAD_MACS, room_counts
+
+    rng = np.random.default_rng(5)
+    onehot = np.eye(12, dtype=np.float32)[rng.integers(0, 12, 1200)]
+    rows = ONE_THREAD_MACS // onehot.size
+    for h in (1, rows, rows + 1, 5 * rows + 3):
+        on = (rng.random((h, 1200)) < 0.6).astype(np.uint8)
+        got = room_counts(on, onehot)
+        assert got.dtype == np.float32 and np.array_equal(got, on.astype(np.float32) @ onehot)
