@@ -556,3 +556,33 @@ def test_room_counts_in_blocks_equal_the_whole_product() -> None:
         on = (rng.random((h, 1200)) < 0.6).astype(np.uint8)
         got = room_counts(on, onehot)
         assert got.dtype == np.float32 and np.array_equal(got, on.astype(np.float32) @ onehot)
+
+
+def test_distance_field_lookups_match_the_clipped_bilinear_formula() -> None:
+    # the refinement's bilinear lookups (the hot loop of every fit) give the plain formula's
+    # values exactly: np.clip'd cells, the four corners, outside the grid and NaN alike
+    from frslam_graph.registration.refine import DistanceField
+
+    rng = np.random.default_rng(7)
+    free = rng.random((40, 30)) < 0.6
+    field = DistanceField.from_masks(free, 0.05, (-0.3, 0.2))
+    x = rng.uniform(-0.6, 1.5, 500)
+    y = rng.uniform(-0.2, 2.4, 500)
+    x[:3] = [np.nan, -np.inf, 0.3]
+    h, w = field.sdf.shape
+    u = (x - field.origin[0]) * (1.0 / field.resolution) - 0.5
+    v = (y - field.origin[1]) * (1.0 / field.resolution) - 0.5
+    inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
+    u, v = np.clip(u, 0, w - 1.0001), np.clip(v, 0, h - 1.0001)
+    with np.errstate(invalid="ignore"):
+        i0, j0 = u.astype(np.intp), v.astype(np.intp)
+    ok = np.isfinite(u)
+    fx, fy = u[ok] - i0[ok], v[ok] - j0[ok]
+    for img, got in ((field.sdf, field.sample(x[ok], y[ok])[0]), (field.known, field.free_at(x[ok], y[ok]))):
+        c00, c10 = img[j0[ok], i0[ok]], img[j0[ok], i0[ok] + 1]
+        c01, c11 = img[j0[ok] + 1, i0[ok]], img[j0[ok] + 1, i0[ok] + 1]
+        top, bot = c00 + fx * (c10 - c00), c01 + fx * (c11 - c01)
+        want = top + fy * (bot - top)
+        if img is field.known:
+            want = want * inside[ok]
+        assert np.array_equal(got, want)
