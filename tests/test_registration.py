@@ -542,3 +542,47 @@ def test_the_plan_side_is_prepared_once_per_plan_object(plan):
     for reg in (again, fresh):
         assert reg.ok == first.ok and np.array_equal(reg.matrix, first.matrix)
         assert reg.ambiguity == first.ambiguity
+
+
+def test_room_counts_in_blocks_equal_the_whole_product() -> None:
+    # the coarse IoU's per-room counts run in blocks of hypotheses (one BLAS thread each): the
+    # same float32 counts as the one product, also across a block boundary
+    from frslam_graph.registration.mfr.coarse import ONE_THREAD_MACS, room_counts
+
+    rng = np.random.default_rng(5)
+    onehot = np.eye(12, dtype=np.float32)[rng.integers(0, 12, 1200)]
+    rows = ONE_THREAD_MACS // onehot.size
+    for h in (1, rows, rows + 1, 5 * rows + 3):
+        on = (rng.random((h, 1200)) < 0.6).astype(np.uint8)
+        got = room_counts(on, onehot)
+        assert got.dtype == np.float32 and np.array_equal(got, on.astype(np.float32) @ onehot)
+
+
+def test_distance_field_lookups_match_the_clipped_bilinear_formula() -> None:
+    # the refinement's bilinear lookups (the hot loop of every fit) give the plain formula's
+    # values exactly: np.clip'd cells, the four corners, outside the grid and NaN alike
+    from frslam_graph.registration.refine import DistanceField
+
+    rng = np.random.default_rng(7)
+    free = rng.random((40, 30)) < 0.6
+    field = DistanceField.from_masks(free, 0.05, (-0.3, 0.2))
+    x = rng.uniform(-0.6, 1.5, 500)
+    y = rng.uniform(-0.2, 2.4, 500)
+    x[:3] = [np.nan, -np.inf, 0.3]
+    h, w = field.sdf.shape
+    u = (x - field.origin[0]) * (1.0 / field.resolution) - 0.5
+    v = (y - field.origin[1]) * (1.0 / field.resolution) - 0.5
+    inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
+    u, v = np.clip(u, 0, w - 1.0001), np.clip(v, 0, h - 1.0001)
+    with np.errstate(invalid="ignore"):
+        i0, j0 = u.astype(np.intp), v.astype(np.intp)
+    ok = np.isfinite(u)
+    fx, fy = u[ok] - i0[ok], v[ok] - j0[ok]
+    for img, got in ((field.sdf, field.sample(x[ok], y[ok])[0]), (field.known, field.free_at(x[ok], y[ok]))):
+        c00, c10 = img[j0[ok], i0[ok]], img[j0[ok], i0[ok] + 1]
+        c01, c11 = img[j0[ok] + 1, i0[ok]], img[j0[ok] + 1, i0[ok] + 1]
+        top, bot = c00 + fx * (c10 - c00), c01 + fx * (c11 - c01)
+        want = top + fy * (bot - top)
+        if img is field.known:
+            want = want * inside[ok]
+        assert np.array_equal(got, want)

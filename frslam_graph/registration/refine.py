@@ -53,11 +53,18 @@ class DistanceField:
 
     def _cells(self, x: np.ndarray, y: np.ndarray):
         h, w = self.sdf.shape
-        u = (x - self.origin[0]) * (1.0 / self.resolution) - 0.5
-        v = (y - self.origin[1]) * (1.0 / self.resolution) - 0.5
+        inv = 1.0 / self.resolution
+        # (x - origin) * inv - 0.5, then np.clip's values by maximum / minimum (no -0.0 arises
+        # here, NaN propagates alike), in place: the same roundings, less call overhead
+        u = x - self.origin[0]
+        u *= inv
+        u -= 0.5
+        v = y - self.origin[1]
+        v *= inv
+        v -= 0.5
         inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
-        u = np.clip(u, 0, w - 1.0001)
-        v = np.clip(v, 0, h - 1.0001)
+        u = np.minimum(np.maximum(u, 0.0, out=u), w - 1.0001, out=u)
+        v = np.minimum(np.maximum(v, 0.0, out=v), h - 1.0001, out=v)
         i0 = u.astype(np.intp)
         j0 = v.astype(np.intp)
         return j0 * w + i0, u - i0, v - j0, inside
@@ -82,9 +89,11 @@ class DistanceField:
         """Bilinear free indicator at points (x, y) (0 outside the grid)."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        kf = self.known.ravel()
-        top = kf[k] + fx * (kf[k + 1] - kf[k])
-        bot = kf[k + w] + fx * (kf[k + w + 1] - kf[k + w])
+        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
+        v = self.known.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
+        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
+        top = v00 + fx * (v10 - v00)
+        bot = v01 + fx * (v11 - v01)
         return (top + fy * (bot - top)) * inside
 
 
@@ -223,14 +232,18 @@ def refine(
             # Gaussian prior on delta, relative to a residual noise of half a pixel
             jtj[5, 5] += prior_w
             jtr[5] += prior_w * (x[5] - delta0)
-            if not np.all(np.isfinite(jtj)) or w_all.sum() < 6:
+            if not np.isfinite(jtj).all() or w_all.sum() < 6:
                 break
-            a = jtj + lam * np.diag(np.diag(jtj) + 1e-9)
+            # jtj + lam * np.diag(np.diag(jtj) + 1e-9), without building the diagonal matrix
+            # (+ 0.0 off the diagonal as there: the same bits)
+            dg = jtj.diagonal()
+            a = jtj + 0.0
+            a.ravel()[:: len(a) + 1] = dg + lam * (dg + 1e-9)
             try:
                 step = -np.linalg.solve(a, jtr)
             except np.linalg.LinAlgError:
                 break
-            if not np.all(np.isfinite(step)) or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
+            if not np.isfinite(step).all() or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
                 break  # a degenerate system (too few points on walls): keep the last estimate
             x = x + step
             x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper

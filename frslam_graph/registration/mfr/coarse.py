@@ -187,6 +187,26 @@ def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: flo
     return 0.5 + 0.5 * near.mean(axis=1)
 
 
+# OpenBLAS runs a matrix product of more multiply-adds than about twice this on every core, and
+# its threads then spin for up to ~0.1 s after it: on a busy machine that made the spinning a third
+# of a registration's CPU time (tools/README.md, "Registration CPU (session 14)")
+ONE_THREAD_MACS = 1 << 18
+
+
+def room_counts(on: np.ndarray, onehot: np.ndarray) -> np.ndarray:
+    """(H, n) float32 counts per room of the points each hypothesis puts on the footprint:
+    ``on`` (H, P) 0/1 (uint8), ``onehot`` (P, n) float32 room of each point. The counts are
+    exact integers whatever the summation order; the product runs in blocks of hypotheses small
+    enough for one BLAS thread (:data:`ONE_THREAD_MACS`)."""
+    rows = max(1, ONE_THREAD_MACS // max(onehot.size, 1))
+    if len(on) <= rows:
+        return on.astype(np.float32) @ onehot
+    out = np.empty((len(on), onehot.shape[1]), np.float32)
+    for i in range(0, len(on), rows):
+        np.matmul(on[i : i + rows].astype(np.float32), onehot, out=out[i : i + rows])
+    return out
+
+
 def coarse_scores(
     pm: PlanModel,
     obs: MapObservation,
@@ -224,7 +244,7 @@ def coarse_scores(
     inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
     x, y = apply_affine(a, t, inner)
     on = lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
-    frac = (on.astype(np.float32) @ inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    frac = room_counts(on, inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
     if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
         member = (frac >= matched_cover).astype(np.float64)
     inter = (frac * member) @ pm.room_areas * det
