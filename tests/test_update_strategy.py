@@ -178,6 +178,31 @@ def test_doubtful_registration_gives_no_priors(sim, baseline):
     assert np.allclose(res.trajectory, baseline[1].trajectory)
 
 
+def test_a_refused_placement_is_in_the_log(sim):
+    # MFR's "no match" carries its best placement: the run's log says which placement was refused
+    # (flip, rotation, scales), not only why, so that a real run's refusals can be told right or
+    # wrong against a hand annotation without registering its maps again
+    plan, run, m = sim
+
+    def refused(p, g):
+        reg = Registration.from_matrix(
+            m, score=0.6, ambiguity=0.3, method="mfr", candidates=[(0.19, False, 0.0)]
+        )
+        reg.ok, reg.reason = False, "no match: IoU 0.60 x wall precision 0.50 x recall 0.50 = 0.15"
+        return reg
+
+    upd = FloorPlanUpdater(plan, CFG.updates, register_fn=refused)
+    run_slam(run, upd)
+    reg = [e for e in upd.log if e.kind == "register"]
+    assert reg and not any(e.accepted for e in reg)
+    expected = Registration.from_matrix(m)
+    for e in reg:
+        assert "no match" in e.message
+        assert e.data["flipped"] == int(expected.flipped)
+        assert e.data["rotation_deg"] == pytest.approx(expected.rotation_deg)
+        assert (e.data["scale_x"], e.data["scale_y"]) == pytest.approx(tuple(expected.scale))
+
+
 def _other_building(run):
     """A two-room plan of another building, placed at the house's corner (plan, matrix)."""
     other = FloorPlan(

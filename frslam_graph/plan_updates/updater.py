@@ -403,7 +403,9 @@ class FloorPlanUpdater:
         except FrslamError as exc:
             return _Outcome(grid, recheck, None, str(exc), seconds=time.perf_counter() - t0)
         nums = {"area": area, "score": float(reg.score), "ambiguity": float(reg.ambiguity)}
-        if reg.ok:  # the placement itself (plan -> map): a run's log says what was judged
+        if reg.ok or reg.placed:
+            # the placement itself (plan -> map), also one the method refused (MFR's "no match"
+            # carries its best placement): a run's log says what was judged or refused
             nums.update(
                 flipped=int(bool(reg.flipped)),
                 rotation_deg=float(reg.rotation_deg),
