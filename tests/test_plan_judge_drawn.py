@@ -86,3 +86,26 @@ def test_a_runner_up_as_good_or_no_runner_up_still_refuses_it():
     judge, case, rel, occ = _drawn([])
     out = judge._drawn_on_the_map(case, None, rel, 0.4, occ, 0.25)
     assert isinstance(out, Verdict) and out.outcome == "reject"
+
+
+def test_a_fixed_gate_pass_whose_fit_residual_says_drawn_off_is_judged_at_its_drawing_tolerance():
+    """A plan drawn 0.5-1 m off in places passes MFR's fixed gate once most of it is seen (Intel's
+    lab at 80 %); its fit's RMS then says how far it is drawn off, and the judge must check it as
+    a drawn-off plan (by wall piece, at that tolerance), not as an accurately drawn one whose
+    walls seen through mean a wrong placement."""
+    from frslam_graph.plan_updates.judge import drawing_tolerance
+    from frslam_graph.registration.mfr.register import DRAWN_TOL_MAX, _drawn_off
+    from frslam_graph.registration.refine import RefineResult
+
+    def fit(rms: float) -> RefineResult:
+        return RefineResult(False, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, rms, 0.9, 500, None, None)
+
+    tol_f = 0.15
+    assert _drawn_off(fit(0.04), tol_f) == {}  # an accurately drawn plan: the fixed gate's checks
+    assert _drawn_off(fit(float("nan")), tol_f) == {}
+    off = _drawn_off(fit(0.105), tol_f)
+    assert off == {"drawn_off": True, "drawn_tol_m": 0.21}
+    assert _drawn_off(fit(0.5), tol_f)["drawn_tol_m"] == DRAWN_TOL_MAX
+    reg = Registration.from_matrix(np.eye(3), score=0.8, details={"rms_m": 0.105, **off})
+    assert drawing_tolerance(reg) == 0.21
+    assert drawing_tolerance(Registration.from_matrix(np.eye(3), score=0.8, details={"rms_m": 0.04})) == 0.0

@@ -98,10 +98,12 @@ def tolerances(config: UpdatesConfig, drift: float, drawing_tol: float = 0.0) ->
 
 def drawing_tolerance(reg: Any) -> float:
     """How far (m) the registration says its plan is drawn off the building: the structure
-    tolerance at which MFR accepted it when its fixed gate refused it (``drawn_tol_m``: twice
-    the fit's RMS, at most 0.35 m; a plan drawn 0.5-1 m off in places), else 0."""
+    tolerance at which MFR accepted it when its fixed gate refused it, or the one its fit's
+    residual gives when the fixed gate accepted it (``drawn_tol_m``: twice the fit's RMS, at
+    most 0.35 m; a plan drawn 0.5-1 m off in places), else 0."""
     details = getattr(reg, "details", None) or {}
-    return float(details.get("drawn_tol_m", 0.0)) if details.get("drawn_ok") else 0.0
+    drawn = details.get("drawn_ok") or details.get("drawn_off")
+    return float(details.get("drawn_tol_m", 0.0)) if drawn else 0.0
 
 
 def _runner_up_matrices(registration: Any) -> list[np.ndarray]:
