@@ -129,7 +129,7 @@ def test_finish_frees_isam_and_a_later_scan_rebuilds_it():
     for row, (r, amin, inc) in zip(truth[:n], scans[:n], strict=True):
         slam.add_scan(row[0], r, amin, inc, odom=tuple(row[1:]))
     done = slam.finish()
-    assert [e.kind for e in slam.log].count("final_alignment") == 2
+    assert [e.kind for e in slam.log].count("final_alignment") == 1  # one round by default
     assert not slam.graph.incremental
     np.testing.assert_array_equal(slam.keyframe_array()[:, 1:], slam.graph.estimates())
     keyframes = len(slam.graph)
