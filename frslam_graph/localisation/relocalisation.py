@@ -300,16 +300,7 @@ class Relocaliser:
         if comp and comp[0][1] > best_soft + 0.01 and self._separated(comp[0][0], best_pose):
             (best_pose, best_soft), comp[0] = comp[0], (best_pose, best_soft)
         res = self.field.lookup(self._transform(pts, best_pose), outside=-p.truncation)[:, 0]
-        score = float(np.mean(np.abs(res) < p.inlier_distance))
-        # the points around the wall pieces ignored (no information there) count neither way in
-        # the scores reported: a scan half in a part of the building the plan draws differently
-        # fits the rest as well as any (the search and the ambiguity are unchanged)
-        informed = int(np.count_nonzero(res < 0.5 * IGNORED)) if self.ignored is not None else len(pts)
-        if p.min_points <= informed < len(pts):
-            share = informed / len(pts)
-            score, best_soft_seen = score / share, best_soft / share
-        else:
-            best_soft_seen = best_soft
+        informed, score, best_soft_seen = self._reported(res, best_soft)
         cov = self._covariance(pts, best_pose)
         info = np.linalg.inv(cov)
         ambiguity, runner = 0.0, None
@@ -339,13 +330,28 @@ class Relocaliser:
         )
 
     def evaluate(self, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
-        """(inlier fraction, soft score) of ``points`` (base_link) at ``pose`` without searching."""
+        """(inlier fraction, soft score) of ``points`` (base_link) at ``pose`` without searching,
+        as :meth:`relocalise` reports them (:meth:`_reported`)."""
         p = self.params
         pts = subsample(np.asarray(points, dtype=np.float64).reshape(-1, 2), p.voxel, p.max_points)
         if not len(pts):
             return 0.0, 0.0
         r = self.field.lookup(self._transform(pts, np.asarray(pose, float)), outside=-p.truncation)[:, 0]
-        return float(np.mean(np.abs(r) < p.inlier_distance)), _soft(r, p.truncation)
+        return self._reported(r, _soft(r, p.truncation))[1:]
+
+    def _reported(self, res: np.ndarray, soft: float) -> tuple[int, float, float]:
+        """(informed points, inlier fraction, soft score) reported for a scan whose points have
+        field residuals ``res`` (m) and whose soft score over all its points is ``soft``: the
+        points around the wall pieces ignored (no information there) count neither way, so a scan
+        half in a part of the building the plan draws differently fits the rest as well as any.
+        :meth:`relocalise` and :meth:`evaluate` report alike, so their scores compare."""
+        p = self.params
+        score = float(np.mean(np.abs(res) < p.inlier_distance))
+        informed = int(np.count_nonzero(res < 0.5 * IGNORED)) if self.ignored is not None else len(res)
+        if p.min_points <= informed < len(res):
+            share = informed / len(res)
+            return informed, score / share, soft / share
+        return informed, score, soft
 
     def fit_points(self, xy_map: np.ndarray, distance: float | None = None) -> float:
         """Fraction of map points (N, 2) within ``distance`` (default ``inlier_distance``,
