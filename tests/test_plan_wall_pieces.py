@@ -39,6 +39,21 @@ def _building(open_from: float) -> OccupancyGrid:
     return OccupancyGrid(data, RES, (-0.5, -0.5, 0.0))
 
 
+def _scan_in_room_b() -> tuple[np.ndarray, np.ndarray]:
+    """A scan from (6, 2) in room b of :func:`_plan` (base_link points, its pose): the room's four
+    walls, a quarter of the points on the wall at x = 4."""
+    t = np.linspace(0.0, 4.0, 80, endpoint=False)
+    walls = np.vstack(
+        (
+            np.c_[np.full(80, 4.0), t],
+            np.c_[np.full(80, 8.0), t],
+            np.c_[4.0 + t, np.zeros(80)],
+            np.c_[4.0 + t, np.full(80, 4.0)],
+        )
+    )
+    return walls - np.array([6.0, 2.0]), np.array([6.0, 2.0, 0.0])
+
+
 def test_only_the_wall_piece_seen_through_is_dropped_and_ignored():
     rel = Relocaliser(_plan())
     grid = _building(open_from=3.0)
@@ -111,18 +126,7 @@ def test_the_ignored_surroundings_count_neither_way():
     on_piece, on_wall = np.array([[4.0, 3.5]]), np.array([[4.0, 2.0], [0.0, 2.0], [6.0, 0.0]])
     assert part.fit_points(np.vstack((on_piece, on_wall)), 0.1) == 1.0
     assert rel.fit_points(np.vstack((on_piece, on_wall + 1.0)), 0.1) == 0.25
-    # a scan from (6, 2) in room b: its four walls, a quarter of the points on the wall at x = 4
-    t = np.linspace(0.0, 4.0, 80, endpoint=False)
-    walls = np.vstack(
-        (
-            np.c_[np.full(80, 4.0), t],
-            np.c_[np.full(80, 8.0), t],
-            np.c_[4.0 + t, np.zeros(80)],
-            np.c_[4.0 + t, np.full(80, 4.0)],
-        )
-    )
-    scan = walls - np.array([6.0, 2.0])
-    pose = np.array([6.0, 2.0, 0.0])
+    scan, pose = _scan_in_room_b()
     full = rel.relocalise(scan, pose)
     wide = rel.ignoring(np.c_[np.full(41, 4.0), np.linspace(0.0, 4.0, 41)], 0.3)
     ignored = wide.relocalise(scan, pose)
@@ -136,16 +140,7 @@ def test_evaluate_reports_a_pose_as_relocalise_does_around_ignored_pieces():
     the "gain" was 0.06-0.07 on the Intel plan, so the plan was moved at every check (intel.bag:
     1 deg back and forth five times, each re-anchoring every prior)."""
     rel = Relocaliser(_plan())
-    t = np.linspace(0.0, 4.0, 80, endpoint=False)
-    walls = np.vstack(
-        (
-            np.c_[np.full(80, 4.0), t],
-            np.c_[np.full(80, 8.0), t],
-            np.c_[4.0 + t, np.zeros(80)],
-            np.c_[4.0 + t, np.full(80, 4.0)],
-        )
-    )
-    scan, pose = walls - np.array([6.0, 2.0]), np.array([6.0, 2.0, 0.0])
+    scan, pose = _scan_in_room_b()
     part = rel.ignoring(np.c_[np.full(41, 4.0), np.linspace(0.0, 4.0, 41)], 0.3)
     for r in (rel, part):
         found = r.relocalise(scan, pose)
