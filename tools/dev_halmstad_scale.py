@@ -135,14 +135,6 @@ def from_truth(ctx: dict[str, Any], truth_grid: np.ndarray) -> dict[str, Any]:
     }
 
 
-def halves(plan_pts: np.ndarray, map_pts: np.ndarray) -> list[np.ndarray]:
-    """Two boolean masks of the annotated points: either side of the median along the map
-    points' principal axis."""
-    c = map_pts - map_pts.mean(axis=0)
-    proj = c @ np.linalg.svd(c, full_matrices=False)[2][0]
-    return [proj < np.median(proj), proj >= np.median(proj)]
-
-
 def seen_through(plan: Any, truth: np.ndarray, rooms: list[str], behind_m: float, window_m: float):
     """An OccupancyGrid (0.05 m) of the house ``truth · plan``: ``rooms`` seen whole (free inside,
     a one-cell occupied ring open at doors), the other rooms seen ``behind_m`` deep from the open
@@ -256,7 +248,7 @@ def main() -> None:
             pol = err(ctx["screened"].matrix)
             t = from_truth(ctx, truth_grid)
             hs = []
-            for m in halves(plan_pts, map_pts):
+            for m in br.halves(map_pts):
                 own, _ = br.fit_similarity(plan_pts[m], map_pts[m])
                 hs.append(
                     (
