@@ -259,6 +259,9 @@ class ScanOdometry:
         self._last_increment = np.zeros(3)
         self._prev_wheel: np.ndarray | None = None  # previous wheel pose, re-timed (see _toff)
         self._prev_raw: np.ndarray | None = None  # previous wheel pose as given
+        # the wheels stalled: they report no motion at all where the scan saw the robot move (a
+        # log with a constant odometry field); until they move again they carry no step
+        self._stalled = False
         self._toff = WheelTimeOffset()
         self._prev_rel = np.zeros(3)  # fused pose relative to keyframe at the previous scan
         self._kf_index = -1
@@ -350,6 +353,9 @@ class ScanOdometry:
                 alone = not cfg.scan_matching or len(pts) < cfg.min_points
                 corr = cfg.wheel_correlation_length if alone else 0.0
                 u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args, correlation_length=corr), True
+            self._stalled = self._stalled and not np.any(uw_raw)
+            if self._stalled:  # still stalled: the step is the scan's, as without wheel odometry
+                u, cov_u, used_wheel = cv_u, cv_cov, False
         seeds = [u]
         if used_wheel and self._last_dt > 0.0 and self._disagree(u, cv_u, cov_u + cv_cov):
             seeds.append(cv_u)  # wheels and constant velocity disagree: let the scan decide
@@ -392,11 +398,14 @@ class ScanOdometry:
                 beyond = outside and (
                     np.hypot(y[0], y[1]) > ODOM_JUMP_MIN_M or abs(y[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
                 )
-                if outside and _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0):
+                stalled = not np.any(uw_raw)
+                if outside and (stalled or _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0)):
                     # the scan moved the robot backwards where the wheels say forwards (or the
                     # reverse): wheel odometry that lost the sign of the motion (FR079 logs
-                    # reversing at 0.5 m/s as forward motion). A wheel fault: ICP is trusted,
+                    # reversing at 0.5 m/s as forward motion); or it moved the robot where the
+                    # wheels report no motion at all (stalled). A wheel fault: ICP is trusted,
                     # under the constant-velocity prior
+                    self._stalled = stalled
                     jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
                     self._ekf.restore(before)
                     self._ekf.predict(u, cov_u)
