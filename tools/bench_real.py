@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -165,37 +166,63 @@ def _register(plan: Any, grid: Any, method: str) -> tuple[Any, float, float]:
     return reg, time.perf_counter() - t0, time.process_time() - c0
 
 
-def halmstad_rows(data: Path, resolution: float = 0.05, method: str = "mfr") -> list[dict[str, Any]]:
-    """One row per Halmstad sensor map (see the module docstring)."""
+def halmstad_cases(
+    data: Path, resolution: float = 0.05
+) -> Iterator[tuple[str, str, Any, Path, np.ndarray, np.ndarray]]:
+    """Each Halmstad sensor map: (building, map name, its layout as a FloorPlan, the map image's
+    path, the annotated points in the plan (N, 2, plan pixels) and in the map (N, 2, metres at
+    ``resolution``)); see the module docstring for the points' convention."""
     from frslam_graph.floorplan import FloorPlan
-    from frslam_graph.occupancy import OccupancyGrid
 
-    rows = []
     for b in HALMSTAD_BUILDINGS:
         folder = data / "halmstad" / b
         plan = FloorPlan.load(folder / "layout" / f"{b}_layout.png")
         for path in sorted((folder / "sensor_maps").glob("*.png")):
-            name = path.stem
             pts = np.loadtxt(
-                folder / "annotations" / f"{name}_to_layout.csv", delimiter=",", skiprows=1, ndmin=2
+                folder / "annotations" / f"{path.stem}_to_layout.csv", delimiter=",", skiprows=1, ndmin=2
             )
-            grid = OccupancyGrid.from_image(path, resolution)
             map_pts = np.column_stack([pts[:, 0] + 0.5, pts[:, 1]]) * resolution
             plan_pts = np.column_stack([pts[:, 2] + 0.5, pts[:, 3]])
-            truth, res = fit_similarity(plan_pts, map_pts)
-            reg, secs, cpu = _register(plan, grid, method)
-            row = {
-                "set": "halmstad",
-                "case": name,
-                "building": b,
-                "n_rooms": len(plan.rooms),
-                "time_s": secs,
-                "cpu_s": cpu,
-            }
-            row.update(point_rows(reg, truth, plan_pts, map_pts, res))
-            row["residual_px"] = res / resolution
-            row["halves_scale"] = halves_scales(plan_pts, map_pts)
-            rows.append(row)
+            yield b, path.stem, plan, path, plan_pts, map_pts
+
+
+def _annotated_row(
+    kind: str,
+    case: str,
+    building: str,
+    plan: Any,
+    grid: Any,
+    plan_pts: np.ndarray,
+    map_pts: np.ndarray,
+    method: str,
+) -> dict[str, Any]:
+    """The row of one registration of ``plan`` on ``grid`` scored against annotated points
+    (``plan_pts`` in plan units, ``map_pts`` in metres): truth their similarity (:func:`point_rows`)."""
+    truth, res = fit_similarity(plan_pts, map_pts)
+    reg, secs, cpu = _register(plan, grid, method)
+    row = {
+        "set": kind,
+        "case": case,
+        "building": building,
+        "n_rooms": len(plan.rooms),
+        "time_s": secs,
+        "cpu_s": cpu,
+    }
+    row.update(point_rows(reg, truth, plan_pts, map_pts, res))
+    row["residual_px"] = res / grid.resolution
+    return row
+
+
+def halmstad_rows(data: Path, resolution: float = 0.05, method: str = "mfr") -> list[dict[str, Any]]:
+    """One row per Halmstad sensor map (see the module docstring)."""
+    from frslam_graph.occupancy import OccupancyGrid
+
+    rows = []
+    for b, name, plan, path, plan_pts, map_pts in halmstad_cases(data, resolution):
+        grid = OccupancyGrid.from_image(path, resolution)
+        row = _annotated_row("halmstad", name, b, plan, grid, plan_pts, map_pts, method)
+        row["halves_scale"] = halves_scales(plan_pts, map_pts)
+        rows.append(row)
     return rows
 
 
@@ -215,19 +242,7 @@ def ipa_rows(data: Path, method: str = "mfr", annotations: Path = TEST_DATA) -> 
         hp = cv2.imread(str(folder / plan_file), cv2.IMREAD_GRAYSCALE).shape[0]
         hm = grid.height
         plan_pts, map_pts = ipa_points(annotations / csv, hp, hm, res)
-        truth, resid = fit_similarity(plan_pts, map_pts)
-        reg, secs, cpu = _register(plan, grid, method)
-        row = {
-            "set": "ipa",
-            "case": name,
-            "building": name,
-            "n_rooms": len(plan.rooms),
-            "time_s": secs,
-            "cpu_s": cpu,
-        }
-        row.update(point_rows(reg, truth, plan_pts, map_pts, resid))
-        row["residual_px"] = resid / res
-        rows.append(row)
+        rows.append(_annotated_row("ipa", name, name, plan, grid, plan_pts, map_pts, method))
     return rows
 
 

@@ -21,10 +21,8 @@ scan's stamp has no pose of its own). × real time CPU: log duration / CPU secon
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
-import subprocess
 import sys
 import time
 import warnings
@@ -38,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _paths import LOGS  # noqa: E402
 from _paths import SHARED_DATA as DATA  # noqa: E402
+from _variants import variants_main  # noqa: E402
 
 
 def stalled_odometry(scans: Iterable) -> Iterator:
@@ -181,31 +180,7 @@ def table(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--logs", nargs="+", default=["intel", "aces"], choices=sorted(LOGS))
-    ap.add_argument("--variants", nargs="+", default=ALL, choices=list(VARIANTS))
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--force", action="store_true", help="run again where summary.json exists")
-    ap.add_argument("--one", nargs=2, metavar=("LOG", "VARIANT"), help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.one:
-        print(json.dumps(run_one(args.one[0], args.one[1], args.out)))
-        return
-    rows = []
-    for log in args.logs:
-        for v in args.variants:
-            d = args.out / f"{log}_{v}"
-            if args.force or not (d / "summary.json").exists():
-                cmd = [sys.executable, __file__, "--one", log, v, "--out", str(d)]
-                r = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-                if r.returncode:
-                    print(f"| {log} | {v} | FAILED: {r.stderr.strip().splitlines()[-1]} |", flush=True)
-                    (d / "stderr.txt").parent.mkdir(parents=True, exist_ok=True)
-                    (d / "stderr.txt").write_text(r.stderr)
-                    continue
-            rows.append(json.loads((d / "summary.json").read_text()))
-            print(table(rows[-1:]).splitlines()[-1], flush=True)
-    print(table(rows))
+    variants_main(__doc__, __file__, list(LOGS), list(VARIANTS), ["intel", "aces"], ALL, run_one, table)
 
 
 if __name__ == "__main__":

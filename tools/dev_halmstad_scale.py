@@ -45,7 +45,6 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_real as br  # noqa: E402
 
-from frslam_graph.floorplan import FloorPlan  # noqa: E402
 from frslam_graph.occupancy import OccupancyGrid  # noqa: E402
 from frslam_graph.raster import RasterFrame, rasterise_plan  # noqa: E402
 from frslam_graph.registration import register  # noqa: E402
@@ -219,54 +218,45 @@ def main() -> None:
         "| map | ok | scr | pol | fin | d1 (m) | ans | Tscr | T1 | T2 | h1 / h2 | rms h1 truth/ans | rms h2 truth/ans |"
     )
     print("|---|:-:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for b in br.HALMSTAD_BUILDINGS:
-        folder = data / "halmstad" / b
-        plan = FloorPlan.load(folder / "layout" / f"{b}_layout.png")
-        for path in sorted((folder / "sensor_maps").glob("*.png")):
-            name = path.stem
-            if args.only and args.only not in name:
-                continue
-            pts = np.loadtxt(
-                folder / "annotations" / f"{name}_to_layout.csv", delimiter=",", skiprows=1, ndmin=2
-            )
-            map_pts = np.column_stack([pts[:, 0] + 0.5, pts[:, 1]]) * 0.05
-            plan_pts = np.column_stack([pts[:, 2] + 0.5, pts[:, 3]])
-            truth, _ = br.fit_similarity(plan_pts, map_pts)
-            tracer.clear()
-            reg = register(plan, OccupancyGrid.from_image(path, 0.05), method="mfr")
-            ctx = tracer.ctx
-            if "obs" not in ctx:
-                print(f"| {name} | no final fit: {reg.reason[:60]} |")
-                continue
-            truth_grid = np.linalg.inv(ctx["obs"].to_map) @ truth
+    for _, name, plan, path, plan_pts, map_pts in br.halmstad_cases(data):
+        if args.only and args.only not in name:
+            continue
+        truth, _ = br.fit_similarity(plan_pts, map_pts)
+        tracer.clear()
+        reg = register(plan, OccupancyGrid.from_image(path, 0.05), method="mfr")
+        ctx = tracer.ctx
+        if "obs" not in ctx:
+            print(f"| {name} | no final fit: {reg.reason[:60]} |")
+            continue
+        truth_grid = np.linalg.inv(ctx["obs"].to_map) @ truth
 
-            def err(m: np.ndarray, ref: float = scale_of(truth_grid)) -> str:
-                return f"{100.0 * (scale_of(m) / ref - 1.0):+.1f}"
+        def err(m: np.ndarray, ref: float = scale_of(truth_grid)) -> str:
+            return f"{100.0 * (scale_of(m) / ref - 1.0):+.1f}"
 
-            screens = [ev for ev in tracer.events if ev[0] == "screen"]
-            best_screen = max((p for ev in screens for p in ev[1]), key=lambda p: p[1])[0]
-            pol = err(ctx["screened"].matrix)
-            t = from_truth(ctx, truth_grid)
-            hs = []
-            for m in br.halves(map_pts):
-                own, _ = br.fit_similarity(plan_pts[m], map_pts[m])
-                hs.append(
-                    (
-                        100.0 * (scale_of(own) / scale_of(truth) - 1.0),
-                        rms_at(truth, plan_pts[m], map_pts[m]),
-                        rms_at(reg.matrix, plan_pts[m], map_pts[m]),
-                    )
+        screens = [ev for ev in tracer.events if ev[0] == "screen"]
+        best_screen = max((p for ev in screens for p in ev[1]), key=lambda p: p[1])[0]
+        pol = err(ctx["screened"].matrix)
+        t = from_truth(ctx, truth_grid)
+        hs = []
+        for m in br.halves(map_pts):
+            own, _ = br.fit_similarity(plan_pts[m], map_pts[m])
+            hs.append(
+                (
+                    100.0 * (scale_of(own) / scale_of(truth) - 1.0),
+                    rms_at(truth, plan_pts[m], map_pts[m]),
+                    rms_at(reg.matrix, plan_pts[m], map_pts[m]),
                 )
-            print(
-                f"| {name} | {'yes' if reg.ok else 'no'} | {err(best_screen)} | {pol} | {err(ctx['final'].matrix)} "
-                f"| {ctx['final'].delta:+.3f} | {100.0 * (scale_of(reg.matrix) / scale_of(truth) - 1.0):+.1f} "
-                f"| {err(t['Tscr'].matrix)} | {err(t['T1'].matrix)} | {err(t['T2'].matrix)} "
-                f"| {hs[0][0]:+.1f} / {hs[1][0]:+.1f} | {hs[0][1]:.2f} / {hs[0][2]:.2f} | {hs[1][1]:.2f} / {hs[1][2]:.2f} |",
-                flush=True,
             )
-            if args.trace:
-                for stage, placed in tracer.events:
-                    print(f"    {stage}: " + ", ".join(f"{err(m)} ({k:.3f})" for m, k in placed))
+        print(
+            f"| {name} | {'yes' if reg.ok else 'no'} | {err(best_screen)} | {pol} | {err(ctx['final'].matrix)} "
+            f"| {ctx['final'].delta:+.3f} | {100.0 * (scale_of(reg.matrix) / scale_of(truth) - 1.0):+.1f} "
+            f"| {err(t['Tscr'].matrix)} | {err(t['T1'].matrix)} | {err(t['T2'].matrix)} "
+            f"| {hs[0][0]:+.1f} / {hs[1][0]:+.1f} | {hs[0][1]:.2f} / {hs[0][2]:.2f} | {hs[1][1]:.2f} / {hs[1][2]:.2f} |",
+            flush=True,
+        )
+        if args.trace:
+            for stage, placed in tracer.events:
+                print(f"    {stage}: " + ", ".join(f"{err(m)} ({k:.3f})" for m, k in placed))
 
 
 if __name__ == "__main__":

@@ -16,15 +16,13 @@ mean / std / max, closures accepted / pending / pruned, CPU s), ``log.jsonl`` (t
 
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 from _paths import LOGS  # noqa: E402
 from _paths import SHARED_DATA as DATA  # noqa: E402
+from _variants import variants_main  # noqa: E402
 
 #: nearby configurations (overrides of the default): the wheel model around its default (8 %/m,
 #: 8 mm floor; session 6 measured these), and the former fraction with the current floor
@@ -104,26 +102,7 @@ def table(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--logs", nargs="+", default=["aces", "fr079"], choices=sorted(LOGS))
-    ap.add_argument("--variants", nargs="+", default=FAMILY, choices=list(VARIANTS))
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--force", action="store_true", help="run again where summary.json exists")
-    ap.add_argument("--one", nargs=2, metavar=("LOG", "VARIANT"), help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.one:
-        print(json.dumps(run_one(args.one[0], args.one[1], args.out)))
-        return
-    rows = []
-    for log in args.logs:
-        for v in args.variants:
-            d = args.out / f"{log}_{v}"
-            if args.force or not (d / "summary.json").exists():
-                cmd = [sys.executable, __file__, "--one", log, v, "--out", str(d)]
-                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-            rows.append(json.loads((d / "summary.json").read_text()))
-            print(table(rows[-1:]).splitlines()[-1], flush=True)
-    print(table(rows))
+    variants_main(__doc__, __file__, list(LOGS), list(VARIANTS), ["aces", "fr079"], FAMILY, run_one, table)
 
 
 if __name__ == "__main__":
