@@ -353,7 +353,10 @@ class ScanOdometry:
                 alone = not cfg.scan_matching or len(pts) < cfg.min_points
                 corr = cfg.wheel_correlation_length if alone else 0.0
                 u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args, correlation_length=corr), True
-            self._stalled = self._stalled and not np.any(uw_raw)
+        # wheels that report no motion at all (a fault when the scan moves the robot: below)
+        wheels_still = uw_raw is not None and not np.any(uw_raw)
+        if uw_raw is not None:
+            self._stalled = self._stalled and wheels_still
             if self._stalled:  # still stalled: the step is the scan's, as without wheel odometry
                 u, cov_u, used_wheel = cv_u, cv_cov, False
         seeds = [u]
@@ -398,14 +401,13 @@ class ScanOdometry:
                 beyond = outside and (
                     np.hypot(y[0], y[1]) > ODOM_JUMP_MIN_M or abs(y[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
                 )
-                stalled = not np.any(uw_raw)
-                if outside and (stalled or _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0)):
+                if outside and (wheels_still or _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0)):
                     # the scan moved the robot backwards where the wheels say forwards (or the
                     # reverse): wheel odometry that lost the sign of the motion (FR079 logs
                     # reversing at 0.5 m/s as forward motion); or it moved the robot where the
                     # wheels report no motion at all (stalled). A wheel fault: ICP is trusted,
                     # under the constant-velocity prior
-                    self._stalled = stalled
+                    self._stalled = wheels_still
                     jump, used_wheel, u, cov_u = True, False, cv_u, cv_cov
                     self._ekf.restore(before)
                     self._ekf.predict(u, cov_u)
