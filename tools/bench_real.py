@@ -78,6 +78,17 @@ def ipa_points(path: Path, plan_height: int, map_height: int, resolution: float 
     return plan_pts, map_pts
 
 
+def scale_of(m: np.ndarray) -> float:
+    """Geometric-mean scale of a 3x3 similarity / affinity (its linear part's sqrt |det|)."""
+    return math.sqrt(abs(float(np.linalg.det(m[:2, :2]))))
+
+
+def rms_at(m: np.ndarray, src: np.ndarray, dst: np.ndarray) -> float:
+    """RMS distance (units of ``dst``) between ``m`` (3x3) applied to ``src`` (N, 2) and ``dst``."""
+    d = src @ m[:2, :2].T + m[:2, 2] - dst
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
 def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
     """The similarity (3x3, with a flip when that fits better) taking ``src`` (N, 2) to ``dst``
     (N, 2) in the least-squares sense (Umeyama), and its RMS residual (units of ``dst``)."""
@@ -93,7 +104,7 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]
         m = np.eye(3)
         m[:2, :2] = scale * rot @ np.diag([1.0, -1.0 if flip else 1.0])
         m[:2, 2] = md - scale * rot @ ms
-        res = float(np.sqrt(np.mean(np.sum((src @ m[:2, :2].T + m[:2, 2] - dst) ** 2, axis=1))))
+        res = rms_at(m, src, dst)
         if best is None or res < best[1]:
             best = (m, res)
     assert best is not None
@@ -112,12 +123,9 @@ def halves_scales(plan_pts: np.ndarray, map_pts: np.ndarray) -> tuple[float, flo
     """Each half's (:func:`halves`) own similarity's scale relative to the whole's, minus 1: how
     far the map is from one similarity of the plan (a Tango map bent or stretched in one part:
     Halmstad E5_02's halves -9.9 / +3.9 %). Point noise alone gives a few tenths of a per cent."""
-    whole = abs(np.linalg.det(fit_similarity(plan_pts, map_pts)[0][:2, :2]))
-    out = []
-    for m in halves(map_pts):
-        part = abs(np.linalg.det(fit_similarity(plan_pts[m], map_pts[m])[0][:2, :2]))
-        out.append(math.sqrt(part / whole) - 1.0)
-    return out[0], out[1]
+    whole = scale_of(fit_similarity(plan_pts, map_pts)[0])
+    h1, h2 = (scale_of(fit_similarity(plan_pts[m], map_pts[m])[0]) / whole - 1.0 for m in halves(map_pts))
+    return h1, h2
 
 
 def point_rows(
@@ -145,7 +153,7 @@ def point_rows(
         return row
     ef, er, esx, esy, _, _ = params_from_matrix(m)
     drot = (math.degrees(er - tr) + 180.0) % 360.0 - 180.0
-    err = float(np.sqrt(np.mean(np.sum((plan_pts @ m[:2, :2].T + m[:2, 2] - map_pts) ** 2, axis=1))))
+    err = rms_at(m, plan_pts, map_pts)
     row.update(
         flip_ok=bool(ef) == bool(tf),
         rot_err_deg=abs(drot),

@@ -32,7 +32,6 @@ map's known-area crop (``MapObservation.to_map``). Scales are geometric means of
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from pathlib import Path
@@ -50,17 +49,6 @@ from frslam_graph.raster import RasterFrame, rasterise_plan  # noqa: E402
 from frslam_graph.registration import register  # noqa: E402
 from frslam_graph.registration.mfr import coarse, fine  # noqa: E402
 from frslam_graph.registration.mfr import register as mfr_register  # noqa: E402
-
-
-def scale_of(m: np.ndarray) -> float:
-    """Geometric-mean scale of a 3x3 similarity / affinity."""
-    return math.sqrt(abs(float(np.linalg.det(m[:2, :2]))))
-
-
-def rms_at(m: np.ndarray, plan_pts: np.ndarray, map_pts: np.ndarray) -> float:
-    """RMS distance (map units) between ``m`` applied to ``plan_pts`` and ``map_pts``."""
-    d = plan_pts @ m[:2, :2].T + m[:2, 2] - map_pts
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
 class Tracer:
@@ -194,11 +182,11 @@ def synthetic(tracer: Tracer) -> None:
                 print(f"| {int(flipped)}, {rot_deg:g} | {behind_m:g} | {window_m:g} | no final fit |")
                 continue
             t = from_truth(tracer.ctx, np.linalg.inv(tracer.ctx["obs"].to_map) @ truth)
-            ref = scale_of(truth)
+            ref = br.scale_of(truth)
             print(
                 f"| {int(flipped)}, {rot_deg:g} | {behind_m:g} | {window_m:g} | {'yes' if reg.ok else 'no'} "
-                f"| {100 * (scale_of(reg.matrix) / ref - 1):+.2f} % | {100 * (scale_of(t['Tscr'].matrix) / ref - 1):+.2f} % "
-                f"| {100 * (scale_of(t['T1'].matrix) / ref - 1):+.2f} % |",
+                f"| {100 * (br.scale_of(reg.matrix) / ref - 1):+.2f} % | {100 * (br.scale_of(t['Tscr'].matrix) / ref - 1):+.2f} % "
+                f"| {100 * (br.scale_of(t['T1'].matrix) / ref - 1):+.2f} % |",
                 flush=True,
             )
 
@@ -230,8 +218,8 @@ def main() -> None:
             continue
         truth_grid = np.linalg.inv(ctx["obs"].to_map) @ truth
 
-        def err(m: np.ndarray, ref: float = scale_of(truth_grid)) -> str:
-            return f"{100.0 * (scale_of(m) / ref - 1.0):+.1f}"
+        def err(m: np.ndarray, ref: float = br.scale_of(truth_grid)) -> str:
+            return f"{100.0 * (br.scale_of(m) / ref - 1.0):+.1f}"
 
         screens = [ev for ev in tracer.events if ev[0] == "screen"]
         best_screen = max((p for ev in screens for p in ev[1]), key=lambda p: p[1])[0]
@@ -242,14 +230,14 @@ def main() -> None:
             own, _ = br.fit_similarity(plan_pts[m], map_pts[m])
             hs.append(
                 (
-                    100.0 * (scale_of(own) / scale_of(truth) - 1.0),
-                    rms_at(truth, plan_pts[m], map_pts[m]),
-                    rms_at(reg.matrix, plan_pts[m], map_pts[m]),
+                    100.0 * (br.scale_of(own) / br.scale_of(truth) - 1.0),
+                    br.rms_at(truth, plan_pts[m], map_pts[m]),
+                    br.rms_at(reg.matrix, plan_pts[m], map_pts[m]),
                 )
             )
         print(
             f"| {name} | {'yes' if reg.ok else 'no'} | {err(best_screen)} | {pol} | {err(ctx['final'].matrix)} "
-            f"| {ctx['final'].delta:+.3f} | {100.0 * (scale_of(reg.matrix) / scale_of(truth) - 1.0):+.1f} "
+            f"| {ctx['final'].delta:+.3f} | {100.0 * (br.scale_of(reg.matrix) / br.scale_of(truth) - 1.0):+.1f} "
             f"| {err(t['Tscr'].matrix)} | {err(t['T1'].matrix)} | {err(t['T2'].matrix)} "
             f"| {hs[0][0]:+.1f} / {hs[1][0]:+.1f} | {hs[0][1]:.2f} / {hs[0][2]:.2f} | {hs[1][1]:.2f} / {hs[1][2]:.2f} |",
             flush=True,
