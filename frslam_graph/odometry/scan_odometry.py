@@ -368,6 +368,11 @@ class ScanOdometry:
             # where a reversal is possible: a robot reverses through standstill, so not while the
             # last step moved on in the wheels' direction by more than half this one
             seeds.append(np.array([-u[0], -u[1], u[2]]))
+        if not used_wheel:
+            # constant velocity alone (no wheels, stalled or rejected ones) is no better than its
+            # random walk: a robot that starts or stops turning within a scan period leaves it
+            # beyond ICP's reach (ACES without odometry: lost for 80 scans after an in-place turn)
+            seeds += _cv_alternatives(cv_u, cv_cov)
         # a scan without wheel odometry breaks the chain: the next increment must not span it
         self._prev_wheel, self._prev_raw = wheel, raw_wheel
 
@@ -385,11 +390,20 @@ class ScanOdometry:
             if scan.source is None:  # prepared without the registration's inputs
                 scan = self.prepare(pts, icp_inputs=True)
             chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
-            if chosen:  # the scan sides with constant velocity or the reversed wheel step: a jump
+            if (
+                chosen and used_wheel
+            ):  # the scan sides with constant velocity or the reversed wheel step: a jump
                 jump, used_wheel, u, cov_u = True, False, seeds[chosen], cv_cov
+            elif chosen:  # the scan sides with another constant-velocity seed: the prediction
+                u = seeds[chosen]
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
             R_body, degenerate, fallback, axis = scan.icp_covariance
+            if degenerate and not fallback and not used_wheel:
+                # along a corridor only the wheels know the axis; constant velocity does not (a
+                # random walk that nothing bounds): what the scan still sees along it (doors,
+                # wall ends, the corridor's end) is kept, at its own point-to-line information
+                R_body = self._scan_covariance(scan.geometry)
             if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
                 icp_rejected, z = True, np.zeros(3)
             R = vector_cov(z, R_body)
@@ -547,6 +561,14 @@ class ScanOdometry:
         dt = raw if raw >= 0.5 * period else period
         return dt, max(raw, period), dropped
 
+    def _scan_covariance(self, geo: ScanGeometry) -> np.ndarray:
+        """Body-frame ICP covariance from the scan's point-to-line Hessian alone (m, rad; no
+        inflation along a degenerate axis), floored and capped as :meth:`_icp_covariance`'s."""
+        H = geo.hessian + 1e-9 * np.eye(3)
+        cov = np.linalg.inv(H) * (self.config.icp_sigma**2 * ICP_COV_INFLATION)
+        cov = 0.5 * (cov + cov.T) + self._floor
+        return np.minimum(cov, _COV_CAP)
+
     def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:
         """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
         cfg = self.config
@@ -563,7 +585,7 @@ class ScanOdometry:
             a3 = np.array([axis[0], axis[1], 0.0])
             cov = cov + DEGENERATE_SIGMA**2 * np.outer(a3, a3)
         # an ill-conditioned Hessian also gives a huge inverse along the axis; cap it
-        cov = np.minimum(cov, np.diag([DEGENERATE_SIGMA**2] * 2 + [np.pi**2]).max())
+        cov = np.minimum(cov, _COV_CAP)
         return cov, degenerate, False, axis
 
     def _disagree(self, a: np.ndarray, b: np.ndarray, cov: np.ndarray) -> bool:
@@ -711,6 +733,19 @@ class ScanOdometry:
         )
 
 
+def _cv_alternatives(cv_u: np.ndarray, cv_cov: np.ndarray) -> list[np.ndarray]:
+    """Seeds beside the constant-velocity increment ``cv_u`` (x, y m, theta rad; previous
+    base_link frame) that its own random walk ``cv_cov`` allows: turned one heading sigma either
+    way (a turn that starts, ends or speeds up within the step) and no motion (a robot that
+    stops; none when ``cv_u`` is no motion already). :meth:`ScanOdometry._align` keeps the
+    constant-velocity one unless another fits the local map clearly better."""
+    turn = np.array([0.0, 0.0, float(np.sqrt(cv_cov[2, 2]))])
+    out = [compose(cv_u, turn), compose(cv_u, -turn)]
+    if np.any(cv_u):
+        out.append(np.zeros(3))
+    return out
+
+
 def _reversed(icp_increment: np.ndarray, wheel_increment: np.ndarray, least: float) -> bool:
     """True when the two increments move along base_link x in opposite directions, each by more
     than ``least`` metres."""
@@ -786,6 +821,7 @@ _REFINE_MAX_STEP = 0.3  # m (the association distance), a larger move from KISS-
 _REFINE_MAX_TURN = np.deg2rad(5.0)
 _REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
+_COV_CAP = DEGENERATE_SIGMA**2  # m², rad²: a cap on every entry of the ICP covariance
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
 
 
