@@ -275,6 +275,8 @@ class ScanOdometry:
         self._local_stale = False  # _recent changed since _local_ref was built (see _local_map)
         self._since_rebuild = 0
         self._aligned_points = np.zeros((0, 2))
+        # share of each recent refined scan within a voxel of the local map (see _turned)
+        self._fits: deque[float] = deque(maxlen=max(cfg.local_map_scans, 1))
 
     # ------------------------------------------------------------------ public
     @property
@@ -631,11 +633,12 @@ class ScanOdometry:
         self, source: np.ndarray, seed: np.ndarray, pose: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The seed increment turned by one of ``_TURN_SEEDS_DEG`` when KISS-ICP's pose (4×4) from
-        it puts more than ``_TURN_MARGIN`` of the scan off the recent scans' walls and a turned
-        seed's pose does not, putting ``_TURN_MARGIN`` more of it on them: (turned seed, its pose,
-        its guess); else None. (Where the scan sees little of what the recent scans saw, a pose
-        turned the wrong way can fit a little better than the right one: FR079 at 1,471 s, 0.65
-        against 0.55.)
+        it fits the recent scans' walls worse than the recent scans fitted (their median share of
+        points within a voxel, less ``_TURN_MARGIN``) and a turned seed's pose does not, putting
+        ``_TURN_MARGIN`` more of the scan on them: (turned seed, its pose, its guess); else None.
+        (Where the scan sees little of what the recent scans saw, a pose turned the wrong way can
+        fit a little better than the right one: FR079 at 1,471 s, 0.65 against 0.55, where the
+        recent scans fitted at 0.93.)
 
         Wheels that miss part of a fast turn (FR079's, spinning at 40 deg/s: 8-23 deg missing
         over a second) put the seed beyond KISS-ICP's reach in heading, and the wheels and
@@ -645,17 +648,19 @@ class ScanOdometry:
         right one where the scan sees new ground (FR079 at 2,050 s).
         """
         ref, points, within = self._local_ref, self._aligned_points, self.config.voxel_size
-        fit = ref.inlier_fractions(points, [from_matrix(pose)], within)[0]
-        if fit >= 1.0 - _TURN_MARGIN:
-            return None
-        seeds = [seed + np.array([0.0, 0.0, np.deg2rad(d)]) for d in _TURN_SEEDS_DEG]
-        guesses = [self._icp.last_pose @ to_matrix4(s) for s in seeds]
-        poses = self._kiss_align(source, guesses)
-        fits = ref.inlier_fractions(points, [from_matrix(p) for p in poses], within)
-        j = int(np.argmax(fits))
-        if fits[j] >= 1.0 - _TURN_MARGIN and fits[j] > fit + _TURN_MARGIN:
-            return seeds[j], poses[j], guesses[j]
-        return None
+        fit = float(ref.inlier_fractions(points, [from_matrix(pose)], within)[0])
+        bar = (_median(np.array(self._fits)) if self._fits else 1.0) - _TURN_MARGIN
+        out = None
+        if fit < bar:
+            seeds = [seed + np.array([0.0, 0.0, np.deg2rad(d)]) for d in _TURN_SEEDS_DEG]
+            guesses = [self._icp.last_pose @ to_matrix4(s) for s in seeds]
+            poses = self._kiss_align(source, guesses)
+            fits = ref.inlier_fractions(points, [from_matrix(p) for p in poses], within)
+            j = int(np.argmax(fits))
+            if fits[j] >= bar and fits[j] > fit + _TURN_MARGIN:
+                out, fit = (seeds[j], poses[j], guesses[j]), float(fits[j])
+        self._fits.append(fit)
+        return out
 
     def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """KISS-ICP's pose (4×4, its frame) refined by point-to-line ICP on the recent scans.
