@@ -23,8 +23,12 @@ wins) or of the wheel step reversed (tried when a step is longer than ``ODOM_JUM
 sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that
 move along the robot's x axis against the scan's motion beyond the gate (wheel
 odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
-trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
-failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
+trusted. Wheels that miss part of a fast turn while agreeing with constant velocity (FR079's,
+spinning at 35-40 deg/s) are caught by the fit: where KISS-ICP's pose fits the recent scans' walls
+worse than they fitted, the seed turned by 5-10 deg is aligned too and wins if it fits as they did
+(:meth:`ScanOdometry._turned`); that step is an odometry jump too. An ICP result beyond a
+Mahalanobis gate from an accepted wheel increment is an ICP failure (wrong minimum): the motion
+model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
 periods count as dropped scans. The wheel poses are re-timed to the scans by the wheel-to-scan
