@@ -23,8 +23,12 @@ wins) or of the wheel step reversed (tried when a step is longer than ``ODOM_JUM
 sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that
 move along the robot's x axis against the scan's motion beyond the gate (wheel
 odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
-trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
-failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
+trusted. Wheels that miss part of a fast turn while agreeing with constant velocity (FR079's,
+spinning at 35-40 deg/s) are caught by the fit: where KISS-ICP's pose fits the recent scans' walls
+worse than they fitted, the seed turned by 5-10 deg is aligned too and wins if it fits as they did
+(:meth:`ScanOdometry._turned`); that step is an odometry jump too. An ICP result beyond a
+Mahalanobis gate from an accepted wheel increment is an ICP failure (wrong minimum): the motion
+model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
 periods count as dropped scans. The wheel poses are re-timed to the scans by the wheel-to-scan
@@ -275,6 +279,8 @@ class ScanOdometry:
         self._local_stale = False  # _recent changed since _local_ref was built (see _local_map)
         self._since_rebuild = 0
         self._aligned_points = np.zeros((0, 2))
+        # share of each recent refined scan within a voxel of the local map (see _turned)
+        self._fits: deque[float] = deque(maxlen=max(cfg.local_map_scans, 1))
 
     # ------------------------------------------------------------------ public
     @property
@@ -385,8 +391,9 @@ class ScanOdometry:
             if scan.source is None:  # prepared without the registration's inputs
                 scan = self.prepare(pts, icp_inputs=True)
             chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
-            if chosen:  # the scan sides with constant velocity or the reversed wheel step: a jump
-                jump, used_wheel, u, cov_u = True, False, seeds[chosen], cv_cov
+            if chosen is not None:
+                # the scan sides with constant velocity, the reversed wheel step or a turned seed: a jump
+                jump, used_wheel, u, cov_u = True, False, chosen, cv_cov
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
             R_body, degenerate, fallback, axis = scan.icp_covariance
@@ -579,22 +586,14 @@ class ScanOdometry:
         Same steps as ``KissICP.register_frame`` (preprocess and voxelise: :meth:`prepare`; align);
         nothing is changed until :meth:`_commit`. With more seeds, each is aligned and the one whose
         result has the most source points near the local map wins if that beats seed 0's by 0.05
-        (else seed 0). Returns (seed index, pose 4×4, initial guess 4×4, thinned frame for the map).
+        (else seed 0). Where the refinement runs, the winner may still lose to itself turned
+        (:meth:`_turned`). Returns (the winning seed increment, None for seed 0; pose 4×4, initial
+        guess 4×4, thinned frame for the map).
         """
         icp = self._icp
         source, frame_ds = scan.source, scan.frame_ds
-        sigma = icp.adaptive_threshold.get_threshold()
         guesses = [icp.last_pose @ to_matrix4(s) for s in seeds]
-        poses = [
-            icp.registration.align_points_to_map(
-                points=source,
-                voxel_map=icp.local_map,
-                initial_guess=g,
-                max_correspondance_distance=3 * sigma,
-                kernel=sigma,
-            )
-            for g in guesses
-        ]
+        poses = self._kiss_align(source, guesses)
         best = 0
         if len(poses) > 1 and not icp.local_map.empty():
             first = from_matrix(poses[0])
@@ -609,12 +608,63 @@ class ScanOdometry:
                 )
                 j = max(apart, key=lambda j: scores[j])
                 best = j if scores[j] > scores[0] + 0.05 else 0
-        pose = poses[best]
+        chosen, pose, guess = (seeds[best] if best else None), poses[best], guesses[best]
         if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
             self._aligned_points = _local_points(scan.points)
             if not scan.icp_covariance[1] and self._local_map() is not None:  # not along a corridor
+                turned = self._turned(source, seeds[best], pose)
+                if turned is not None:
+                    chosen, pose, guess = turned
                 pose = self._refine(self._aligned_points, pose)
-        return best, pose, guesses[best], frame_ds
+        return chosen, pose, guess, frame_ds
+
+    def _kiss_align(self, source: np.ndarray, guesses: list[np.ndarray]) -> list[np.ndarray]:
+        """KISS-ICP's alignment of ``source`` to its local map from each initial guess (4×4)."""
+        icp = self._icp
+        sigma = icp.adaptive_threshold.get_threshold()
+        return [
+            icp.registration.align_points_to_map(
+                points=source,
+                voxel_map=icp.local_map,
+                initial_guess=g,
+                max_correspondance_distance=3 * sigma,
+                kernel=sigma,
+            )
+            for g in guesses
+        ]
+
+    def _turned(
+        self, source: np.ndarray, seed: np.ndarray, pose: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The seed increment turned by one of ``_TURN_SEEDS_DEG`` when KISS-ICP's pose (4×4) from
+        it fits the recent scans' walls worse than the recent scans fitted (their median share of
+        points within a voxel, less ``_TURN_MARGIN``) and a turned seed's pose does not, putting
+        ``_TURN_MARGIN`` more of the scan on them: (turned seed, its pose, its guess); else None.
+        (Where the scan sees little of what the recent scans saw, a pose turned the wrong way can
+        fit a little better than the right one: FR079 at 1,471 s, 0.65 against 0.55, where the
+        recent scans fitted at 0.93.)
+
+        Wheels that miss part of a fast turn (FR079's, spinning at 40 deg/s: 8-23 deg missing
+        over a second) put the seed beyond KISS-ICP's reach in heading, and the wheels and
+        constant velocity agree, so the two-seed test does not fire. The fits are taken on the
+        refinement's line map of the recent scans, within one voxel: KISS-ICP's voxel map at
+        twice the voxel, the two-seed test's measure, scores a pose 5 deg off as well as the
+        right one where the scan sees new ground (FR079 at 2,050 s).
+        """
+        ref, points, within = self._local_ref, self._aligned_points, self.config.voxel_size
+        fit = float(ref.inlier_fractions(points, [from_matrix(pose)], within)[0])
+        bar = (_median(np.array(self._fits)) if self._fits else 1.0) - _TURN_MARGIN
+        out = None
+        if fit < bar:
+            seeds = [seed + np.array([0.0, 0.0, np.deg2rad(d)]) for d in _TURN_SEEDS_DEG]
+            guesses = [self._icp.last_pose @ to_matrix4(s) for s in seeds]
+            poses = self._kiss_align(source, guesses)
+            fits = ref.inlier_fractions(points, [from_matrix(p) for p in poses], within)
+            j = int(np.argmax(fits))
+            if fits[j] >= bar and fits[j] > fit + _TURN_MARGIN:
+                out, fit = (seeds[j], poses[j], guesses[j]), float(fits[j])
+        self._fits.append(fit)
+        return out
 
     def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """KISS-ICP's pose (4×4, its frame) refined by point-to-line ICP on the recent scans.
@@ -786,6 +836,11 @@ _REFINE_MAX_STEP = 0.3  # m (the association distance), a larger move from KISS-
 _REFINE_MAX_TURN = np.deg2rad(5.0)
 _REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
+# deg; turns of the winning seed tried when its pose leaves over _TURN_MARGIN of the scan off the map
+_TURN_SEEDS_DEG = (-10.0, -5.0, 5.0, 10.0)
+# share of the scan within a voxel of the recent scans' walls that a turned seed must add to win:
+# twice the two-seed test's, as a turned seed departs from both predictions
+_TURN_MARGIN = 0.1
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
 
 
