@@ -334,6 +334,7 @@ class ScanOdometry:
         if not self._t_hist:
             return self._first(stamp, pts, wheel)
         dt, span, dt_speed, dropped = self._clock(stamp)
+        clock_dt = dt  # the wheel re-timing keeps it (tools/README.md, degraded real logs)
         cv_sigmas = (cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
 
         raw_wheel, uw_raw, wheel_ok = wheel, None, False
@@ -355,7 +356,7 @@ class ScanOdometry:
                 jump = True
             else:
                 # the wheel pose at the scan's own time (time_offset.py: 0 unless significant)
-                wheel = self._toff.retime(wheel, uw_raw, dt)
+                wheel = self._toff.retime(wheel, uw_raw, clock_dt)
                 uw = wheel_increment(self._prev_wheel, wheel)
                 # where the wheels alone carry the motion, increment after increment, their
                 # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
