@@ -31,7 +31,8 @@ Mahalanobis gate from an accepted wheel increment is an ICP failure (wrong minim
 model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
-periods count as dropped scans. The wheel poses are re-timed to the scans by the wheel-to-scan
+periods count as dropped scans; on a bursty one a step lasts from one period up to its stamp
+step, and the wheel step says how long (a logger pause: the robot drove on). The wheel poses are re-timed to the scans by the wheel-to-scan
 time offset estimated from the heading steps, where it is significant and negative
 (:mod:`frslam_graph.odometry.time_offset`: FR079, -0.14 s).
 """
@@ -59,6 +60,7 @@ from frslam_graph.odometry.motion_model import (
     compose,
     constant_velocity,
     constant_velocity_noise,
+    constant_velocity_span,
     from_matrix,
     to_matrix4,
     vector_cov,
@@ -337,22 +339,30 @@ class ScanOdometry:
         self.stats.scans += 1
         if not self._t_hist:
             return self._first(stamp, pts, wheel)
-        dt, dt_speed, dropped = self._clock(stamp)
+        dt, span, dt_speed, dropped = self._clock(stamp)
+        clock_dt = dt  # the wheel re-timing keeps it (tools/README.md, degraded real logs)
+        cv_sigmas = (cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
+
+        raw_wheel, uw_raw, wheel_ok = wheel, None, False
+        if wheel is not None and self._prev_wheel is not None:
+            uw_raw = wheel_increment(self._prev_raw, wheel)
+            wheel_ok = not (
+                np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05
+                or abs(uw_raw[2]) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0)
+            )
+            if wheel_ok:  # the stamps leave the step's duration open (dt < span): the wheels tell it
+                dt = constant_velocity_span(self._last_increment, self._last_dt, uw_raw, dt, span, *cv_sigmas)
 
         # --- prediction u_t, Σ_u (wheel odometry, or constant velocity)
         cv_u = constant_velocity(self._last_increment, self._last_dt, dt)
-        cv_cov = constant_velocity_noise(dt, cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
+        cv_cov = constant_velocity_noise(dt, *cv_sigmas)
         u, cov_u, used_wheel, jump = cv_u, cv_cov, False, False
-        raw_wheel, uw_raw = wheel, None
-        if wheel is not None and self._prev_wheel is not None:
-            uw_raw = wheel_increment(self._prev_raw, wheel)
-            if np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(
-                uw_raw[2]
-            ) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0):
+        if uw_raw is not None:
+            if not wheel_ok:
                 jump = True
             else:
                 # the wheel pose at the scan's own time (time_offset.py: 0 unless significant)
-                wheel = self._toff.retime(wheel, uw_raw, dt)
+                wheel = self._toff.retime(wheel, uw_raw, clock_dt)
                 uw = wheel_increment(self._prev_wheel, wheel)
                 # where the wheels alone carry the motion, increment after increment, their
                 # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
@@ -513,17 +523,20 @@ class ScanOdometry:
         st, toff = self.stats, self._toff
         st.time_offset, st.time_offset_sigma, st.time_offset_applied = toff.estimate, toff.sigma, toff.applied
 
-    def _clock(self, stamp: float) -> tuple[float, float, int]:
-        """Seconds of motion since the previous scan: for the motion model and for the speed
-        test of the wheel increment; and the scans a stamp gap says were dropped.
+    def _clock(self, stamp: float) -> tuple[float, float, float, int]:
+        """Seconds of motion since the previous scan: ``dt`` for the motion model, ``span`` the
+        longest it can have been (the wheel step then tells: motion_model.constant_velocity_span),
+        ``dt_speed`` for the speed test of the wheel increment; and the scans a stamp gap says
+        were dropped.
 
         Scans are taken in arrival order, each keeps its own stamp. Host stamps can jitter: a
         logger that writes scans in bursts stamps several of them within a millisecond, then none
         for half a second, and some are stamped before their predecessor (the Intel log: a
         quarter of its steps are under 2 ms, 631 are negative, at a 0.2 s scan period). On such
         an unsteady clock (recent steps off the nominal period by more than a quarter of it, in
-        the median) a step cannot tell a gap from a late stamp: each scan is one nominal period
-        of motion and no scan counts as dropped. On a steady clock the step is the stamp
+        the median) a step cannot tell a gap from a late stamp: each scan is at least one
+        nominal period of motion, at most the stamp step (``span``: a logger pause), and no scan
+        counts as dropped. On a steady clock the step is the stamp
         difference, and one over ``GAP_FACTOR`` periods counts dropped scans. The speed test
         never gets less than one period, so a burst of stamps is never a wheel-odometry jump.
         """
@@ -543,16 +556,16 @@ class ScanOdometry:
         elif len(t) > 1:
             self._period = (t[-1] - t[0]) / (len(t) - 1)
         if len(t) <= _PERIOD_SPAN + 1:  # the first steps: no reliable period yet
-            return max(raw, 1e-6), max(raw, _FIRST_SPEED_STEP), 0
+            return max(raw, 1e-6), max(raw, 1e-6), max(raw, _FIRST_SPEED_STEP), 0
         if not steady:
-            return period, max(raw, period), 0
+            return period, max(raw, period), max(raw, period), 0
         dropped = 0
         if raw > GAP_FACTOR * period:
             dropped = max(int(round(raw / period)) - 1, 1)
             self.stats.dropped_scans += dropped
             self.stats.gaps += 1
         dt = raw if raw >= 0.5 * period else period
-        return dt, max(raw, period), dropped
+        return dt, dt, max(raw, period), dropped
 
     def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:
         """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
