@@ -165,9 +165,10 @@ def test_wrong_closure_cannot_bend_the_map(runs, two_laps):
 
 def test_large_correction_waits_for_a_consistent_second_closure():
     closer = LoopCloser()
-    est = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0], [11.0, 0.0, 0.0]])
+    est = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [10.0, 0.0, 0.0], [13.0, 0.0, 0.0], [13.5, 0.0, 0.0]])
+    closer._travel = [0.0, 3.0, 10.0, 13.0, 13.5]
     m = None
-    # keyframes 2 and 3 (1 m apart) are really at 0 and 1: both closures imply the same shift
+    # keyframes 2 and 3 (3 m apart) are really at 0 and 3: both closures imply the same shift
     a = LoopClosure(0, 2, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
     b = LoopClosure(1, 3, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
     closer._pending.append(a)
@@ -175,6 +176,23 @@ def test_large_correction_waits_for_a_consistent_second_closure():
     # a closure implying a different shift is not confirmed by it
     c = LoopClosure(1, 3, np.array([2.0, 0.0, 0.3]), np.eye(3) * 1e-4, m, np.zeros(3))
     assert closer._consistent_pending(c, est) is None
+
+
+def test_a_closure_is_not_confirmed_by_one_from_a_query_submap_it_shares():
+    """Two closures whose query keyframes lie 0.5 m of travel apart (under QUERY_TRAVEL) match
+    nearly the same query points: they agree because they are the same match (FR079 with beams
+    capped at 8 m: keyframes 1,198 and 1,200, 0.65 m apart, both 3 m along a corridor), so the
+    second does not confirm the first; one from 3 m of travel away does."""
+    closer = LoopCloser()
+    est = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [10.0, 0.0, 0.0], [13.0, 0.0, 0.0], [13.5, 0.0, 0.0]])
+    closer._travel = [0.0, 3.0, 10.0, 13.0, 13.5]
+    shift = np.array([-10.0, 0.0, 0.0])
+    a = LoopClosure(0, 3, np.array([3.0, 0.0, 0.0]), np.eye(3) * 1e-4, None, shift)
+    near = LoopClosure(0, 4, np.array([3.5, 0.0, 0.0]), np.eye(3) * 1e-4, None, shift)
+    far = LoopClosure(0, 2, np.zeros(3), np.eye(3) * 1e-4, None, shift)
+    closer._pending.append(a)
+    assert closer._consistent_pending(near, est) is None
+    assert closer._consistent_pending(far, est) is a
 
 
 def test_loop_closure_config_is_validated():
