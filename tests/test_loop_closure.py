@@ -165,9 +165,10 @@ def test_wrong_closure_cannot_bend_the_map(runs, two_laps):
 
 def test_large_correction_waits_for_a_consistent_second_closure():
     closer = LoopCloser()
-    est = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0], [11.0, 0.0, 0.0]])
+    est = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [10.0, 0.0, 0.0], [13.0, 0.0, 0.0], [13.5, 0.0, 0.0]])
+    closer._travel = [0.0, 3.0, 10.0, 13.0, 13.5]
     m = None
-    # keyframes 2 and 3 (1 m apart) are really at 0 and 1: both closures imply the same shift
+    # keyframes 2 and 3 (3 m apart) are really at 0 and 3: both closures imply the same shift
     a = LoopClosure(0, 2, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
     b = LoopClosure(1, 3, np.zeros(3), np.eye(3) * 1e-4, m, np.array([-10.0, 0.0, 0.0]))
     closer._pending.append(a)
@@ -175,6 +176,23 @@ def test_large_correction_waits_for_a_consistent_second_closure():
     # a closure implying a different shift is not confirmed by it
     c = LoopClosure(1, 3, np.array([2.0, 0.0, 0.3]), np.eye(3) * 1e-4, m, np.zeros(3))
     assert closer._consistent_pending(c, est) is None
+
+
+def test_a_closure_is_not_confirmed_by_one_from_a_query_submap_it_shares():
+    """Two closures whose query keyframes lie 0.5 m of travel apart (under QUERY_TRAVEL) match
+    nearly the same query points: they agree because they are the same match (FR079 with beams
+    capped at 8 m: keyframes 1,198 and 1,200, 0.65 m apart, both 3 m along a corridor), so the
+    second does not confirm the first; one from 3 m of travel away does."""
+    closer = LoopCloser()
+    est = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [10.0, 0.0, 0.0], [13.0, 0.0, 0.0], [13.5, 0.0, 0.0]])
+    closer._travel = [0.0, 3.0, 10.0, 13.0, 13.5]
+    shift = np.array([-10.0, 0.0, 0.0])
+    a = LoopClosure(0, 3, np.array([3.0, 0.0, 0.0]), np.eye(3) * 1e-4, None, shift)
+    near = LoopClosure(0, 4, np.array([3.5, 0.0, 0.0]), np.eye(3) * 1e-4, None, shift)
+    far = LoopClosure(0, 2, np.zeros(3), np.eye(3) * 1e-4, None, shift)
+    closer._pending.append(a)
+    assert closer._consistent_pending(near, est) is None
+    assert closer._consistent_pending(far, est) is a
 
 
 def test_loop_closure_config_is_validated():
@@ -339,23 +357,30 @@ def test_wall_clock_cap_uses_the_injected_clock():
 
 
 def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monkeypatch):
-    """With a tight budget no add_scan builds more than one reference submap or refines more than
-    one ICP pose (before: all candidates of a keyframe in its add_scan), and the loop still
-    closes."""
+    """With a tight budget no add_scan builds more than one reference submap or runs more than
+    one peak's share of the ICP iterations (the peaks are refined in lockstep, their iterations
+    spread over one step per peak; before: all candidates of a keyframe in its add_scan), and
+    the loop still closes."""
     import frslam_graph.loop_closure.submap_matching as matching
 
     counts = {"icp": 0, "submaps": 0}
-    icp, submap_init = matching.icp_point_to_line, ReferenceSubmap.__init__
+    icp, submap_init = matching.icp_point_to_line_many, ReferenceSubmap.__init__
 
-    def counting_icp(*a, **k):
-        counts["icp"] += 1
-        return icp(*a, **k)
+    def counting_icp(*a, **k):  # counts the ICP's iterations (its generator's steps)
+        steps = icp(*a, **k)
+        while True:
+            counts["icp"] += 1
+            try:
+                step = next(steps)
+            except StopIteration as stop:
+                return stop.value
+            yield step
 
     def counting_init(self, *a, **k):
         counts["submaps"] += 1
         submap_init(self, *a, **k)
 
-    monkeypatch.setattr(matching, "icp_point_to_line", counting_icp)
+    monkeypatch.setattr(matching, "icp_point_to_line_many", counting_icp)
     monkeypatch.setattr(ReferenceSubmap, "__init__", counting_init)
     truth, ranges, amin, inc = two_laps
     # the odometry's refinement builds a local map (a ReferenceSubmap) every scan: off here
@@ -371,7 +396,8 @@ def test_matching_is_spread_over_scans_and_still_closes_the_loop(two_laps, monke
         assert closer.steps_last_call <= 1 or closer.cost_last_call <= 2.0
     per_scan = np.array(per_scan)
     assert per_scan.sum(axis=0).min() > 0  # matching did happen
-    assert per_scan[:, 0].max() <= 1 and per_scan[:, 1].max() <= 1
+    # one peak's share of the iterations at most: all of them when one peak is refined
+    assert per_scan[:, 0].max() <= matching.ICP_ITERATIONS and per_scan[:, 1].max() <= 1
     assert not (per_scan[:, 0] & per_scan[:, 1]).any()  # never a submap build and an ICP together
     slam.finish()
     assert slam.loop_closer.idle  # finish() runs the queued work
@@ -939,3 +965,80 @@ def test_free_space_is_measured_only_for_a_match_the_closer_could_accept():
     good = match_scan(ref, _points(world, pose, 5), np.zeros(3), 2.0, 0.3, cfg)
     assert good.inlier_fraction >= cfg.min_inlier_fraction and good.free_violation < 0.02
     assert ref._free is not None
+
+
+def test_peaks_refined_in_lockstep_equal_each_refined_alone():
+    """icp_point_to_line_many from several starts (one far enough to give up, others that
+    converge early) gives each start's result of icp_point_to_line from it alone, to the last
+    bit, with one k-d tree query per iteration for all the starts still iterating (before: one
+    per start and iteration)."""
+    from scipy.spatial import cKDTree
+
+    from frslam_graph.loop_closure.submap_matching import icp_point_to_line, icp_point_to_line_many
+    from frslam_graph.steps import run_steps
+
+    world = room_world()
+    a, b = np.array([4.0, 2.0, 0.3]), np.array([4.6, 2.3, 0.4])
+    ref = _reference(world, a)
+    ref.prepare_icp()
+    query = _points(world, b, 2)[::3]
+    truth = between(a, b)
+    starts = np.array(
+        [truth, truth + (0.12, -0.08, 0.03), truth + (-0.2, 0.15, -0.05), truth + (40.0, 0.0, 0.0)]
+    )
+    alone = [icp_point_to_line(ref, query, s, 10, 0.5, 0.05, 0.05) for s in starts]
+    assert alone[-1] is None and all(r is not None for r in alone[:-1])
+    queries = []
+    tree_query = cKDTree.query
+
+    class CountingTree(cKDTree):
+        def query(self, x, *args, **kwargs):
+            queries.append(len(x))
+            return tree_query(self, x, *args, **kwargs)
+
+    ref._tree = CountingTree(ref.points)
+    together = run_steps(icp_point_to_line_many(ref, query, starts, 10, 0.5, 0.05, 0.05))
+    for r, s in zip(together, alone, strict=True):
+        assert (r is None) == (s is None)
+        if s is not None:
+            assert np.array_equal(r[0], s[0]) and np.array_equal(r[1], s[1])
+    # one query per iteration, of the starts still iterating (the far one gave up at once, the
+    # others converged before the tenth iteration)
+    assert queries[:2] == [4 * len(query), 3 * len(query)] and len(queries) < 10
+    assert queries == sorted(queries, reverse=True)
+
+
+def test_lockstep_peaks_equal_each_alone_on_real_submaps(test_data):
+    """The same on real scans (FR079's first scans, at their wheel odometry): a reference submap
+    and a query of other scans, starts scattered around their offset (some giving up, some
+    running all its iterations): each start's pose and covariance are icp_point_to_line's to the
+    last bit."""
+    from frslam_graph.datasets import open_recording
+
+    from frslam_graph.loop_closure.submap_matching import icp_point_to_line, icp_point_to_line_many
+    from frslam_graph.slam import body_points
+    from frslam_graph.steps import run_steps
+
+    pts, poses = [], []
+    for scan in open_recording(test_data / "fr079_250.clf.bz2"):
+        pts.append(body_points(scan.points, scan.sensor_offset)[0])
+        poses.append(np.asarray(scan.odom, dtype=float))
+        if len(pts) == 60:
+            break
+    rng = np.random.default_rng(3)
+    ref = ReferenceSubmap(
+        np.vstack([transform_points(between(poses[10], poses[k]), pts[k]) for k in range(20)]), 0.05, 0.1, 2.0
+    )
+    ref.prepare_icp()
+    rel = between(poses[10], poses[40])
+    query = np.vstack([transform_points(between(poses[40], poses[k]), pts[k]) for k in range(36, 44)])
+    query = query[:: max(1, len(query) // 400)]
+    starts = rel + rng.normal(0.0, [0.25, 0.25, 0.08], (6, 3))
+    starts[-1, :2] += 30.0  # no correspondences: gives up
+    alone = [icp_point_to_line(ref, query, s, 10, 0.5, 0.05, 0.05) for s in starts]
+    together = run_steps(icp_point_to_line_many(ref, query, starts, 10, 0.5, 0.05, 0.05))
+    assert alone[-1] is None and sum(r is not None for r in alone) >= 3
+    for r, s in zip(together, alone, strict=True):
+        assert (r is None) == (s is None)
+        if s is not None:
+            assert np.array_equal(r[0], s[0]) and np.array_equal(r[1], s[1])

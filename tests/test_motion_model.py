@@ -14,6 +14,7 @@ from frslam_graph.odometry.motion_model import (
     compose,
     compose_jacobians,
     constant_velocity,
+    constant_velocity_span,
     g,
     inverse,
     tangent_cov,
@@ -65,6 +66,19 @@ def test_constant_velocity_is_exact_for_constant_twist():
     two = compose(step, step)
     np.testing.assert_allclose(constant_velocity(step, 0.1, 0.2), two, atol=1e-12)
     np.testing.assert_allclose(constant_velocity(step, 0.1, 0.1), step, atol=1e-12)
+
+
+def test_constant_velocity_span_is_the_time_the_wheel_step_took_within_the_stamps():
+    """At 0.3 m/s, a 2.1 m wheel step after a stamp step of 7.1 s took 7 s, not one period
+    (0.6 s: all an unsteady clock would give); never outside [dt, span]; dt on a steady clock
+    (span = dt), for a robot that stood, and for a wheel step shorter than one period's."""
+    last = np.array([0.18, 0.0, 0.0])  # 0.6 s at 0.3 m/s
+    sig = (0.5, np.deg2rad(30.0))
+    assert constant_velocity_span(last, 0.6, np.array([2.1, 0.0, 0.0]), 0.6, 7.1, *sig) == 7.0
+    assert constant_velocity_span(last, 0.6, np.array([4.0, 0.0, 0.0]), 0.6, 7.1, *sig) == 7.1
+    assert constant_velocity_span(last, 0.6, np.array([0.1, 0.0, 0.0]), 0.6, 7.1, *sig) == 0.6
+    assert constant_velocity_span(last, 0.6, np.array([2.1, 0.0, 0.0]), 0.6, 0.6, *sig) == 0.6
+    assert constant_velocity_span(np.zeros(3), 0.6, np.array([2.1, 0.0, 0.0]), 0.6, 7.1, *sig) == 0.6
 
 
 def test_ekf_prediction_grows_and_measurement_fuses():

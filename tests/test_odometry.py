@@ -373,6 +373,31 @@ def test_bursty_stamps_keep_every_scan_and_flag_no_jump(room):
     assert end_error(truth, poses, sub) / path_length(truth) < 0.02
 
 
+def test_a_logger_pause_on_a_bursty_clock_takes_the_wheels_step(test_data):
+    """Intel at a third of its scan rate, 7.1 s between two scans (a 5 s logger pause) in a
+    corridor (``intel_pause.clf.bz2``: every third scan of 2,080-2,170 s of the log, none from
+    2,160 to 2,165 s). Its bursty stamps leave each step's duration open (one period, 0.59 s, up
+    to the stamp step): the wheels' 2.06 m over the pause is the robot driving on at 0.3 m/s
+    (the full-rate run: 2.00 m), not a jump from constant velocity over one period (0.15 m),
+    whose seed the corridor's scan fitted as well (the scan then put the robot 0.27 m on)."""
+    from frslam_graph.datasets import open_recording
+
+    from frslam_graph.slam import body_points
+
+    with pytest.warns(UserWarning, match="stamped before an earlier scan"):
+        scans = list(open_recording(test_data / "intel_pause.clf.bz2"))
+    o = ScanOdometry()
+    poses = []
+    for s in scans:
+        pts, _ = body_points(s.points, s.sensor_offset)
+        poses.append(o.process(s.stamp, pts, s.odom).pose)
+    k = int(np.argmax(np.diff([s.stamp for s in scans])))  # the pause
+    wheel = between(np.array(scans[k].odom), np.array(scans[k + 1].odom))
+    step = between(poses[k], poses[k + 1])
+    assert wheel[0] > 2.0 and abs(step[0] - wheel[0]) < 0.15
+    assert o.stats.odom_jumps == 0
+
+
 def _sign_lost(room, every: int, flipped: range):
     """The room's every ``every``-th scan, with wheel poses re-integrated from the increments and
     the x of the increments into the scans in ``flipped`` negated (an encoder that lost the sign).

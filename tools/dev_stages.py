@@ -142,6 +142,7 @@ def instrument(st: Stages) -> None:
     st.wrap_gen(sm, "_grid_search", "matcher: correlative search")
     st.wrap(sm, "_score_poses", "matcher: correlative search")
     st.wrap(sm, "icp_point_to_line", "matcher: ICP")
+    st.wrap_gen(sm, "icp_point_to_line_many", "matcher: ICP")  # the matcher's peaks in lockstep
     st.wrap(sm.ReferenceSubmap, "_normals_quality", "matcher: normals + k-d tree")
     st.wrap(sm.ReferenceSubmap, "free_violation", "matcher: free space")
     st.wrap(sm.ReferenceSubmap, "inlier_fraction", "matcher: inliers")

@@ -119,7 +119,6 @@ from frslam_graph.loop_closure.submap_matching import (
     ScanMatch,
     match_scan_steps,
     rigid_points,
-    transform_points,
 )
 from frslam_graph.se2 import between, between_many, compose, wrap
 from frslam_graph.steps import Steps, run_steps
@@ -572,14 +571,13 @@ class LoopCloser:
         local = [self._in_range(pts_all, origins, k) for k in ks]
         rels = [between(est[centre], est[k]) for k in ks]
         sizes = [len(p) for p in local]
-        # one transform for all keyframes: per point the same products as transform_points
-        rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
-        pts = rigid_points(*rep.T, np.concatenate(local, dtype=np.float64))
+        # one transform for all keyframes' points and one for their sensor origins: per point
+        # the same products as transform_points
+        rig = np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels])
+        pts = rigid_points(*np.repeat(rig, sizes, axis=0).T, np.concatenate(local, dtype=np.float64))
         ends = np.split(pts, np.cumsum(sizes)[:-1])
-        scans = [
-            (transform_points(r, origins[k][None])[0], e) for r, k, e in zip(rels, ks, ends, strict=True)
-        ]
-        return pts, scans
+        sensors = rigid_points(*rig.T, np.array([origins[k] for k in ks], dtype=np.float64))
+        return pts, list(zip(sensors, ends, strict=True))
 
     def _in_range(self, pts_all: list[np.ndarray], origins: list[np.ndarray], k: int) -> np.ndarray:
         """Keyframe k's end points within ``max_point_range`` of its sensor (base_link, the dtype of
@@ -781,11 +779,15 @@ class LoopCloser:
         self.stats.verifications += 1
 
     def _consistent_pending(self, lc: LoopClosure, est: np.ndarray, weak: bool = False) -> LoopClosure | None:
-        """The latest pending closure ``lc`` agrees with (pairwise consistency), or None. A ``weak``
+        """The latest pending closure ``lc`` agrees with (pairwise consistency) among those whose
+        query keyframe lies ``QUERY_TRAVEL`` or more of travel from ``lc``'s, or None. A ``weak``
         match (inlier fraction below ``min_inlier_fraction``) only confirms a closure that moves
         its query at most ``search_window_xy`` from the current estimate (see the module docs)."""
         for p in reversed(self._pending):
-            if p.query == lc.query:
+            if abs(self._travel[lc.query] - self._travel[p.query]) < QUERY_TRAVEL:
+                # query submaps this close share their points: the same match again, not a second
+                # piece of evidence (FR079 with beams cut at 8 m: two closures 0.65 m apart both
+                # 3 m along a corridor whose far end the scans no longer see)
                 continue
             if weak and _correction_xy(p, est) > self.config.search_window_xy:
                 continue

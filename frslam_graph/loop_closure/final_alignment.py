@@ -51,7 +51,6 @@ from frslam_graph.loop_closure.submap_matching import (
     ReferenceSubmap,
     match_scan,
     rigid_points,
-    transform_points,
     voxel_downsample,
 )
 from frslam_graph.se2 import between, between_many, compose, wrap
@@ -521,11 +520,10 @@ def _reference_scans(
     per keyframe (sensor origin, end points in beam order) in that frame (the free-space test)."""
     ks, rels, sizes, pts = _stacked(poses, local, c, span)
     ends = np.split(pts, np.cumsum(sizes)[:-1])
-    scans = [
-        (transform_points(r, np.asarray(origins[j], dtype=np.float64)[None])[0], e)
-        for j, r, e in zip(ks, rels, ends, strict=True)
-    ]
-    return pts, scans
+    # the sensor origins in one transform (per origin the products of transform_points)
+    rig = np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels])
+    sensors = rigid_points(*rig.T, np.array([origins[j] for j in ks], dtype=np.float64))
+    return pts, list(zip(sensors, ends, strict=True))
 
 
 def searched_constraints(

@@ -829,7 +829,8 @@ def icp_point_to_line(
     kernel: float = 0.05,
     sigma: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Point-to-line ICP of ``query`` onto the reference; returns (pose, 3×3 body covariance)."""
+    """Point-to-line ICP of ``query`` onto the reference; returns (pose, 3×3 body covariance).
+    From one start (the odometry's refinement); the matcher's peaks: :func:`icp_point_to_line_many`."""
     if len(ref.points) == 0 or len(query) < 10:
         return None
     x = np.asarray(pose, dtype=np.float64).copy()
@@ -871,6 +872,114 @@ def icp_point_to_line(
     except np.linalg.LinAlgError:
         return None
     return x, cov
+
+
+def icp_point_to_line_many(
+    ref: ReferenceSubmap,
+    query: np.ndarray,
+    poses: np.ndarray,
+    iterations: int = 15,
+    max_distance: float = 0.5,
+    kernel: float = 0.05,
+    sigma: float = 0.05,
+) -> Steps[list[tuple[np.ndarray, np.ndarray] | None]]:
+    """:func:`icp_point_to_line` of ``query`` (M, 2) from each of ``poses`` (P, 3) in lockstep,
+    each start's result bit for bit the one it gets alone: the same iterations, gates and
+    arithmetic on its own rows (each element transformed by the same operations, its normal
+    equations from its own contiguous rows by the same BLAS calls). Per iteration one k-d tree
+    query for the points of every start still iterating and one pass of each array operation,
+    instead of one per start: the matcher refines two or three peaks per candidate against the
+    same reference (FR079: 2.9), and each numpy call and tree query has a fixed cost of
+    microseconds to tens of them. A generator that yields (None) after each iteration but the
+    last, so a caller can spread the iterations over its steps; its return value is the list
+    of results (None where a start's ICP gave up, as :func:`icp_point_to_line` returns None)."""
+    n_starts = len(poses)
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n_starts
+    m = len(query)
+    if len(ref.points) == 0 or m < 10 or iterations < 1:
+        return out
+    q = np.asarray(query, dtype=np.float64)
+    qx, qy = np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1])
+    normals, quality = ref.normals, ref.quality
+    x = np.array(poses, dtype=np.float64).reshape(n_starts, 3)
+    h = np.zeros((n_starts, 3, 3))
+    live = np.arange(n_starts)  # starts still iterating
+    ended = np.zeros(n_starts, bool)  # converged or ran every iteration (the others gave up)
+    for it in range(iterations):
+        dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
+        # each start's points as transform_points gives them (the same operations per element)
+        xl = x[live]
+        c, s = np.cos(xl[:, 2:3]), np.sin(xl[:, 2:3])
+        moved = np.empty((len(live), m, 2))
+        moved[:, :, 0] = xl[:, 0:1] + c * qx - s * qy
+        moved[:, :, 1] = xl[:, 1:2] + s * qx + c * qy
+        sel, j, p, off = ref.exact_nearest_offsets(moved.reshape(-1, 2), dmax)
+        rows = np.searchsorted(sel, m * np.arange(len(live) + 1)).tolist()  # each start's rows
+        n, w = normals[j], quality[j]
+        r = np.einsum("ij,ij->i", off, n)
+        own = np.repeat(np.arange(len(live)), np.diff(rows))
+        rel_x, rel_y = p[:, 0] - xl[own, 0], p[:, 1] - xl[own, 1]
+        jac = np.empty((len(sel), 3))
+        jac[:, 0], jac[:, 1] = n[:, 0], n[:, 1]
+        jac[:, 2] = n[:, 1] * rel_x - n[:, 0] * rel_y
+        wgt = w / (1.0 + (r / kernel) ** 2)
+        wj, wr = wgt[:, None] * jac, wgt * r
+        kept, g = [], []
+        for k in range(len(live)):
+            a, b = rows[k], rows[k + 1]
+            if b - a < 10:  # too few correspondences: that start gives up
+                continue
+            jt = jac[a:b].T
+            h[live[k]] = jt @ wj[a:b]
+            g.append(jt @ wr[a:b])
+            kept.append(k)
+        step = live[kept]
+        if not len(step):
+            live = step
+            break
+        gs = np.array(g)
+        try:
+            delta = -np.linalg.solve(h[step] + _EPS_EYE, gs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # a singular start: each on its own (that one gives up)
+            delta = np.zeros((len(step), 3))
+            solved = np.ones(len(step), bool)
+            for k, i in enumerate(step):
+                try:
+                    delta[k] = -np.linalg.solve(h[i] + _EPS_EYE, gs[k])
+                except np.linalg.LinAlgError:
+                    solved[k] = False
+            step, delta = step[solved], delta[solved]
+        x[step] += delta
+        x[step, 2] = _wrap(x[step, 2])
+        converged = (np.hypot(delta[:, 0], delta[:, 1]) < 1e-4) & (np.abs(delta[:, 2]) < 1e-5)
+        ended[step[converged]] = True
+        live = step[~converged]
+        if not len(live) or it + 1 == iterations:
+            break
+        yield None
+    ended[live] = True
+    for i in np.flatnonzero(ended):
+        # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
+        c, s = np.cos(x[i, 2]), np.sin(x[i, 2])
+        a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        hb = a.T @ h[i] @ a / sigma**2
+        try:
+            out[i] = (x[i].copy(), np.linalg.inv(hb + 1e-9 * np.eye(3)))
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def _advance(steps: Steps[T], n: int | None) -> T | None:
+    """Run up to ``n`` more steps of ``steps`` (None: all the rest); its result if it ended
+    meanwhile, else None."""
+    while n is None or n > 0:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+        n = None if n is None else n - 1
+    return None
 
 
 def match_scan(
@@ -939,21 +1048,31 @@ def match_scan_steps(
     if reference._normals is None:
         yield _MS_PER_POINT_NORMALS * len(reference.points)
         reference.prepare_icp()
-    refined, unrefined = [], 0.0
+    refined, unrefined, refine = [], 0.0, []
     for j in peaks:
         if j != peaks[0] and scores[j] < REFINE_RATIO * top:
             unrefined = max(unrefined, float(scores[j]) / top)  # clearly lower already
-            continue
+        else:
+            refine.append(j)
+    # the peaks in lockstep (icp_point_to_line_many), its iterations spread over one step per
+    # peak, each announcing one peak's ICP as before (the same schedule)
+    icp = icp_point_to_line_many(
+        reference,
+        fine,
+        poses[refine],
+        ICP_ITERATIONS,
+        ICP_MAX_DISTANCE,
+        kernel=INLIER_DISTANCE / 2.0,
+        sigma=ICP_SIGMA,
+    )
+    results = None
+    for k in range(len(refine)):
         yield _MS_ICP + _MS_PER_POINT_ICP * len(fine) * ICP_ITERATIONS
-        r = icp_point_to_line(
-            reference,
-            fine,
-            poses[j],
-            ICP_ITERATIONS,
-            ICP_MAX_DISTANCE,
-            kernel=INLIER_DISTANCE / 2.0,
-            sigma=ICP_SIGMA,
-        )
+        if results is None:  # this step's share of the iterations (the last step: all the rest)
+            share = (k + 1) * ICP_ITERATIONS // len(refine) - k * ICP_ITERATIONS // len(refine)
+            results = _advance(icp, share if k + 1 < len(refine) else None)
+    assert results is not None  # the last step ran the rest
+    for j, r in zip(refine, results, strict=True):
         if r is None:
             continue
         inl = reference.inlier_fraction(fine, r[0], INLIER_DISTANCE)
@@ -988,6 +1107,7 @@ __all__ = [
     "ScanMatch",
     "first_of_each",
     "icp_point_to_line",
+    "icp_point_to_line_many",
     "match_scan",
     "match_scan_steps",
     "point_bounds",

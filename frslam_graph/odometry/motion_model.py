@@ -80,6 +80,34 @@ def constant_velocity(last_increment: Pose, dt_last: float, dt: float) -> np.nda
     return exp(v)
 
 
+def constant_velocity_span(
+    last_increment: Pose,
+    dt_last: float,
+    step: Pose,
+    dt: float,
+    span: float,
+    sigma_xy_per_s: float,
+    sigma_theta_per_s: float,
+) -> float:
+    """Seconds t in [dt, span] over which the last velocity (``last_increment`` over ``dt_last``
+    seconds) comes nearest to ``step`` (weighted least squares on the twists, weights the
+    constant-velocity noise per second); ``dt`` when ``span <= dt`` or the robot stood.
+
+    A clock that cannot tell the time between two scans (bursty stamps: a late stamp or a logger
+    pause both make a long step) bounds it only: at least one period ``dt``, at most the stamp
+    step ``span``. The wheel step then tells how long the robot kept moving.
+    """
+    if not span > dt or dt_last <= 0.0 or not np.isfinite(dt_last):
+        return dt
+    v = log(np.asarray(last_increment, dtype=np.float64)) / dt_last
+    w = np.array([1.0 / sigma_xy_per_s**2, 1.0 / sigma_xy_per_s**2, 1.0 / sigma_theta_per_s**2])
+    den = float(np.sum(w * v * v))
+    if not den > 1e-12:
+        return dt
+    t = float(np.sum(w * v * log(np.asarray(step, dtype=np.float64)))) / den
+    return float(np.clip(t, dt, span))
+
+
 def constant_velocity_noise(dt: float, sigma_xy_per_s: float, sigma_theta_per_s: float) -> np.ndarray:
     dt = max(float(dt), 1e-3)
     return np.diag([(sigma_xy_per_s * dt) ** 2] * 2 + [(sigma_theta_per_s * dt) ** 2])

@@ -23,11 +23,16 @@ wins) or of the wheel step reversed (tried when a step is longer than ``ODOM_JUM
 sign would put the seed beyond ICP's reach, as on FR079 at a third of its scan rate), or that
 move along the robot's x axis against the scan's motion beyond the gate (wheel
 odometry that lost the sign: a reversal logged as forward motion) are *odometry jumps*: ICP is
-trusted. An ICP result beyond a Mahalanobis gate from an accepted wheel increment is an ICP
-failure (wrong minimum): the motion model carries that step and the scan is not mapped. Stamps
+trusted. Wheels that miss part of a fast turn while agreeing with constant velocity (FR079's,
+spinning at 35-40 deg/s) are caught by the fit: where KISS-ICP's pose fits the recent scans' walls
+worse than they fitted, the seed turned by 5-10 deg is aligned too and wins if it fits as they did
+(:meth:`ScanOdometry._turned`); that step is an odometry jump too. An ICP result beyond a
+Mahalanobis gate from an accepted wheel increment is an ICP failure (wrong minimum): the motion
+model carries that step and the scan is not mapped. Stamps
 are taken in arrival order through a scan clock robust to bursty and backwards stamps
 (:meth:`ScanOdometry._clock`); on a steady clock, stamp gaps larger than ``GAP_FACTOR`` nominal
-periods count as dropped scans. The wheel poses are re-timed to the scans by the wheel-to-scan
+periods count as dropped scans; on a bursty one a step lasts from one period up to its stamp
+step, and the wheel step says how long (a logger pause: the robot drove on). The wheel poses are re-timed to the scans by the wheel-to-scan
 time offset estimated from the heading steps, where it is significant and negative
 (:mod:`frslam_graph.odometry.time_offset`: FR079, -0.14 s).
 """
@@ -55,6 +60,7 @@ from frslam_graph.odometry.motion_model import (
     compose,
     constant_velocity,
     constant_velocity_noise,
+    constant_velocity_span,
     from_matrix,
     to_matrix4,
     vector_cov,
@@ -275,6 +281,8 @@ class ScanOdometry:
         self._local_stale = False  # _recent changed since _local_ref was built (see _local_map)
         self._since_rebuild = 0
         self._aligned_points = np.zeros((0, 2))
+        # share of each recent refined scan within a voxel of the local map (see _turned)
+        self._fits: deque[float] = deque(maxlen=max(cfg.local_map_scans, 1))
 
     # ------------------------------------------------------------------ public
     @property
@@ -331,22 +339,30 @@ class ScanOdometry:
         self.stats.scans += 1
         if not self._t_hist:
             return self._first(stamp, pts, wheel)
-        dt, dt_speed, dropped = self._clock(stamp)
+        dt, span, dt_speed, dropped = self._clock(stamp)
+        clock_dt = dt  # the wheel re-timing keeps it (tools/README.md, degraded real logs)
+        cv_sigmas = (cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
+
+        raw_wheel, uw_raw, wheel_ok = wheel, None, False
+        if wheel is not None and self._prev_wheel is not None:
+            uw_raw = wheel_increment(self._prev_raw, wheel)
+            wheel_ok = not (
+                np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05
+                or abs(uw_raw[2]) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0)
+            )
+            if wheel_ok:  # the stamps leave the step's duration open (dt < span): the wheels tell it
+                dt = constant_velocity_span(self._last_increment, self._last_dt, uw_raw, dt, span, *cv_sigmas)
 
         # --- prediction u_t, Σ_u (wheel odometry, or constant velocity)
         cv_u = constant_velocity(self._last_increment, self._last_dt, dt)
-        cv_cov = constant_velocity_noise(dt, cfg.cv_sigma_xy_per_s, np.deg2rad(cfg.cv_sigma_theta_deg_per_s))
+        cv_cov = constant_velocity_noise(dt, *cv_sigmas)
         u, cov_u, used_wheel, jump = cv_u, cv_cov, False, False
-        raw_wheel, uw_raw = wheel, None
-        if wheel is not None and self._prev_wheel is not None:
-            uw_raw = wheel_increment(self._prev_raw, wheel)
-            if np.hypot(uw_raw[0], uw_raw[1]) > cfg.max_speed * dt_speed + 0.05 or abs(
-                uw_raw[2]
-            ) > np.deg2rad(cfg.max_turn_rate_deg) * dt_speed + np.deg2rad(2.0):
+        if uw_raw is not None:
+            if not wheel_ok:
                 jump = True
             else:
                 # the wheel pose at the scan's own time (time_offset.py: 0 unless significant)
-                wheel = self._toff.retime(wheel, uw_raw, dt)
+                wheel = self._toff.retime(wheel, uw_raw, clock_dt)
                 uw = wheel_increment(self._prev_wheel, wheel)
                 # where the wheels alone carry the motion, increment after increment, their
                 # errors are correlated over wheel_correlation_length (motion_model.wheel_noise)
@@ -390,12 +406,11 @@ class ScanOdometry:
             if scan.source is None:  # prepared without the registration's inputs
                 scan = self.prepare(pts, icp_inputs=True)
             chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
-            if (
-                chosen and used_wheel
-            ):  # the scan sides with constant velocity or the reversed wheel step: a jump
-                jump, used_wheel, u, cov_u = True, False, seeds[chosen], cv_cov
-            elif chosen:  # the scan sides with another constant-velocity seed: the prediction
-                u = seeds[chosen]
+            if chosen is not None and used_wheel:
+                # the scan sides with constant velocity, the reversed wheel step or a turned seed: a jump
+                jump, used_wheel, u, cov_u = True, False, chosen, cv_cov
+            elif chosen is not None:  # the scan sides with another constant-velocity seed: the prediction
+                u = chosen
             icp_pose = from_matrix(new_pose)
             z = between(self._kf_icp, icp_pose)
             R_body, degenerate, fallback, axis = scan.icp_covariance
@@ -520,17 +535,20 @@ class ScanOdometry:
         st, toff = self.stats, self._toff
         st.time_offset, st.time_offset_sigma, st.time_offset_applied = toff.estimate, toff.sigma, toff.applied
 
-    def _clock(self, stamp: float) -> tuple[float, float, int]:
-        """Seconds of motion since the previous scan: for the motion model and for the speed
-        test of the wheel increment; and the scans a stamp gap says were dropped.
+    def _clock(self, stamp: float) -> tuple[float, float, float, int]:
+        """Seconds of motion since the previous scan: ``dt`` for the motion model, ``span`` the
+        longest it can have been (the wheel step then tells: motion_model.constant_velocity_span),
+        ``dt_speed`` for the speed test of the wheel increment; and the scans a stamp gap says
+        were dropped.
 
         Scans are taken in arrival order, each keeps its own stamp. Host stamps can jitter: a
         logger that writes scans in bursts stamps several of them within a millisecond, then none
         for half a second, and some are stamped before their predecessor (the Intel log: a
         quarter of its steps are under 2 ms, 631 are negative, at a 0.2 s scan period). On such
         an unsteady clock (recent steps off the nominal period by more than a quarter of it, in
-        the median) a step cannot tell a gap from a late stamp: each scan is one nominal period
-        of motion and no scan counts as dropped. On a steady clock the step is the stamp
+        the median) a step cannot tell a gap from a late stamp: each scan is at least one
+        nominal period of motion, at most the stamp step (``span``: a logger pause), and no scan
+        counts as dropped. On a steady clock the step is the stamp
         difference, and one over ``GAP_FACTOR`` periods counts dropped scans. The speed test
         never gets less than one period, so a burst of stamps is never a wheel-odometry jump.
         """
@@ -550,16 +568,16 @@ class ScanOdometry:
         elif len(t) > 1:
             self._period = (t[-1] - t[0]) / (len(t) - 1)
         if len(t) <= _PERIOD_SPAN + 1:  # the first steps: no reliable period yet
-            return max(raw, 1e-6), max(raw, _FIRST_SPEED_STEP), 0
+            return max(raw, 1e-6), max(raw, 1e-6), max(raw, _FIRST_SPEED_STEP), 0
         if not steady:
-            return period, max(raw, period), 0
+            return period, max(raw, period), max(raw, period), 0
         dropped = 0
         if raw > GAP_FACTOR * period:
             dropped = max(int(round(raw / period)) - 1, 1)
             self.stats.dropped_scans += dropped
             self.stats.gaps += 1
         dt = raw if raw >= 0.5 * period else period
-        return dt, max(raw, period), dropped
+        return dt, dt, max(raw, period), dropped
 
     def _scan_covariance(self, geo: ScanGeometry) -> np.ndarray:
         """Body-frame ICP covariance from the scan's point-to-line Hessian alone (m, rad; no
@@ -601,22 +619,14 @@ class ScanOdometry:
         Same steps as ``KissICP.register_frame`` (preprocess and voxelise: :meth:`prepare`; align);
         nothing is changed until :meth:`_commit`. With more seeds, each is aligned and the one whose
         result has the most source points near the local map wins if that beats seed 0's by 0.05
-        (else seed 0). Returns (seed index, pose 4×4, initial guess 4×4, thinned frame for the map).
+        (else seed 0). Where the refinement runs, the winner may still lose to itself turned
+        (:meth:`_turned`). Returns (the winning seed increment, None for seed 0; pose 4×4, initial
+        guess 4×4, thinned frame for the map).
         """
         icp = self._icp
         source, frame_ds = scan.source, scan.frame_ds
-        sigma = icp.adaptive_threshold.get_threshold()
         guesses = [icp.last_pose @ to_matrix4(s) for s in seeds]
-        poses = [
-            icp.registration.align_points_to_map(
-                points=source,
-                voxel_map=icp.local_map,
-                initial_guess=g,
-                max_correspondance_distance=3 * sigma,
-                kernel=sigma,
-            )
-            for g in guesses
-        ]
+        poses = self._kiss_align(source, guesses)
         best = 0
         if len(poses) > 1 and not icp.local_map.empty():
             first = from_matrix(poses[0])
@@ -631,12 +641,63 @@ class ScanOdometry:
                 )
                 j = max(apart, key=lambda j: scores[j])
                 best = j if scores[j] > scores[0] + 0.05 else 0
-        pose = poses[best]
+        chosen, pose, guess = (seeds[best] if best else None), poses[best], guesses[best]
         if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
             self._aligned_points = _local_points(scan.points)
             if not scan.icp_covariance[1] and self._local_map() is not None:  # not along a corridor
+                turned = self._turned(source, seeds[best], pose)
+                if turned is not None:
+                    chosen, pose, guess = turned
                 pose = self._refine(self._aligned_points, pose)
-        return best, pose, guesses[best], frame_ds
+        return chosen, pose, guess, frame_ds
+
+    def _kiss_align(self, source: np.ndarray, guesses: list[np.ndarray]) -> list[np.ndarray]:
+        """KISS-ICP's alignment of ``source`` to its local map from each initial guess (4×4)."""
+        icp = self._icp
+        sigma = icp.adaptive_threshold.get_threshold()
+        return [
+            icp.registration.align_points_to_map(
+                points=source,
+                voxel_map=icp.local_map,
+                initial_guess=g,
+                max_correspondance_distance=3 * sigma,
+                kernel=sigma,
+            )
+            for g in guesses
+        ]
+
+    def _turned(
+        self, source: np.ndarray, seed: np.ndarray, pose: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The seed increment turned by one of ``_TURN_SEEDS_DEG`` when KISS-ICP's pose (4×4) from
+        it fits the recent scans' walls worse than the recent scans fitted (their median share of
+        points within a voxel, less ``_TURN_MARGIN``) and a turned seed's pose does not, putting
+        ``_TURN_MARGIN`` more of the scan on them: (turned seed, its pose, its guess); else None.
+        (Where the scan sees little of what the recent scans saw, a pose turned the wrong way can
+        fit a little better than the right one: FR079 at 1,471 s, 0.65 against 0.55, where the
+        recent scans fitted at 0.93.)
+
+        Wheels that miss part of a fast turn (FR079's, spinning at 40 deg/s: 8-23 deg missing
+        over a second) put the seed beyond KISS-ICP's reach in heading, and the wheels and
+        constant velocity agree, so the two-seed test does not fire. The fits are taken on the
+        refinement's line map of the recent scans, within one voxel: KISS-ICP's voxel map at
+        twice the voxel, the two-seed test's measure, scores a pose 5 deg off as well as the
+        right one where the scan sees new ground (FR079 at 2,050 s).
+        """
+        ref, points, within = self._local_ref, self._aligned_points, self.config.voxel_size
+        fit = float(ref.inlier_fractions(points, [from_matrix(pose)], within)[0])
+        bar = (_median(np.array(self._fits)) if self._fits else 1.0) - _TURN_MARGIN
+        out = None
+        if fit < bar:
+            seeds = [seed + np.array([0.0, 0.0, np.deg2rad(d)]) for d in _TURN_SEEDS_DEG]
+            guesses = [self._icp.last_pose @ to_matrix4(s) for s in seeds]
+            poses = self._kiss_align(source, guesses)
+            fits = ref.inlier_fractions(points, [from_matrix(p) for p in poses], within)
+            j = int(np.argmax(fits))
+            if fits[j] >= bar and fits[j] > fit + _TURN_MARGIN:
+                out, fit = (seeds[j], poses[j], guesses[j]), float(fits[j])
+        self._fits.append(fit)
+        return out
 
     def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """KISS-ICP's pose (4×4, its frame) refined by point-to-line ICP on the recent scans.
@@ -822,6 +883,11 @@ _REFINE_MAX_TURN = np.deg2rad(5.0)
 _REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
 _COV_CAP = DEGENERATE_SIGMA**2  # m², rad²: a cap on every entry of the ICP covariance
+# deg; turns of the winning seed tried when its pose leaves over _TURN_MARGIN of the scan off the map
+_TURN_SEEDS_DEG = (-10.0, -5.0, 5.0, 10.0)
+# share of the scan within a voxel of the recent scans' walls that a turned seed must add to win:
+# twice the two-seed test's, as a turned seed departs from both predictions
+_TURN_MARGIN = 0.1
 _EYE4 = np.eye(4)  # deskewing is off: the preprocessor's relative motion is unused
 
 
