@@ -21,16 +21,21 @@ def _frontend(scans, local_map_scans: int) -> np.ndarray:
     return np.array(rows)
 
 
+def _excerpt(test_data, name: str) -> tuple[list[tuple[float, np.ndarray, tuple | None]], np.ndarray]:
+    """The scans (stamp, base_link points, wheel pose) of ``tests/data/<name>.clf.bz2`` and its relations."""
+    scans = []
+    for s in open_recording(test_data / f"{name}.clf.bz2"):
+        pts, _ = body_points(s.points, s.sensor_offset)
+        scans.append((s.stamp, pts, s.odom))
+    return scans, load_relations(test_data / f"{name}.relations")
+
+
 def test_refinement_sharpens_the_real_fr079_odometry(test_data):
     """The first 250 scans of FR079 (its relations of Kümmerle et al. among them): KISS-ICP
     matches points to the sparse points of its voxel map and leaves a scan a few tenths of a
     degree off; on lines of the recent scans the relative poses are closer to the ground truth
     (rotation 0.46 -> 0.26 deg, translation 0.031 -> 0.028 m on this excerpt)."""
-    scans = []
-    for s in open_recording(test_data / "fr079_250.clf.bz2"):
-        pts, _ = body_points(s.points, s.sensor_offset)
-        scans.append((s.stamp, pts, s.odom))
-    rel = load_relations(test_data / "fr079_250.relations")
+    scans, rel = _excerpt(test_data, "fr079_250")
     plain = relation_error(_frontend(scans, 0), rel)
     refined = relation_error(_frontend(scans, 20), rel)
     assert plain.matched == refined.matched == 51
@@ -253,11 +258,7 @@ def test_the_wheel_model_lets_the_refined_scan_carry_each_step(test_data):
     model (2 % of the distance, at least 2 mm a step) the wheels outweighed the scan: translation
     0.0285 m on this excerpt, 0.0232 with the default (8 %, 8 mm); whole logs and the simulator:
     tools/README.md, tuning history)."""
-    scans = []
-    for s in open_recording(test_data / "fr079_250.clf.bz2"):
-        pts, _ = body_points(s.points, s.sensor_offset)
-        scans.append((s.stamp, pts, s.odom))
-    rel = load_relations(test_data / "fr079_250.relations")
+    scans, rel = _excerpt(test_data, "fr079_250")
 
     def run(cfg: OdometryConfig) -> np.ndarray:
         odo = ScanOdometry(cfg)
@@ -296,11 +297,7 @@ def test_a_turned_seed_recovers_a_spin_the_wheels_missed(test_data):
     0.50 of the scan within a voxel of the recent scans' walls, where they put 0.99) and the
     relation ends 10.4 deg off. A seed turned by 5 deg more lands on the walls (0.94): that
     relation under 2 deg, as all nine."""
-    scans = []
-    for s in open_recording(test_data / "fr079_spin.clf.bz2"):
-        pts, _ = body_points(s.points, s.sensor_offset)
-        scans.append((s.stamp, pts, s.odom))
-    rel = load_relations(test_data / "fr079_spin.relations")
+    scans, rel = _excerpt(test_data, "fr079_spin")
     res = relation_error(_frontend(scans, 20), rel)
     assert res.matched == 9
     assert res.rot_errors.max() < 2.0
