@@ -689,7 +689,7 @@ def _line_slam(n: int = 40, step: float = 0.5) -> FRSlam:
 def _weak_match_job(monkeypatch, inliers: float, pending: bool, shift: float = 18.5, **cfg):
     """Keyframe 39 (at 19.5 m) matched on old keyframe 2 (at 1 m) with ``inliers``, putting it
     ``shift`` metres behind its estimate (a large correction); with ``pending`` a closure of
-    keyframe 37 on keyframe 0 agrees with it."""
+    keyframe 34 (2.5 m of travel before it: another query submap) on keyframe 0 agrees with it."""
     import frslam_graph.loop_closure.closer as lcm
     from frslam_graph.loop_closure.closer import _Job
     from frslam_graph.loop_closure.submap_matching import ScanMatch
@@ -701,14 +701,15 @@ def _weak_match_job(monkeypatch, inliers: float, pending: bool, shift: float = 1
     closer = LoopCloser(FRSlamConfig.from_dict({"loop_closure": cfg}).loop_closure)
     for k in range(40):
         closer._append_motion(np.array([0.5 * k, 0.0, 0.0]))
-    rel = np.array([18.5 - shift, 0.0, 0.0])  # keyframe 39 relative to keyframe 2 (or 37 to 0)
+    rel = np.array([18.5 - shift, 0.0, 0.0])  # keyframe 39 relative to keyframe 2
     m = ScanMatch(rel, inliers, 0.3, np.eye(3) * 1e-5, 0.9, 100)
     monkeypatch.setattr(lcm, "match_scan_steps", lambda *a, **k: _ret(m))
     closer._query = (39, np.zeros((50, 2)))
     closer._reference = lambda slam, c, i: _ret(None)
     if pending:
         corr = np.array([-shift, 0.0, 0.0])
-        closer._pending.append(LoopClosure(0, 37, rel.copy(), np.eye(3) * 4e-4, m, corr))
+        rel34 = np.array([17.0 - shift, 0.0, 0.0])  # keyframe 34 (at 17 m) relative to keyframe 0
+        closer._pending.append(LoopClosure(0, 34, rel34, np.eye(3) * 4e-4, m, corr))
     out = run_steps(closer._job(slam, _Job(2, 39, 2.0, 0.2)))
     return closer, out
 
@@ -722,7 +723,7 @@ def test_weak_match_confirms_a_pending_closure_but_is_rejected_alone(monkeypatch
     assert out == [] and not closer._pending and closer.stats.reasons == {"low_inliers": 1}
     # agreeing with a pending closure: the pair enters the graph
     closer, out = _weak_match_job(monkeypatch, weak, pending=True, shift=within)
-    assert [(c.reference, c.query) for c in out] == [(0, 37), (2, 39)]
+    assert [(c.reference, c.query) for c in out] == [(0, 34), (2, 39)]
     assert len(closer.closures) == 2 and not closer._pending
     # switched off (= min_inlier_fraction): rejected even with the pending closure
     off = {"confirm_min_inlier_fraction": cfg.min_inlier_fraction}
@@ -747,7 +748,7 @@ def test_weak_match_does_not_confirm_a_correction_beyond_the_search_window(monke
         assert not closer.closures and len(closer._pending) == 1
         # a match acceptable alone confirms it
         closer, out = _weak_match_job(monkeypatch, 0.9, pending=True, shift=shift)
-        assert [(c.reference, c.query) for c in out] == [(0, 37), (2, 39)]
+        assert [(c.reference, c.query) for c in out] == [(0, 34), (2, 39)]
 
 
 def test_pending_closure_is_checked_from_the_keyframe_two_metres_back(monkeypatch):
