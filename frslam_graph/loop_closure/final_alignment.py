@@ -181,15 +181,21 @@ def _in_range(points: list[np.ndarray], max_range: float) -> list[np.ndarray]:
 
 def _stacked(
     poses: np.ndarray, local: list[np.ndarray], i: int, span: int
-) -> tuple[range, list[np.ndarray], list[int], np.ndarray]:
-    """Keyframes i-span..i+span, their poses relative to keyframe i, their point counts, and their
-    points (``local``: :func:`_in_range`) in keyframe i's frame, in keyframe order; one transform
-    for all (per point the products of ``transform_points``)."""
+) -> tuple[range, np.ndarray, list[int], np.ndarray]:
+    """Keyframes i-span..i+span, their poses relative to keyframe i as (K, 4) x, y, cos, sin
+    (:func:`rigid_points`' parameters), their point counts, and their points (``local``:
+    :func:`_in_range`) in keyframe i's frame, in keyframe order; one transform for all (per point
+    the products of ``transform_points``)."""
     ks = range(max(0, i - span), min(len(local) - 1, i + span) + 1)
     rels = [between(poses[i], poses[j]) for j in ks]
     sizes = [len(local[j]) for j in ks]
-    rep = np.repeat(np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels]), sizes, axis=0)
-    return ks, rels, sizes, rigid_points(*rep.T, np.concatenate([local[j] for j in ks]))
+    rig = np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels])
+    return (
+        ks,
+        rig,
+        sizes,
+        rigid_points(*np.repeat(rig, sizes, axis=0).T, np.concatenate([local[j] for j in ks])),
+    )
 
 
 def _submap(poses: np.ndarray, local: list[np.ndarray], i: int, span: int) -> np.ndarray:
@@ -518,10 +524,9 @@ def _reference_scans(
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """Points of keyframes c-span..c+span (``local``: :func:`_in_range`) in keyframe c's frame, and
     per keyframe (sensor origin, end points in beam order) in that frame (the free-space test)."""
-    ks, rels, sizes, pts = _stacked(poses, local, c, span)
+    ks, rig, sizes, pts = _stacked(poses, local, c, span)
     ends = np.split(pts, np.cumsum(sizes)[:-1])
     # the sensor origins in one transform (per origin the products of transform_points)
-    rig = np.array([(r[0], r[1], np.cos(r[2]), np.sin(r[2])) for r in rels])
     sensors = rigid_points(*rig.T, np.array([origins[j] for j in ks], dtype=np.float64))
     return pts, list(zip(sensors, ends, strict=True))
 

@@ -863,15 +863,21 @@ def icp_point_to_line(
             break
     if h is None:
         return None
+    cov = _body_covariance(x, h, sigma)
+    return None if cov is None else (x, cov)
+
+
+def _body_covariance(x: np.ndarray, h: np.ndarray, sigma: float) -> np.ndarray | None:
+    """3×3 body-frame covariance of an ICP pose ``x`` (x, y, theta) from its world-frame normal
+    matrix ``h`` (point-to-line rows of unit weight ``sigma`` m); None when singular."""
     # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
     c, s = np.cos(x[2]), np.sin(x[2])
     a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     hb = a.T @ h @ a / sigma**2
     try:
-        cov = np.linalg.inv(hb + 1e-9 * np.eye(3))
+        return np.linalg.inv(hb + 1e-9 * np.eye(3))
     except np.linalg.LinAlgError:
         return None
-    return x, cov
 
 
 def icp_point_to_line_many(
@@ -959,14 +965,9 @@ def icp_point_to_line_many(
         yield None
     ended[live] = True
     for i in np.flatnonzero(ended):
-        # world-frame (t, theta) -> body tangent (v, omega): t = t0 + R v
-        c, s = np.cos(x[i, 2]), np.sin(x[i, 2])
-        a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        hb = a.T @ h[i] @ a / sigma**2
-        try:
-            out[i] = (x[i].copy(), np.linalg.inv(hb + 1e-9 * np.eye(3)))
-        except np.linalg.LinAlgError:
-            pass
+        cov = _body_covariance(x[i], h[i], sigma)
+        if cov is not None:
+            out[i] = (x[i].copy(), cov)
     return out
 
 

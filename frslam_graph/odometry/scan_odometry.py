@@ -582,10 +582,14 @@ class ScanOdometry:
     def _scan_covariance(self, geo: ScanGeometry) -> np.ndarray:
         """Body-frame ICP covariance from the scan's point-to-line Hessian alone (m, rad; no
         inflation along a degenerate axis), floored and capped as :meth:`_icp_covariance`'s."""
+        return np.minimum(self._hessian_covariance(geo), _COV_CAP)
+
+    def _hessian_covariance(self, geo: ScanGeometry) -> np.ndarray:
+        """The scan's point-to-line Hessian inverted and scaled by the ICP sigma, symmetric and
+        floored (m, rad; body frame), before any inflation or cap."""
         H = geo.hessian + 1e-9 * np.eye(3)
         cov = np.linalg.inv(H) * (self.config.icp_sigma**2 * ICP_COV_INFLATION)
-        cov = 0.5 * (cov + cov.T) + self._floor
-        return np.minimum(cov, _COV_CAP)
+        return 0.5 * (cov + cov.T) + self._floor
 
     def _icp_covariance(self, geo: ScanGeometry) -> tuple[np.ndarray, bool, bool, np.ndarray | None]:
         """Body-frame ICP covariance, degenerate flag, fallback flag, degenerate axis."""
@@ -593,9 +597,7 @@ class ScanOdometry:
         if geo.n_normals < 10:
             big = np.diag([DEGENERATE_SIGMA**2] * 2 + [np.pi**2])
             return big, True, True, None
-        H = geo.hessian + 1e-9 * np.eye(3)
-        cov = np.linalg.inv(H) * (cfg.icp_sigma**2 * ICP_COV_INFLATION)
-        cov = 0.5 * (cov + cov.T) + self._floor
+        cov = self._hessian_covariance(geo)
         degenerate = geo.eig_ratio < cfg.degeneracy_threshold
         axis = None
         if degenerate:
