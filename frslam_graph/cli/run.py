@@ -171,7 +171,9 @@ def run(
     recording: Path = typer.Argument(
         ..., help="CARMEN log, ROS 1/2 bag, PCD/PLY folder or simulator output."
     ),
-    floor_plan: Path | None = typer.Option(None, "--floor-plan", "-p", help="Floor plan (JSON, R2V .txt)."),
+    floor_plan: Path | None = typer.Option(
+        None, "--floor-plan", "-p", help="Floor plan: .json, R2V .txt or a plan image."
+    ),
     no_priors: bool = typer.Option(
         False, "--no-priors", help="Ignore the floor plan: odometry + graph only."
     ),
@@ -213,7 +215,9 @@ def run(
 @app.command()
 def compare(
     recording: Path = typer.Argument(..., help="Recording to process twice."),
-    floor_plan: Path = typer.Option(..., "--floor-plan", "-p", help="Floor plan of the building."),
+    floor_plan: Path = typer.Option(
+        ..., "--floor-plan", "-p", help="Floor plan of the building: .json, R2V .txt or a plan image."
+    ),
     ground_truth: Path | None = typer.Option(None, "--ground-truth", help="TUM ground truth (ATE/RPE)."),
     relations: Path | None = typer.Option(None, "--relations", help="Relations file (Kümmerle et al.)."),
     config: Path | None = typer.Option(None, "--config", "-c", help="FRSlamConfig YAML/JSON."),
