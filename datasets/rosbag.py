@@ -6,6 +6,15 @@ only LaserScan topic (else the only PointCloud2 topic; a topic named ``scan`` wi
 ``scan_topic`` is given; the odometry topic is the only nav_msgs/Odometry topic, or among several
 the one whose name says ``odom`` (not ``ground_truth``), unless ``odom_topic`` is given. Odometry
 poses are interpolated at the scan stamps (header stamps; the bag time when a header stamp is 0).
+A bag without an Odometry topic whose tf carries an ``odom`` -> base transform (the common way
+of older and smaller robots: ``odom`` -> ``base_link`` on ``/tf`` only) has its odometry read from
+there (``odom_topic="/tf"`` asks for it). The laser's mount on the base (the odometry's child
+frame, else ``base_link`` / ``base_footprint``) comes from the bag's fixed transforms
+(``/tf_static``, else the first of each fixed edge on ``/tf``): it is each scan's
+``sensor_offset``, and a laser mounted upside down has its beams mirrored into the base's
+counter-clockwise order (:mod:`~frslam_graph.datasets.tf_frames`). A laser frame tf does not
+connect to the base, or one tilted over ``TILT_WARN_DEG``, is flagged; a bag without tf has the
+laser at the base, as before.
 
 A PointCloud2 is sliced to the plane ``|z - plane_z| < plane_tol`` (sensor frame) and projected
 to (x, y). LaserScan ranges that are non-finite, below ``range_min`` / <= 0, or >= ``range_max``
@@ -51,6 +60,14 @@ import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats, acquisition_times
 from frslam_graph.datasets.ros1_raw import CUT, Ros1RawBag
 from frslam_graph.datasets.scan import Scan
+from frslam_graph.datasets.tf_frames import (
+    TF_TYPES,
+    FrameTree,
+    Mount,
+    frame_name,
+    is_odom_frame,
+    planar_mount,
+)
 
 from frslam_graph.errors import OptionError, RecordingError
 from frslam_graph.limits import short_repr
@@ -59,6 +76,8 @@ LASER_SCAN = "sensor_msgs/msg/LaserScan"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
 BURSTY = "{what} topic stamped on arrival in bursts (odometry paired at estimated acquisition times)"
+TILT_WARN_DEG = 5.0  # a laser tilted more than this from level is flagged (its scan is used as if level)
+TF_SEARCH_MESSAGES = 2000  # tf messages read for an odom -> base transform when there is no Odometry topic
 SEQ_WINDOW = 256  # messages held to put scans back in header.seq order (Intel: displaced by <= 14)
 _PC2_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -265,7 +284,14 @@ class RosBag(Recording):
         self.reader_used, self.fallback_reason = self._open(reader)
         self.topics = self.source.topics()
         self.scan_topic, self.scan_type = self._pick_scan_topic(scan_topic)
+        self.tf_topics = sorted(t for t, (m, n) in self.topics.items() if m in TF_TYPES and n > 0)
+        self.odom_frames: tuple[str, str] | None = None  # (odom, base) when odometry comes from tf
         self.odom_topic = self._pick_odom_topic(odom_topic)
+        self.base_frame: str | None = self.odom_frames[1] if self.odom_frames else None
+        self._tree: FrameTree | None = None
+        self.mounts: dict[str, Mount] = {}  # laser frame -> its mount, as the scans met them
+        self._mount_problems: dict[str, str] = {}
+        self._tf_walked = False
         self._len = self.topics[self.scan_topic][1]
         if self._len == 0:
             raise RecordingError(f"topic {self.scan_topic} has no messages", source=self.bag)
@@ -336,9 +362,16 @@ class RosBag(Recording):
         raise RecordingError(f"no LaserScan or PointCloud2 messages (topics: {listing})", source=self.bag)
 
     def _pick_odom_topic(self, wanted: str | None) -> str | None:
+        """The Odometry topic, or a tf topic carrying an ``odom`` -> base transform when the bag has
+        no Odometry topic (:attr:`odom_frames` then names the two frames); None for none."""
         if wanted == "":
             return None
-        choices = [*sorted(t for t, (m, _n) in self.topics.items() if m == ODOMETRY), "'' (none)"]
+        dynamic_tf = [t for t in self.tf_topics if not t.rstrip("/").endswith("tf_static")]
+        choices = [
+            *sorted(t for t, (m, _n) in self.topics.items() if m == ODOMETRY),
+            *dynamic_tf,
+            "'' (none)",
+        ]
 
         def bad(message: str, problem: str) -> OptionError:
             return OptionError(
@@ -348,10 +381,19 @@ class RosBag(Recording):
         if wanted is not None:
             if wanted not in self.topics:
                 raise bad(f"no topic {short_repr(wanted)}", "no such topic")
-            if self.topics[wanted][0] != ODOMETRY:
+            msgtype = self.topics[wanted][0]
+            if msgtype in TF_TYPES:
+                self.odom_frames = self._tf_odometry_edge(wanted)
+                if self.odom_frames is None:
+                    raise bad(
+                        f"tf topic {wanted} carries no odom -> base transform",
+                        "a tf topic without an odom -> base transform",
+                    )
+                return wanted
+            if msgtype != ODOMETRY:
                 raise bad(
-                    f"topic {wanted} has type {self.topics[wanted][0]}; expected {ODOMETRY}",
-                    f"has type {self.topics[wanted][0]}, not {ODOMETRY}",
+                    f"topic {wanted} has type {msgtype}; expected {ODOMETRY} or a tf topic",
+                    f"has type {msgtype}, not {ODOMETRY} or tf",
                 )
             return wanted
         cands = [t for t, (m, _n) in self.topics.items() if m == ODOMETRY]
@@ -362,7 +404,27 @@ class RosBag(Recording):
                     "several Odometry topics and none clearly wheel odometry: choose one with odom_topic=",
                     "several Odometry topics and none clearly wheel odometry: choose one",
                 )
-        return cands[0] if cands else None
+        if cands:
+            return cands[0]
+        for topic in dynamic_tf:
+            self.odom_frames = self._tf_odometry_edge(topic)
+            if self.odom_frames is not None:
+                return topic
+        return None
+
+    def _tf_odometry_edge(self, topic: str, limit: int = TF_SEARCH_MESSAGES) -> tuple[str, str] | None:
+        """(odom frame, base frame) of the first odometry transform on tf ``topic`` (an ``*odom*``
+        parent, a child that is no odom, map or world frame), looked for in its first ``limit``
+        messages; None when there is none."""
+        for k, (_topic, _type, _t, msg) in enumerate(self.source.messages({topic})):
+            if k >= limit:
+                break
+            for tr in getattr(msg, "transforms", ()):
+                parent, child = frame_name(tr.header.frame_id), frame_name(tr.child_frame_id)
+                leaf = child.rsplit("/", 1)[-1]
+                if is_odom_frame(parent) and not is_odom_frame(child) and leaf not in ("map", "world"):
+                    return parent, child
+        return None
 
     def __len__(self) -> int:
         return self._len
@@ -403,14 +465,18 @@ class RosBag(Recording):
             return np.zeros((0, 4)), np.zeros((0, 4))
         rows = []  # bag index, stamp, x, y, theta; in header.seq order
         stats = self._odom_stats
-        indexed = ((*m, k) for k, m in enumerate(self.source.messages({self.odom_topic})))
-        for _moved, (_topic, _msgtype, t, msg, k) in in_seq_order(indexed):
+        for _moved, (_topic, msgtype, t, msg, k) in in_seq_order(self._odometry_items()):
             where = f"{self.odom_topic} message {k}"
             if isinstance(msg, Exception):
-                stats.skip(f"undecodable {ODOMETRY} messages", where)
+                stats.skip(f"undecodable {msgtype} messages", where)
                 continue
-            p = msg.pose.pose
-            row = (_stamp(msg, t), p.position.x, p.position.y, _yaw(p.orientation))
+            if self.odom_frames is None:
+                if self.base_frame is None:
+                    self.base_frame = frame_name(msg.child_frame_id) or None
+                p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            else:
+                p, q = msg.transform.translation, msg.transform.rotation
+            row = (_stamp(msg, t), p.x, p.y, _yaw(q))
             if not all(math.isfinite(v) for v in row):
                 stats.skip("odometry messages with non-finite values", where)
                 continue
@@ -432,6 +498,23 @@ class RosBag(Recording):
         ok = np.ones(len(track), dtype=bool)  # the bound may tie or step back: keep it increasing
         ok[1:] = track[1:, 0] > np.maximum.accumulate(track[:, 0])[:-1]
         return records[keep, 1:], track[ok]
+
+    def _odometry_items(self) -> Iterator[tuple[str, str, int, Any, int]]:
+        """(topic, type, bag time, message, bag index) of the odometry in bag order: the Odometry
+        messages, or each ``odom`` -> base transform of the tf topic (a TransformStamped)."""
+        messages = self.source.messages({self.odom_topic})
+        if self.odom_frames is None:
+            for k, m in enumerate(messages):
+                yield (*m, k)
+            return
+        odom, base = self.odom_frames
+        for k, (topic, msgtype, t, msg) in enumerate(messages):
+            if isinstance(msg, Exception):
+                yield topic, msgtype, t, msg, k
+                continue
+            for tr in getattr(msg, "transforms", ()):
+                if frame_name(tr.header.frame_id) == odom and frame_name(tr.child_frame_id) == base:
+                    yield topic, msgtype, t, tr, k
 
     def _scan_acquisition(self) -> np.ndarray | None:
         """Acquisition times of the scan messages in the order :meth:`_scans` takes them (NaN for
@@ -495,17 +578,83 @@ class RosBag(Recording):
                     stats.flag(BURSTY.format(what="scan"), where)
                 if pose is None:
                     stats.flag("scans outside the odometry records (odom None)", where)
+            mount = self._mount(frame_name(msg.header.frame_id), stats, where)
             if msgtype == LASER_SCAN:
-                scan = self._laser_scan(msg, stamp, pose, angles_cache, stats, where)
+                scan = self._laser_scan(msg, stamp, pose, mount, angles_cache, stats, where)
             else:
-                scan = self._cloud_scan(msg, stamp, pose, stats, where)
+                scan = self._cloud_scan(msg, stamp, pose, mount, stats, where)
             if scan is not None:
                 yield scan
         for reason, n in self.source.problems.items():
             stats.problems[reason] += n
             stats.first.setdefault(reason, self.source.first_problem.get(reason, "?"))
 
-    def _laser_scan(self, msg, stamp, pose, cache, stats: RecordingStats, where: str) -> Scan | None:
+    def _mount(self, frame: str, stats: RecordingStats, where: str) -> Mount:
+        """The mount of the laser frame ``frame`` on the robot base (found once per frame); a scan
+        whose mount is unknown or tilted is flagged."""
+        if frame not in self.mounts:
+            self.mounts[frame], self._mount_problems[frame] = self._find_mount(frame)
+        problem = self._mount_problems[frame]
+        if problem:
+            stats.flag(problem, where)
+        return self.mounts[frame]
+
+    def _find_mount(self, frame: str) -> tuple[Mount, str]:
+        """``frame``'s mount on the base frame (the odometry's child frame, else ``base_link`` /
+        ``base_footprint`` above it) from the bag's fixed transforms, and what went wrong ('' if
+        nothing). A bag without tf, a laser frame that is the base, or no base frame at all (no
+        odometry, no base above the laser): the laser is the base, as it is for the trajectory."""
+        if not self.tf_topics or not frame or frame == self.base_frame:
+            return Mount(), ""
+        tree = self._frame_tree()
+        base = self.base_frame or tree.base_of(frame)
+        found = tree.pose(base, frame) if base else None
+        if found is None and not self._tf_walked:
+            found, base = self._walk_dynamic_tf(tree, frame)
+        if base is None:
+            return Mount(), ""
+        if found is None:
+            return Mount(), f"no tf transform from {base} to the laser frame {frame} (laser taken at {base})"
+        mount = planar_mount(found)
+        if mount.tilt_deg > TILT_WARN_DEG:
+            return mount, (
+                f"laser frame {frame} tilted {mount.tilt_deg:.0f} deg from level on {base} (used as if level)"
+            )
+        return mount, ""
+
+    def _frame_tree(self) -> FrameTree:
+        """The fixed transforms of the static tf topics (read once)."""
+        if self._tree is None:
+            self._tree = FrameTree()
+            static = {t for t in self.tf_topics if t.rstrip("/").endswith("tf_static")}
+            if static:
+                for _topic, _type, _t, msg in self.source.messages(static):
+                    if not isinstance(msg, Exception):
+                        self._tree.add_message(msg)
+        return self._tree
+
+    def _walk_dynamic_tf(self, tree: FrameTree, frame: str) -> tuple[np.ndarray | None, str | None]:
+        """Add the first transform of each fixed-looking edge of the dynamic tf topics (not the
+        odometry's, not the map's) until ``frame`` connects to the base; its pose and the base."""
+        self._tf_walked = True
+
+        def moving(parent: str, child: str) -> bool:
+            return any(is_odom_frame(f) or f.rsplit("/", 1)[-1] in ("map", "world") for f in (parent, child))
+
+        dynamic = {t for t in self.tf_topics if not t.rstrip("/").endswith("tf_static")}
+        base = self.base_frame
+        for _topic, _type, _t, msg in self.source.messages(dynamic) if dynamic else ():
+            if isinstance(msg, Exception) or not tree.add_message(msg, skip=moving):
+                continue
+            base = self.base_frame or tree.base_of(frame)
+            found = tree.pose(base, frame) if base else None
+            if found is not None:
+                return found, base
+        return None, base
+
+    def _laser_scan(
+        self, msg, stamp, pose, mount: Mount, cache, stats: RecordingStats, where: str
+    ) -> Scan | None:
         ranges = np.asarray(msg.ranges, dtype=np.float64)
         a0, inc = float(msg.angle_min), float(msg.angle_increment)
         if ranges.size == 0 or not (math.isfinite(a0) and math.isfinite(inc)):
@@ -520,15 +669,19 @@ class RosBag(Recording):
         invalid = ~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax) | ~np.isfinite(ranges)
         if invalid.any():
             ranges[invalid] = np.nan
-        key = (ranges.size, a0, inc)
+        key = (ranges.size, a0, inc, mount.mirrored)
         angles = cache.get(key)
         if angles is None:
             angles = a0 + inc * np.arange(ranges.size, dtype=np.float64)
+            if mount.mirrored:  # upside down: beam a lies at -a; reversed, the angles increase again
+                angles = -angles[::-1].copy()
             angles.flags.writeable = False
             cache[key] = angles
-        return Scan(stamp, ranges, angles, pose, rmax)
+        if mount.mirrored:
+            ranges = ranges[::-1].copy()
+        return Scan(stamp, ranges, angles, pose, rmax, mount.offset)
 
-    def _cloud_scan(self, msg, stamp, pose, stats: RecordingStats, where: str) -> Scan | None:
+    def _cloud_scan(self, msg, stamp, pose, mount: Mount, stats: RecordingStats, where: str) -> Scan | None:
         try:
             xyz = pointcloud2_xyz(msg)
         except ValueError as exc:
@@ -538,4 +691,7 @@ class RosBag(Recording):
         if not finite.all():
             stats.flag("clouds with non-finite points (dropped)", where)
         keep = finite & (np.abs(xyz[:, 2] - self.plane_z) < self.plane_tol)
-        return Scan.from_points(stamp, xyz[keep, :2], pose)
+        xy = xyz[keep, :2]
+        if mount.mirrored:
+            xy = xy * np.array([1.0, -1.0])
+        return Scan.from_points(stamp, xy, pose, sensor_offset=mount.offset)

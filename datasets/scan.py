@@ -40,9 +40,10 @@ class Scan:
         points: np.ndarray,
         odom: tuple[float, float, float] | None = None,
         max_range: float = float("inf"),
+        sensor_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> Scan:
         """A scan given as planar points (from a sliced point cloud); ranges/angles are derived."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         ranges = np.hypot(pts[:, 0], pts[:, 1])
         angles = np.arctan2(pts[:, 1], pts[:, 0])
-        return cls(stamp, ranges, angles, odom, max_range, (0.0, 0.0, 0.0), pts)
+        return cls(stamp, ranges, angles, odom, max_range, sensor_offset, pts)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from pathlib import Path
@@ -72,7 +73,17 @@ def inspect(
         "reader", f"{type(rec).__name__}" + (f" ({rec.reader_used})" if hasattr(rec, "reader_used") else "")
     )
     if hasattr(rec, "scan_topic"):
-        table.add_row("topics", escape(f"scan {rec.scan_topic} [{rec.scan_type}], odometry {rec.odom_topic}"))
+        frames = getattr(rec, "odom_frames", None)
+        odom_from = f"{rec.odom_topic} ({frames[0]} -> {frames[1]})" if frames else f"{rec.odom_topic}"
+        table.add_row("topics", escape(f"scan {rec.scan_topic} [{rec.scan_type}], odometry {odom_from}"))
+    for frame, mount in getattr(rec, "mounts", {}).items():
+        table.add_row(
+            "laser mount",
+            escape(
+                f"{frame} on {rec.base_frame}: x {mount.x:.3f} m, y {mount.y:.3f} m, yaw {math.degrees(mount.yaw):.1f} deg"
+                + (", upside down (scan mirrored)" if mount.mirrored else "")
+            ),
+        )
     table.add_row("records", ", ".join(f"{k} {v:,}" for k, v in sorted(s.records.items())))
     table.add_row("scans", f"{n:,} read of {len(rec):,} found")
     table.add_row("duration", f"{s.duration:.1f} s")
