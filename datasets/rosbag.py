@@ -1,8 +1,10 @@
-"""ROS 1 / ROS 2 bag reader (through rosbags): LaserScan or PointCloud2 scans, nav_msgs/Odometry.
+"""ROS 1 / ROS 2 bag reader (through rosbags): LaserScan, MultiEchoLaserScan or PointCloud2 scans,
+nav_msgs/Odometry or tf.
 
 Accepts a ROS 1 ``.bag``, a rosbag2 folder (``metadata.yaml``), a bare ``.mcap`` / ``.db3`` file or
 a simulator output folder (``bag/`` + ``ground_truth.tum`` + ``meta.json``). The scan topic is the
-only LaserScan topic (else the only PointCloud2 topic; a topic named ``scan`` wins a tie) unless
+only LaserScan topic (else the only MultiEchoLaserScan topic, read at each beam's first echo,
+else the only PointCloud2 topic; a topic named ``scan`` wins a tie) unless
 ``scan_topic`` is given; the odometry topic is the only nav_msgs/Odometry topic, or among several
 the one whose name says ``odom`` (not ``ground_truth``), unless ``odom_topic`` is given. Odometry
 poses are interpolated at the scan stamps (header stamps; the bag time when a header stamp is 0).
@@ -74,6 +76,8 @@ from frslam_graph.limits import short_repr
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"  # Cartographer's 2D bags: the first echo is the scan
+SCAN_TYPES = (LASER_SCAN, MULTI_ECHO, POINT_CLOUD2)  # auto-detection prefers them in this order
 ODOMETRY = "nav_msgs/msg/Odometry"
 BURSTY = "{what} topic stamped on arrival in bursts (odometry paired at estimated acquisition times)"
 TILT_WARN_DEG = 5.0  # a laser tilted more than this from level is flagged (its scan is used as if level)
@@ -322,7 +326,7 @@ class RosBag(Recording):
 
     def _pick_scan_topic(self, wanted: str | None) -> tuple[str, str]:
         listing = ", ".join(f"{t} [{m}]" for t, (m, _n) in sorted(self.topics.items())) or "none"
-        choices = sorted(t for t, (m, _n) in self.topics.items() if m in (LASER_SCAN, POINT_CLOUD2))
+        choices = sorted(t for t, (m, _n) in self.topics.items() if m in SCAN_TYPES)
 
         def bad(message: str, problem: str) -> OptionError:
             return OptionError(
@@ -333,13 +337,13 @@ class RosBag(Recording):
             if wanted not in self.topics:
                 raise bad(f"no topic {short_repr(wanted)} (topics: {listing})", "no such topic")
             msgtype = self.topics[wanted][0]
-            if msgtype not in (LASER_SCAN, POINT_CLOUD2):
+            if msgtype not in SCAN_TYPES:
                 raise bad(
-                    f"topic {wanted} has type {msgtype}; expected LaserScan or PointCloud2",
-                    f"has type {msgtype}, not LaserScan or PointCloud2",
+                    f"topic {wanted} has type {msgtype}; expected LaserScan, MultiEchoLaserScan or PointCloud2",
+                    f"has type {msgtype}, not LaserScan, MultiEchoLaserScan or PointCloud2",
                 )
             return wanted, msgtype
-        for msgtype in (LASER_SCAN, POINT_CLOUD2):
+        for msgtype in SCAN_TYPES:
             cands = [t for t, (m, n) in self.topics.items() if m == msgtype and n > 0]
             if len(cands) > 1:
                 named = [t for t in cands if t.rstrip("/").rsplit("/", 1)[-1] in ("scan", "points")]
@@ -356,10 +360,12 @@ class RosBag(Recording):
             size = self.bag.stat().st_size
             raise RecordingError(
                 f"truncated: the file ({size:,} bytes) ends in the middle of the record at {cut}, before "
-                f"any complete LaserScan or PointCloud2 message (topics read: {listing})",
+                f"any complete LaserScan, MultiEchoLaserScan or PointCloud2 message (topics read: {listing})",
                 source=self.bag,
             )
-        raise RecordingError(f"no LaserScan or PointCloud2 messages (topics: {listing})", source=self.bag)
+        raise RecordingError(
+            f"no LaserScan, MultiEchoLaserScan or PointCloud2 messages (topics: {listing})", source=self.bag
+        )
 
     def _pick_odom_topic(self, wanted: str | None) -> str | None:
         """The Odometry topic, or a tf topic carrying an ``odom`` -> base transform when the bag has
@@ -579,8 +585,8 @@ class RosBag(Recording):
                 if pose is None:
                     stats.flag("scans outside the odometry records (odom None)", where)
             mount = self._mount(frame_name(msg.header.frame_id), stats, where)
-            if msgtype == LASER_SCAN:
-                scan = self._laser_scan(msg, stamp, pose, mount, angles_cache, stats, where)
+            if msgtype in (LASER_SCAN, MULTI_ECHO):
+                scan = self._laser_scan(msg, msgtype, stamp, pose, mount, angles_cache, stats, where)
             else:
                 scan = self._cloud_scan(msg, stamp, pose, mount, stats, where)
             if scan is not None:
@@ -653,12 +659,19 @@ class RosBag(Recording):
         return None, base
 
     def _laser_scan(
-        self, msg, stamp, pose, mount: Mount, cache, stats: RecordingStats, where: str
+        self, msg, msgtype: str, stamp, pose, mount: Mount, cache, stats: RecordingStats, where: str
     ) -> Scan | None:
-        ranges = np.asarray(msg.ranges, dtype=np.float64)
+        if msgtype == MULTI_ECHO:  # each beam's first echo, as Cartographer takes it
+            ranges = np.array(
+                [e.echoes[0] if len(e.echoes) else np.nan for e in msg.ranges], dtype=np.float64
+            )
+        else:
+            ranges = np.asarray(msg.ranges, dtype=np.float64)
         a0, inc = float(msg.angle_min), float(msg.angle_increment)
         if ranges.size == 0 or not (math.isfinite(a0) and math.isfinite(inc)):
-            stats.skip("LaserScan messages with no beams or non-finite angles", where)
+            stats.skip(
+                f"{msgtype.rsplit('/', 1)[-1]} messages with no beams or non-finite angles", where
+            )
             return None
         rmax = float(msg.range_max) if math.isfinite(msg.range_max) and msg.range_max > 0 else math.inf
         rmin = float(msg.range_min) if math.isfinite(msg.range_min) else 0.0

@@ -1,4 +1,4 @@
-"""A bag's tf: the laser's mount on the robot (offset, yaw, upside down) and odometry given as tf only."""
+"""A bag's tf: the laser's mount on the robot (offset, yaw, upside down), odometry given as tf only; multi-echo scans."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from frslam_graph.cli import main
 from frslam_graph.errors import OptionError
 
 TF = "tf2_msgs/msg/TFMessage"
+MULTI = "sensor_msgs/msg/MultiEchoLaserScan"
 TF_TYPES = get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF)  # not in the Noetic store
 
 
@@ -287,3 +288,43 @@ def test_a_run_on_a_bag_with_an_offset_upside_down_laser_and_tf_odometry_follows
     assert len(est) == len(truth)
     err = np.hypot(est[:, 1] - truth[:, 1], est[:, 2] - truth[:, 2])
     assert err.max() < 0.05
+
+
+def multi_echo(m: Msgs, stamp, echoes, angle_min=-1.0, inc=0.5):
+    T = m.T
+    return T["sensor_msgs/msg/MultiEchoLaserScan"](
+        header=m.header(stamp),
+        angle_min=angle_min,
+        angle_max=angle_min + inc * (len(echoes) - 1),
+        angle_increment=inc,
+        time_increment=0.0,
+        scan_time=0.1,
+        range_min=0.1,
+        range_max=10.0,
+        ranges=[T["sensor_msgs/msg/LaserEcho"](echoes=np.asarray(e, dtype=np.float32)) for e in echoes],
+        intensities=[
+            T["sensor_msgs/msg/LaserEcho"](echoes=np.zeros(len(e), dtype=np.float32)) for e in echoes
+        ],
+    )
+
+
+@pytest.mark.parametrize(("ros1", "reader"), [(True, "auto"), (True, "sequential"), (False, "auto")])
+def test_a_multi_echo_scan_is_read_at_each_beams_first_echo(tmp_path, ros1, reader):
+    """Cartographer's 2D bags record sensor_msgs/MultiEchoLaserScan (a list of echoes a beam)."""
+    m = Msgs(ros1)
+    echoes = [[1.0, 1.5], [], [2.0], [12.0, 3.0], [float("inf")]]
+    msgs = [
+        ("/horizontal_laser_2d", MULTI, 100.0 + 0.1 * i, multi_echo(m, 100.0 + 0.1 * i, echoes))
+        for i in range(3)
+    ]
+    bag = write_bag(tmp_path / ("e.bag" if ros1 else "e"), msgs, ros1=ros1)
+    rec = open_recording(bag, reader=reader)
+    assert (rec.scan_topic, rec.scan_type) == ("/horizontal_laser_2d", MULTI)
+    scans, _ = read_all(rec)
+    assert len(scans) == 3
+    s = scans[0]
+    # first echoes 1.0, none, 2.0, 12.0 (beyond range_max), inf: the valid ones are 1.0 and 2.0
+    assert np.isnan(s.ranges).tolist() == [False, True, False, True, True]
+    assert s.ranges[[0, 2]] == pytest.approx([1.0, 2.0]) and s.angles == pytest.approx(
+        [-1.0, -0.5, 0.0, 0.5, 1.0]
+    )
