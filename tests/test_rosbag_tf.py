@@ -178,9 +178,13 @@ def test_an_upside_down_laser_is_mirrored_into_the_base_frame(tmp_path):
     assert body_points(s) == pytest.approx(expected_body_points((0.2, 0.0), 0.0, mirrored=True)[::-1])
 
 
-def test_odometry_given_as_tf_only_is_read_from_tf(tmp_path):
-    with_topic = open_recording(laser_bag(tmp_path, "o.bag", (0.0, 0.0, 0.0), quat()))
-    tf_only = open_recording(laser_bag(tmp_path, "t.bag", (0.0, 0.0, 0.0), quat(), odom="tf"))
+@pytest.mark.parametrize("ros1", [True, False])
+def test_odometry_given_as_tf_only_is_read_from_tf(tmp_path, ros1):
+    bag = "{}.bag" if ros1 else "{}"
+    with_topic = open_recording(laser_bag(tmp_path, bag.format("o"), (0.0, 0.0, 0.0), quat(), ros1=ros1))
+    tf_only = open_recording(
+        laser_bag(tmp_path, bag.format("t"), (0.0, 0.0, 0.0), quat(), odom="tf", ros1=ros1)
+    )
     assert (tf_only.odom_topic, tf_only.odom_frames, tf_only.base_frame) == (
         "/tf",
         ("odom", "base_footprint"),
@@ -195,7 +199,7 @@ def test_odometry_given_as_tf_only_is_read_from_tf(tmp_path):
     # '' still means none
     assert (
         open_recording(
-            laser_bag(tmp_path, "n.bag", (0.0, 0.0, 0.0), quat(), odom="tf"), odom_topic=""
+            laser_bag(tmp_path, bag.format("n"), (0.0, 0.0, 0.0), quat(), odom="tf", ros1=ros1), odom_topic=""
         ).odom_topic
         is None
     )
