@@ -619,14 +619,22 @@ class RosBag(Recording):
             found, base = self._walk_dynamic_tf(tree, frame)
         if base is None:
             return Mount(), ""
+        note = ""
+        other = tree.base_of(frame)
+        if found is None and other is not None and other != base:  # odometry and tf name the base apart
+            found = tree.pose(other, frame)
+            note = (
+                f"the odometry's frame {base} is not connected to tf's {other}: laser mount taken on {other}"
+            )
         if found is None:
             return Mount(), f"no tf transform from {base} to the laser frame {frame} (laser taken at {base})"
         mount = planar_mount(found)
         if mount.tilt_deg > TILT_WARN_DEG:
-            return mount, (
-                f"laser frame {frame} tilted {mount.tilt_deg:.0f} deg from level on {base} (used as if level)"
+            tilt = (
+                f"laser frame {frame} tilted {mount.tilt_deg:.0f} deg from level on {other if note else base}"
             )
-        return mount, ""
+            note = "; ".join(filter(None, (note, tilt + " (used as if level)")))
+        return mount, note
 
     def _frame_tree(self) -> FrameTree:
         """The fixed transforms of the static tf topics (read once)."""
@@ -669,9 +677,7 @@ class RosBag(Recording):
             ranges = np.asarray(msg.ranges, dtype=np.float64)
         a0, inc = float(msg.angle_min), float(msg.angle_increment)
         if ranges.size == 0 or not (math.isfinite(a0) and math.isfinite(inc)):
-            stats.skip(
-                f"{msgtype.rsplit('/', 1)[-1]} messages with no beams or non-finite angles", where
-            )
+            stats.skip(f"{msgtype.rsplit('/', 1)[-1]} messages with no beams or non-finite angles", where)
             return None
         rmax = float(msg.range_max) if math.isfinite(msg.range_max) and msg.range_max > 0 else math.inf
         rmin = float(msg.range_min) if math.isfinite(msg.range_min) else 0.0

@@ -332,3 +332,17 @@ def test_a_multi_echo_scan_is_read_at_each_beams_first_echo(tmp_path, ros1, read
     assert s.ranges[[0, 2]] == pytest.approx([1.0, 2.0]) and s.angles == pytest.approx(
         [-1.0, -0.5, 0.0, 0.5, 1.0]
     )
+
+
+def test_an_odometry_frame_tf_does_not_know_takes_the_mount_on_tfs_base(tmp_path):
+    """The odometry says base_link, tf says robot/base_link -> laser: the mount is tf's, flagged."""
+    m = msgs(True)
+    mount = transform(m, 99.9, "robot/base_link", "laser", (0.25, 0.0, 0.2), quat(yaw=0.1))
+    out = [("/tf_static", TF, 99.9, tf_msg(m, mount))]
+    out += [("/odom", ODOM, 99.99 + 0.02 * k, m.odom(99.99 + 0.02 * k, 0.0, 0.0, 0.0)) for k in range(10)]
+    out += [("/scan", LASER, 100.0 + 0.05 * i, m.scan(100.0 + 0.05 * i, RANGES)) for i in range(3)]
+    out.sort(key=lambda r: r[2])
+    scans, warns = read_all(open_recording(write_bag(tmp_path / "r.bag", out, extra_types=TF_TYPES)))
+    assert scans[0].sensor_offset == pytest.approx((0.25, 0.0, 0.1))
+    assert len(warns) == 1
+    assert "3 the odometry's frame base_link is not connected to tf's robot/base_link" in warns[0]
