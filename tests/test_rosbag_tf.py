@@ -18,13 +18,22 @@ from frslam_graph.errors import OptionError
 
 TF = "tf2_msgs/msg/TFMessage"
 MULTI = "sensor_msgs/msg/MultiEchoLaserScan"
-TF_TYPES = get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF)  # not in the Noetic store
+OLD_TF = "tf/msg/tfMessage"  # ROS 1 before tf2 (2010-era bags)
+TF_TYPES = {
+    **get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF),  # not in the Noetic store
+    **get_types_from_msg("geometry_msgs/TransformStamped[] transforms", OLD_TF),
+}
+
+
+def missing_tf_types(ros1: bool) -> dict:
+    """The tf message types the test typestore of ``ros1`` lacks."""
+    have = Msgs(ros1).ts.fielddefs
+    return {k: v for k, v in TF_TYPES.items() if k not in have}
 
 
 def msgs(ros1: bool) -> Msgs:
     m = Msgs(ros1)
-    if TF not in m.ts.fielddefs:
-        m.ts.register(TF_TYPES)
+    m.ts.register(missing_tf_types(ros1))
     return m
 
 
@@ -53,8 +62,8 @@ def transform(m: Msgs, stamp, parent, child, xyz=(0.0, 0.0, 0.0), q=(0.0, 0.0, 0
     )
 
 
-def tf_msg(m: Msgs, *transforms):
-    return m.T[TF](transforms=list(transforms))
+def tf_msg(m: Msgs, *transforms, tf_type=TF):
+    return m.T[tf_type](transforms=list(transforms))
 
 
 RANGES = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
@@ -70,6 +79,7 @@ def laser_bag(
     odom="topic",
     static_on="/tf_static",
     laser_frame="laser",
+    tf_type=TF,
 ):
     """5 scans (frame ``laser_frame``) at 10 Hz, odometry 1 m/s along x turning 0.5 rad/s as an
     Odometry topic (``odom="topic"``) or tf only (``"tf"``: odom -> base_footprint), and the mount
@@ -81,7 +91,7 @@ def laser_bag(
         transform(m, 99.9, "base_link", "laser", mount_xyz, mount_q),
     ]
     if static_on:
-        out.append((static_on, TF, 99.9, tf_msg(m, *mount)))
+        out.append((static_on, tf_type, 99.9, tf_msg(m, *mount, tf_type=tf_type)))
     for k in range(31):
         t = 99.98 + 0.02 * k
         x, yaw = t - 100.0, 0.5 * (t - 100.0)
@@ -91,16 +101,15 @@ def laser_bag(
             out.append(("/odom", ODOM, t, msg))
         else:
             q = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
-            out.append(("/tf", TF, t, tf_msg(m, transform(m, t, "odom", "base_footprint", (x, 0.0, 0.0), q))))
+            odom_tf = transform(m, t, "odom", "base_footprint", (x, 0.0, 0.0), q)
+            out.append(("/tf", tf_type, t, tf_msg(m, odom_tf, tf_type=tf_type)))
     for i in range(5):
         t = 100.0 + 0.1 * i
         scan = m.scan(t, RANGES, angle_min=-1.0, inc=0.25)
         scan.header.frame_id = laser_frame
         out.append(("/scan", LASER, t + 0.001, scan))
     out.sort(key=lambda x: x[2])
-    return write_bag(
-        tmp_path / name, out, ros1=ros1, extra_types=None if TF in m.ts.fielddefs and not ros1 else TF_TYPES
-    )
+    return write_bag(tmp_path / name, out, ros1=ros1, extra_types=missing_tf_types(ros1))
 
 
 def body_points(scan) -> np.ndarray:
@@ -205,11 +214,19 @@ def test_odometry_given_as_tf_only_is_read_from_tf(tmp_path, ros1):
     )
 
 
-def test_a_mount_published_on_tf_is_found_there(tmp_path):
-    """Bags older than /tf_static publish the fixed transforms on /tf with the odometry."""
-    bag = laser_bag(tmp_path, "d.bag", (-0.1, 0.0, 0.2), quat(yaw=0.2), odom="tf", static_on="/tf")
-    scans, warns = read_all(open_recording(bag))
+@pytest.mark.parametrize("tf_type", [TF, OLD_TF])
+def test_a_mount_published_on_tf_is_found_there(tmp_path, tf_type):
+    """Bags older than /tf_static publish the fixed transforms on /tf with the odometry (before tf2
+    as tf/tfMessage)."""
+    bag = laser_bag(
+        tmp_path, "d.bag", (-0.1, 0.0, 0.2), quat(yaw=0.2), odom="tf", static_on="/tf", tf_type=tf_type
+    )
+    rec = open_recording(bag)
+    scans, warns = read_all(rec)
     assert not warns and scans[0].sensor_offset == pytest.approx((-0.1, 0.0, 0.2))
+    assert rec.odom_frames == ("odom", "base_footprint") and scans[2].odom == pytest.approx(
+        (0.2, 0.0, 0.1), abs=1e-6
+    )
 
 
 def test_a_laser_frame_tf_does_not_reach_is_flagged_and_taken_at_the_base(tmp_path):
@@ -285,7 +302,7 @@ def test_a_run_on_a_bag_with_an_offset_upside_down_laser_and_tf_odometry_follows
         odom = transform(m, stamp - 0.001, "odom", "base_link", (x, y, 0.0), q)
         out += [("/scan", LASER, stamp, scan), ("/tf", TF, stamp - 0.001, tf_msg(m, odom))]
     out.sort(key=lambda r: r[2])
-    bag = write_bag(tmp_path / "mounted.bag", out, extra_types=TF_TYPES)
+    bag = write_bag(tmp_path / "mounted.bag", out, extra_types=missing_tf_types(True))
     run = tmp_path / "run"
     assert main(["run", str(bag), "--out", str(run)]) == 0, capsys.readouterr().err
     est = load_tum(run / "trajectory.tum")
@@ -342,7 +359,9 @@ def test_an_odometry_frame_tf_does_not_know_takes_the_mount_on_tfs_base(tmp_path
     out += [("/odom", ODOM, 99.99 + 0.02 * k, m.odom(99.99 + 0.02 * k, 0.0, 0.0, 0.0)) for k in range(10)]
     out += [("/scan", LASER, 100.0 + 0.05 * i, m.scan(100.0 + 0.05 * i, RANGES)) for i in range(3)]
     out.sort(key=lambda r: r[2])
-    scans, warns = read_all(open_recording(write_bag(tmp_path / "r.bag", out, extra_types=TF_TYPES)))
+    scans, warns = read_all(
+        open_recording(write_bag(tmp_path / "r.bag", out, extra_types=missing_tf_types(True)))
+    )
     assert scans[0].sensor_offset == pytest.approx((0.25, 0.0, 0.1))
     assert len(warns) == 1
     assert "3 the odometry's frame base_link is not connected to tf's robot/base_link" in warns[0]
