@@ -61,3 +61,35 @@ def test_the_full_range_scans_keep_the_robot_standing(test_data):
     i0, i1 = np.searchsorted(t, [1001.0, 1014.0])
     assert o.stats.fallbacks == 0
     assert np.hypot(*(est[i1, :2] - est[i0, :2])) < 0.05
+
+
+def test_an_icp_step_faster_than_the_robot_is_a_wrong_minimum(test_data, monkeypatch):
+    """An ICP result that moves the robot faster than ``max_speed`` (3 m/s) in a scan period is
+    no robot's step: on ACES at 4 m range scans of 20-140 points slid onto a stale local map by
+    1.1-3.2 m in 0.15-0.24 s and the step entered (fused with the wheels, or as a wheel fault).
+    Here KISS-ICP's alignment of one scan of the robot driving off (0.25 m a scan, full-range
+    scans) is moved 2 m further ahead, a wrong minimum the wheels do not contradict in sign: the
+    scan is rejected (not mapped) and the wheels carry the step; without the test it jumped."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RecordingWarning)
+        scans = list(open_recording(test_data / "aces_stand.clf.bz2"))
+    k = int(np.searchsorted([s.stamp for s in scans], 1016.0))
+    o = ScanOdometry()
+    shift = np.eye(4)
+    shift[0, 3] = 2.0  # m ahead, in the robot's frame
+    real = ScanOdometry._kiss_align
+    poses = []
+    for j, s in enumerate(scans[: k + 3]):
+        if j == k:
+            monkeypatch.setattr(
+                ScanOdometry, "_kiss_align", lambda self, src, g: [p @ shift for p in real(self, src, g)]
+            )
+        elif j == k + 1:
+            monkeypatch.setattr(ScanOdometry, "_kiss_align", real)
+        pts, _ = body_points(s.points, s.sensor_offset)
+        poses.append(o.process(s.stamp, pts, s.odom).pose)
+    wheel = np.array([s.odom for s in scans[k - 1 : k + 1]])
+    step, wheel_step = (np.hypot(*(p[1, :2] - p[0, :2])) for p in (np.array(poses[k - 1 : k + 1]), wheel))
+    assert 0.1 < wheel_step < 0.5  # driving
+    assert o.stats.icp_rejections == 1
+    assert abs(step - wheel_step) < 0.1
