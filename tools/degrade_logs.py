@@ -105,8 +105,11 @@ VARIANTS: dict[str, tuple[Callable[[Iterable], Iterator], bool]] = {
     "noodom": (stalled_odometry, False),
     "drift2": (lambda s: drifting_odometry(s, 1.07, 2.0), False),
     "rate3_gaps": (lambda s: thinned(s, 3, 120.0, 5.0), True),
-    "range8": (lambda s: short_beams(s, 8.0), False),
 }
+#: short-range lasers: ``rangeN`` beams past N metres no-return at an N m maximum (a SICK in its 8 m
+#: mode; a TurtleBot-class laser: LDS-01 3.5 m, a 4 m cap)
+for _name, _r in (("range8", 8.0), ("range4", 4.0), ("range3.5", 3.5)):
+    VARIANTS[_name] = ((lambda r: lambda s: short_beams(s, r))(_r), False)
 ALL = ["noodom", "drift2", "rate3_gaps", "range8"]
 
 

@@ -406,13 +406,19 @@ class ScanOdometry:
             if scan.source is None:  # prepared without the registration's inputs
                 scan = self.prepare(pts, icp_inputs=True)
             chosen, new_pose, guess, frame_ds = self._align(scan, seeds)
+            icp_pose = from_matrix(new_pose)
+            z = between(self._kf_icp, icp_pose)
+            if not self._possible(between(prev_rel, z), dt_speed):
+                # a step no robot makes (faster than max_speed / max_turn_rate_deg, as wheel steps
+                # are tested): a wrong minimum, whatever the seed. A scan that sees little (a short-
+                # range laser in a hall: 20-30 points) slides onto a stale local map and would
+                # otherwise overrule the wheels as a wheel fault (ACES at 4 m range: 1.4 m steps)
+                icp_rejected, chosen = True, None
             if chosen is not None and used_wheel:
                 # the scan sides with constant velocity, the reversed wheel step or a turned seed: a jump
                 jump, used_wheel, u, cov_u = True, False, chosen, cv_cov
             elif chosen is not None:  # the scan sides with another constant-velocity seed: the prediction
                 u = chosen
-            icp_pose = from_matrix(new_pose)
-            z = between(self._kf_icp, icp_pose)
             R_body, degenerate, fallback, axis = scan.icp_covariance
             if degenerate and not fallback and not used_wheel:
                 # along a corridor only the wheels know the axis; constant velocity does not (a
@@ -420,7 +426,9 @@ class ScanOdometry:
                 # wall ends, the corridor's end) is kept, at its own point-to-line information
                 R_body = self._scan_covariance(scan.geometry)
             if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
-                icp_rejected, z = True, np.zeros(3)
+                icp_rejected = True
+            if icp_rejected:
+                z = np.zeros(3)
             R = vector_cov(z, R_body)
             before = self._ekf.snapshot()
             self._ekf.predict(u, cov_u)
@@ -430,7 +438,19 @@ class ScanOdometry:
                 beyond = outside and (
                     np.hypot(y[0], y[1]) > ODOM_JUMP_MIN_M or abs(y[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
                 )
-                if outside and (wheels_still or _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0)):
+                fault = outside and (
+                    wheels_still or _reversed(between(prev_rel, z), u, ODOM_JUMP_MIN_M / 4.0)
+                )
+                if fault and wheels_still and not self._fits_better(scan.source, new_pose, guess):
+                    # stalled wheels only where the scan fits the recent map better at ICP's pose
+                    # than at the wheels': a scan that sees little (a short-range laser in a hall:
+                    # 20-40 points, people passing) slides a few centimetres from a standing
+                    # robot's true pose, and a stall declared on it hands the robot to constant
+                    # velocity. Such a scan is a wrong minimum: the wheels carry the step, it is
+                    # not mapped. (A lost sign is not asked: FR079's slow reversals, 4-10 cm a
+                    # step, move too few points for the sign test, and the wheels are wrong there)
+                    fault, icp_rejected = False, True
+                if fault:
                     # the scan moved the robot backwards where the wheels say forwards (or the
                     # reverse): wheel odometry that lost the sign of the motion (FR079 logs
                     # reversing at 0.5 m/s as forward motion); or it moved the robot where the
@@ -608,6 +628,35 @@ class ScanOdometry:
         cov = np.minimum(cov, _COV_CAP)
         return cov, degenerate, False, axis
 
+    def _possible(self, step: np.ndarray, dt: float) -> bool:
+        """Whether a step (x, y, theta; m, rad) over ``dt`` seconds is within the robot's speed and
+        turn rate (``max_speed``, ``max_turn_rate_deg``), with the wheel test's margins; a non-finite
+        step is not."""
+        cfg = self.config
+        if not np.all(np.isfinite(step)):
+            return False
+        return bool(
+            np.hypot(step[0], step[1]) <= cfg.max_speed * dt + 0.05
+            and abs(step[2]) <= np.deg2rad(cfg.max_turn_rate_deg) * dt + np.deg2rad(2.0)
+        )
+
+    def _fits_better(self, source: np.ndarray, pose: np.ndarray, guess: np.ndarray) -> bool:
+        """Whether the scan's KISS-ICP source points fit KISS-ICP's local map at ``pose`` (4×4, the
+        ICP result) by ``_SEED_MARGIN`` more than at ``guess`` (4×4, the prediction), within two
+        voxels (the two-seed test's measure); True on an empty map."""
+        icp = self._icp
+        if icp.local_map.empty():
+            return True
+        at_pose, at_guess = _inliers(
+            icp.local_map.point_cloud(), source, [pose, guess], 2.0 * self.config.voxel_size
+        )
+        gained = int(np.count_nonzero(at_pose & ~at_guess))
+        lost = int(np.count_nonzero(at_guess & ~at_pose))
+        # and by more than chance: the points gained outnumber those lost by _FAULT_SIGMAS sigmas
+        # of a sign test (McNemar's), which a scan of 20-40 points rarely reaches
+        more = gained - lost > _SEED_MARGIN * len(source)
+        return bool(more and gained - lost > _FAULT_SIGMAS * np.sqrt(gained + lost))
+
     def _disagree(self, a: np.ndarray, b: np.ndarray, cov: np.ndarray) -> bool:
         d = between(b, a)
         big = np.hypot(d[0], d[1]) > ODOM_JUMP_MIN_M or abs(d[2]) > np.deg2rad(ODOM_JUMP_MIN_DEG)
@@ -642,7 +691,7 @@ class ScanOdometry:
                     icp.local_map.point_cloud(), source, poses, 2.0 * self.config.voxel_size
                 )
                 j = max(apart, key=lambda j: scores[j])
-                best = j if scores[j] > scores[0] + 0.05 else 0
+                best = j if scores[j] > scores[0] + _SEED_MARGIN else 0
         chosen, pose, guess = (seeds[best] if best else None), poses[best], guesses[best]
         if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
             self._aligned_points = _local_points(scan.points)
@@ -819,26 +868,36 @@ def _reversed(icp_increment: np.ndarray, wheel_increment: np.ndarray, least: flo
 def _inlier_fractions(
     map_points: np.ndarray, source: np.ndarray, poses: list[np.ndarray], radius: float
 ) -> list[float]:
-    """Fraction of the source points within ``radius`` of the map, for each candidate pose.
+    """Fraction of the source points within ``radius`` of the map, for each candidate pose (4×4)."""
+    return [
+        float(np.count_nonzero(m) / max(len(source), 1)) for m in _inliers(map_points, source, poses, radius)
+    ]
+
+
+def _inliers(
+    map_points: np.ndarray, source: np.ndarray, poses: list[np.ndarray], radius: float
+) -> list[np.ndarray]:
+    """Per candidate pose (4×4), which source points (a bool mask over them) lie within ``radius``
+    of the map; a non-finite transformed point never does.
 
     Bounded work: only the map points in cells (of side ``radius``) next to a transformed source
     point can be within ``radius`` of it, so the k-d tree is built on those alone (exactly the same
-    fractions as a tree over the whole local map, whose size grows with the explored area).
+    result as a tree over the whole local map, whose size grows with the explored area).
     """
     from scipy.spatial import cKDTree
 
     mp = np.asarray(map_points)[:, :2]
     moved = [source[:, :2] @ T[:2, :2].T + T[:2, 3] for T in poses]
-    moved = [p[np.all(np.isfinite(p), axis=1)] for p in moved]  # a failed pose: no inliers
-    near = _near_cells(mp, np.vstack(moved), radius)
+    finite = [np.all(np.isfinite(p), axis=1) for p in moved]  # a failed pose: no inliers
+    near = _near_cells(mp, np.vstack([p[f] for p, f in zip(moved, finite, strict=True)]), radius)
     tree = cKDTree(mp[near])
     out = []
-    for p in moved:
-        if tree.n == 0 or len(p) == 0:
-            out.append(0.0)
-            continue
-        dist, _ = tree.query(p, distance_upper_bound=radius)
-        out.append(float(np.count_nonzero(np.isfinite(dist)) / max(len(source), 1)))
+    for p, f in zip(moved, finite, strict=True):
+        mask = np.zeros(len(p), dtype=bool)
+        if tree.n and np.any(f):
+            dist, _ = tree.query(p[f], distance_upper_bound=radius)
+            mask[f] = np.isfinite(dist)
+        out.append(mask)
     return out
 
 
@@ -886,6 +945,8 @@ _REFINE_INLIER = 0.05  # m, inlier distance of the refinement's fit test
 _REFINE_PRIOR_INFO = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / np.deg2rad(0.5) ** 2])  # KISS-ICP's pose
 _COV_CAP = DEGENERATE_SIGMA**2  # m², rad²: a cap on every entry of the ICP covariance
 # deg; turns of the winning seed tried when its pose leaves over _TURN_MARGIN of the scan off the map
+_SEED_MARGIN = 0.05  # share of points: another pose must fit the local map by this much more to win
+_FAULT_SIGMAS = 3.0  # sign-test sigmas by which a wheel fault's scan must fit better (_fits_better)
 _TURN_SEEDS_DEG = (-10.0, -5.0, 5.0, 10.0)
 # share of the scan within a voxel of the recent scans' walls that a turned seed must add to win:
 # twice the two-seed test's, as a turned seed departs from both predictions
