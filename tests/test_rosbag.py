@@ -269,11 +269,15 @@ def test_unknown_message_types_and_empty_bags(tmp_path):
         tmp_path / "g.bag", [("/battery", "my_pkg/msg/Battery", 1.0, battery)], extra_types=extra
     )
     with pytest.raises(
-        RecordingError, match=r"g.bag: no LaserScan, MultiEchoLaserScan or PointCloud2 messages \(topics: /battery"
+        RecordingError,
+        match=r"g.bag: no LaserScan, MultiEchoLaserScan or PointCloud2 messages \(topics: /battery",
     ):
         open_recording(only)
     empty = write_bag(tmp_path / "h.bag", [])
-    with pytest.raises(RecordingError, match=r"h.bag: no LaserScan, MultiEchoLaserScan or PointCloud2 messages \(topics: none\)"):
+    with pytest.raises(
+        RecordingError,
+        match=r"h.bag: no LaserScan, MultiEchoLaserScan or PointCloud2 messages \(topics: none\)",
+    ):
         open_recording(empty)
     empty2 = write_bag(tmp_path / "h2", [], ros1=False)
     with pytest.raises(RecordingError, match="no LaserScan, MultiEchoLaserScan or PointCloud2 messages"):
