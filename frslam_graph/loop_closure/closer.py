@@ -11,6 +11,15 @@ few keyframes); ``max_candidates`` per attempt, ``max_candidates_idle`` when not
 matching keeps up with the budget). When the prediction is too uncertain the search is centred on the candidate
 itself ("is the robot back there?") instead of on the prediction.
 
+Where the radius is wide (over ``PLACE_RADIUS``), round robin leaves it to luck whether a search
+lands near the true place (a 128 m corridor loop at 0.3-0.5 deg/m of heading drift was never
+closed: the keyframes back at the start searched its cells 9-31 m off). There each cell's
+candidate is its keyframe that looks most like the current one and those cells go first, the
+best-looking first (after the nearest cell: the prediction's own place). The look is place
+recognition independent of the estimate (:mod:`frslam_graph.loop_closure.place`: a
+rotation-invariant polar occupancy descriptor of each keyframe's query submap, made when the
+keyframe arrives, compared as Scan Context does); ``stats.ranked`` counts the plans ranked so.
+
 Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
 constraint sampling): while the graph ties the current keyframe to an old keyframe within its
 search radius by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
@@ -113,7 +122,7 @@ from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
-from frslam_graph.loop_closure.place import descriptor_distances, polar_descriptor
+from frslam_graph.loop_closure.place import RINGS, SECTORS, blurred, descriptor_distances, polar_occupancy
 from frslam_graph.loop_closure.submap_matching import (
     MIN_COARSE_SCORE,
     ReferenceSubmap,
@@ -269,7 +278,8 @@ class LoopCloser:
         # are (no copy), else a float32 subset
         self._local: list[np.ndarray | None] = []
         self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
-        # per keyframe: its place descriptor (loop_closure.place), made when the keyframe arrives
+        # per keyframe: its place descriptor's occupancy (loop_closure.place), packed bits (150
+        # bytes), made when the keyframe arrives
         self._place: list[np.ndarray | None] = []
         self._rng = np.random.default_rng(0)
         # anytime work: candidates planned at a keyframe, matched a few steps per scan
@@ -580,7 +590,9 @@ class LoopCloser:
         if not have[0] or not any(have[1:]):
             return {}
         ks = [int(k) for k, h in zip(cands.tolist(), have[1:], strict=True) if h]
-        dist, _ = descriptor_distances(self._place[i], np.stack([self._place[k] for k in ks]))
+        bits = np.stack([self._place[k] for k in (i, *ks)])
+        desc = blurred(np.unpackbits(bits, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS))
+        dist, _ = descriptor_distances(desc[0], desc[1:])
         return dict(zip(ks, dist.tolist(), strict=True))
 
     def _submap(
@@ -678,19 +690,17 @@ class LoopCloser:
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
             self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n))
 
-    def _descriptor(self, ctx: BackendContext, k: int) -> np.ndarray:
-        """Place descriptor of keyframe k (cached): its query submap (``QUERY_TRAVEL`` of travel
-        back, in its frame) at the estimate when first asked, as a polar occupancy grid. Made
-        when the keyframe arrives, so the points are those the robot saw there, placed by the
-        local estimate (whatever the drift since)."""
+    def _descriptor(self, ctx: BackendContext, k: int) -> None:
+        """Make the place descriptor of keyframe k (kept as packed bits of its polar occupancy):
+        its query submap (``QUERY_TRAVEL`` of travel back, in its frame) at the estimate when the
+        keyframe arrives, so the points are those the robot saw there, placed by the local
+        estimate (whatever the drift since)."""
         cache = self._place
         while len(cache) <= k:
             cache.append(None)
-        d = cache[k]
-        if d is None:
+        if cache[k] is None:
             pts, _ = self._submap(ctx, ctx.graph.estimates(), k, k - SUBMAP_KEYFRAMES, k, QUERY_TRAVEL)
-            d = cache[k] = polar_descriptor(pts)
-        return d
+            cache[k] = np.packbits(polar_occupancy(pts))
 
     def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""

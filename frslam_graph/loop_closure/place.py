@@ -34,10 +34,24 @@ SECTORS = 60  # angular bins (6 deg each); the heading resolution of the compari
 
 def polar_descriptor(points: np.ndarray, max_range: float = DESCRIPTOR_RANGE) -> np.ndarray:
     """Blurred binary polar occupancy (RINGS, SECTORS; float32) of ``points`` (N, 2; m, the
-    keyframe's frame, origin at the keyframe). Sector k spans headings [-pi + k·2pi/SECTORS, ...),
-    ring j ranges [j, j + 1) · max_range / RINGS. Points nearer than ``DESCRIPTOR_MIN_RANGE``,
-    at or beyond ``max_range`` and non-finite points are ignored; no points give all zeros."""
-    out = np.zeros((RINGS, SECTORS), np.float32)
+    keyframe's frame, origin at the keyframe): :func:`blurred` of :func:`polar_occupancy`."""
+    return blurred(polar_occupancy(points, max_range))
+
+
+def blurred(occupancy: np.ndarray) -> np.ndarray:
+    """Occupancies (..., RINGS, SECTORS) blurred by a Gaussian of one bin along the rings and the
+    sectors (wrapping round), each descriptor on its own (float32)."""
+    occ = np.asarray(occupancy, dtype=np.float32)
+    sigma = (0.0,) * (occ.ndim - 2) + (1.0, 1.0)
+    return gaussian_filter(occ, sigma, mode=("nearest",) * (occ.ndim - 1) + ("wrap",))
+
+
+def polar_occupancy(points: np.ndarray, max_range: float = DESCRIPTOR_RANGE) -> np.ndarray:
+    """Binary polar occupancy (RINGS, SECTORS; bool) of ``points`` (N, 2; m, the keyframe's frame,
+    origin at the keyframe). Sector k spans headings [-pi + k·2pi/SECTORS, ...), ring j ranges
+    [j, j + 1) · max_range / RINGS. Points nearer than ``DESCRIPTOR_MIN_RANGE``, at or beyond
+    ``max_range`` and non-finite points are ignored; no points give all False."""
+    out = np.zeros((RINGS, SECTORS), bool)
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     p = p[np.isfinite(p).all(axis=1)]
     if not len(p):
@@ -47,8 +61,8 @@ def polar_descriptor(points: np.ndarray, max_range: float = DESCRIPTOR_RANGE) ->
     ring = (r[ok] * (RINGS / max_range)).astype(np.int64)
     a = np.arctan2(p[ok, 1], p[ok, 0])
     sector = np.minimum(((a + np.pi) * (SECTORS / (2.0 * np.pi))).astype(np.int64), SECTORS - 1)
-    out[ring, sector] = 1.0
-    return gaussian_filter(out, 1.0, mode=("nearest", "wrap"))
+    out[ring, sector] = True
+    return out
 
 
 def descriptor_distances(query: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,6 +97,8 @@ __all__ = [
     "DESCRIPTOR_RANGE",
     "RINGS",
     "SECTORS",
+    "blurred",
     "descriptor_distances",
     "polar_descriptor",
+    "polar_occupancy",
 ]
