@@ -78,6 +78,7 @@ def main() -> None:
     ap.add_argument("--bias", type=float, default=0.4, help="deg of heading per m travelled")
     ap.add_argument("--scale", type=float, default=0.03, help="translation scale error (0.03 = 3 %%)")
     ap.add_argument("--config", default="{}", help="FRSlam config overrides (JSON)")
+    ap.add_argument("--seed", type=int, default=3, help="seed of the wall boxes (another world)")
     ap.add_argument("--after", type=float, default=120.0, help="s; searches of keyframes after this")
     args = ap.parse_args()
 
@@ -86,7 +87,7 @@ def main() -> None:
         speed=1.0,
         rate=RATE,
     )
-    ranges, amin, inc = scans_along(big_loop_world(), truth, max_range=10.0)
+    ranges, amin, inc = scans_along(big_loop_world(args.seed), truth, max_range=10.0)
     slam = FRSlam({"odometry": {"max_range": 10.0}, **json.loads(args.config)})
     inject_drift(slam, args.bias, args.scale)
 
@@ -119,7 +120,7 @@ def main() -> None:
     for e in slam.log:
         kinds[e.kind] = kinds.get(e.kind, 0) + 1
     print(
-        f"bias {args.bias} deg/m, scale {args.scale}: {len(truth)} scans, error RMS {np.sqrt(np.mean(err**2)):.2f} m, "
+        f"seed {args.seed}, bias {args.bias} deg/m, scale {args.scale}: {len(truth)} scans, error RMS {np.sqrt(np.mean(err**2)):.2f} m, "
         f"end {err[-1]:.2f} m, max {err.max():.2f} m; closures in the graph {len(slam.loop_closer.closures)}; "
         f"{ {k: v for k, v in kinds.items() if k.startswith('loop')} }; CPU {cpu:.0f} s"
     )
