@@ -14,6 +14,28 @@ def box(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
     return np.array([[x0, y0, x1, y0], [x1, y0, x1, y1], [x1, y1, x0, y1], [x0, y1, x0, y0]], float)
 
 
+def corridor_loop(width: float, height: float, boxes: int, seed: int, corridor: float = 2.5) -> np.ndarray:
+    """Wall segments of a width x height rectangle of ``corridor``-wide corridors (m) with ``boxes``
+    small boxes on the walls (irregular, seeded): the corners and corridors look alike, the boxes
+    tell them apart."""
+    w = corridor / 2.0
+    rng = np.random.default_rng(seed)
+    parts = [box(-w, -w, width + w, height + w), box(w, w, width - w, height - w)]
+    for k in range(boxes):
+        side = k % 4
+        t = rng.uniform(2.0, (width if side % 2 == 0 else height) - 2.0)
+        s, d = rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.5)
+        parts.append(
+            [
+                box(t, -w, t + s, -w + d),
+                box(width + w - d, t, width + w, t + s),
+                box(t, height + w - d, t + s, height + w),
+                box(-w, t, -w + d, t + s),
+            ][side]
+        )
+    return np.vstack(parts)
+
+
 def room_world() -> np.ndarray:
     """A 12 × 8 m room with pillars, a cabinet and wall stubs: well constrained everywhere."""
     return np.vstack(

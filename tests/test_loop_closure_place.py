@@ -4,7 +4,7 @@ gives the relative heading, tells different places apart, and takes empty or bad
 from __future__ import annotations
 
 import numpy as np
-from synthetic_world import box, cast, route, scans_along, to_points
+from synthetic_world import box, cast, corridor_loop, route, scans_along, to_points
 from test_loop_closure import _errors, _inject_drift
 
 from frslam_graph.config import FRSlamConfig
@@ -145,27 +145,6 @@ def test_keyframes_without_a_descriptor_are_not_ranked(monkeypatch):
 
 
 # --------------------------------------------------------------- a big loop after a large drift
-def _corridor_loop(width: float, height: float, seed: int) -> np.ndarray:
-    """Wall segments of a width x height rectangle of 2.5-m corridors with 12 small boxes on the
-    walls (irregular, seeded): the corners and corridors look alike, the boxes tell them apart."""
-    w = 1.25
-    rng = np.random.default_rng(seed)
-    parts = [box(-w, -w, width + w, height + w), box(w, w, width - w, height - w)]
-    for k in range(12):
-        side = k % 4
-        t = rng.uniform(2.0, (width if side % 2 == 0 else height) - 2.0)
-        s, d = rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.5)
-        parts.append(
-            [
-                box(t, -w, t + s, -w + d),
-                box(width + w - d, t, width + w, t + s),
-                box(t, height + w - d, t + s, height + w),
-                box(-w, t, -w + d, t + s),
-            ][side]
-        )
-    return np.vstack(parts)
-
-
 def test_a_single_loop_after_a_large_heading_drift_is_closed():
     """A 20 x 12 m corridor loop (64 m) at 1 m/s with 0.8 deg/m of heading bias and 3 % scale
     error on the odometry: back at the start the estimate is 9 m off and the search radius 18 m,
@@ -178,7 +157,7 @@ def test_a_single_loop_after_a_large_heading_drift_is_closed():
         speed=1.0,
         rate=5.0,
     )
-    ranges, amin, inc = scans_along(_corridor_loop(width, height, 3), truth, max_range=10.0)
+    ranges, amin, inc = scans_along(corridor_loop(width, height, 12, 3), truth, max_range=10.0)
     slam = FRSlam({"odometry": {"max_range": 10.0}})
     _inject_drift(slam, np.deg2rad(0.8), 0.03)
     for i in range(len(truth)):

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from synthetic_world import box, route, scans_along  # noqa: E402
+from synthetic_world import corridor_loop, route, scans_along  # noqa: E402
 
 from frslam_graph.loop_closure import closer as closer_module  # noqa: E402
 from frslam_graph.se2 import between, compose, wrap  # noqa: E402
@@ -36,23 +36,8 @@ RATE = 5.0  # Hz
 
 
 def big_loop_world(seed: int = 3) -> np.ndarray:
-    """Wall segments (K, 4: x0, y0, x1, y1) of the corridor rectangle and its wall boxes."""
-    w, W, H = CORRIDOR / 2.0, WIDTH, HEIGHT
-    rng = np.random.default_rng(seed)
-    parts = [box(-w, -w, W + w, H + w), box(w, w, W - w, H - w)]
-    for k in range(26):
-        side = k % 4
-        t = rng.uniform(2.0, (W if side % 2 == 0 else H) - 2.0)
-        s, d = rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.5)
-        parts.append(
-            [
-                box(t, -w, t + s, -w + d),
-                box(W + w - d, t, W + w, t + s),
-                box(t, H + w - d, t + s, H + w),
-                box(-w, t, -w + d, t + s),
-            ][side]
-        )
-    return np.vstack(parts)
+    """Wall segments (K, 4: x0, y0, x1, y1) of the corridor rectangle and its 26 wall boxes."""
+    return corridor_loop(WIDTH, HEIGHT, 26, seed, CORRIDOR)
 
 
 def inject_drift(slam: FRSlam, heading_deg_per_m: float, scale: float) -> None:
