@@ -27,6 +27,56 @@ from _paths import SHARED_DATA as DATA  # noqa: E402
 from dev_stages import LOGS, Stages
 
 
+def _wrap_job_steps(st: Stages, closer_cls: Any, out: list) -> None:
+    """Time each step of the loop closer's jobs (``LoopCloser._job``, the matching and the graph
+    updates it drives): (cost the step announced in ms, its thread CPU in ms, the stage that took
+    most of it) appended to ``out``; the job's own code is charged as "closer: job glue"."""
+    fn = closer_cls._job
+
+    def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+        gen = fn(self, *args, **kwargs)
+        value = None
+        while True:
+            announced = self._next_cost  # what the previous yield said this step costs
+            before = dict(st._scan)
+            frame = ["closer: job glue", st.clock(), 0.0]
+            st._stack.append(frame)
+            try:
+                item = gen.send(value)
+            except StopIteration as stop:
+                return stop.value
+            finally:
+                st._stack.pop()
+                spent = st.clock() - frame[1]
+                st._charge(frame[0], spent - frame[2])
+                if st._stack:
+                    st._stack[-1][2] += spent
+                delta = {k: v - before.get(k, 0.0) for k, v in st._scan.items()}
+                out.append((announced, 1e3 * spent, max(delta, key=delta.get)))
+            value = yield item
+
+    closer_cls._job = timed
+
+
+def steps_summary(steps: list) -> None:
+    """Per kind of step (the stage that took most of it): announced against measured CPU."""
+    if not steps:
+        return
+    print(
+        "loop-closer steps by their main stage: n, announced ms median, CPU ms median / p99 / max, CPU/announced median / p90"
+    )
+    kinds = sorted({s[2] for s in steps})
+    for kind in sorted(kinds, key=lambda k: -sum(s[1] for s in steps if s[2] == k)):
+        a = np.array([s[0] for s in steps if s[2] == kind])
+        c = np.array([s[1] for s in steps if s[2] == kind])
+        r = c[a > 0] / a[a > 0]
+        ratio = f"{np.median(r):.1f} / {np.percentile(r, 90):.1f}" if len(r) else "-"
+        print(
+            f"  {kind}: {len(c)}, {np.median(a):.2f}, {np.median(c):.2f} / {np.percentile(c, 99):.1f} / "
+            f"{c.max():.0f}, {ratio}"
+        )
+
+
 def instrument(st: Stages, serial: bool) -> dict[str, Any]:
     """Wrap the backend's stages (and the odometry's with ``serial``); returns a dict the
     per-scan wrapper fills with each scan's facts (keyframe, closer steps and cost)."""
@@ -59,13 +109,15 @@ def instrument(st: Stages, serial: bool) -> dict[str, Any]:
     lc = closer.LoopCloser
     for name in ("on_keyframe", "on_scan", "on_finish", "_work"):
         st.wrap(lc, name, "closer: glue")
-    st.wrap(lc, "_descriptor", "closer: place descriptor")
     st.wrap(lc, "_plan", "closer: plan")
     st.wrap(lc, "_graph_distances", "closer: plan, graph distances")
-    st.wrap(lc, "_place_distances", "closer: plan, place ranking")
+    if hasattr(lc, "_descriptor"):  # place recognition (session 18's s18-place)
+        st.wrap(lc, "_descriptor", "closer: place descriptor")
+        st.wrap(lc, "_place_distances", "closer: plan, place ranking")
     st.wrap(lc, "_query_points", "closer: query submap")
     st.wrap_gen(lc, "_reference", "closer: reference submap points")
-    st.wrap_gen(lc, "_job", "closer: job glue")
+    facts: dict[str, Any] = {"rows": [], "steps": []}
+    _wrap_job_steps(st, lc, facts["steps"])
     st.wrap_gen(lc, "_add", "closer: add closures glue")
     st.wrap_gen(lc, "_prune", "closer: prune glue")
     st.wrap_gen(lc, "_remove", "closer: prune glue")
@@ -89,7 +141,6 @@ def instrument(st: Stages, serial: bool) -> dict[str, Any]:
     st.wrap(sm.ReferenceSubmap, "free_violation", "matcher: free space")
     st.wrap(sm.ReferenceSubmap, "inlier_fraction", "matcher: inliers")
 
-    facts: dict[str, Any] = {"rows": []}
     record = slam.FRSlam._record
 
     def record_and_mark(self: Any, res: Any, *a: Any, **k: Any) -> Any:
@@ -202,6 +253,7 @@ def main() -> None:
         f"batches {lc.batches if lc else 0}, attempts {lc.attempts if lc else 0}"
     )
     summary(args.log, total, odo, scans, rows, args.over)
+    steps_summary(facts["steps"])
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -211,6 +263,7 @@ def main() -> None:
                     "total_ms": total.tolist(),
                     "odometry_ms": odo.tolist(),
                     "rows": rows,
+                    "steps": facts["steps"],
                     "stages": [{k: round(v * 1e3, 4) for k, v in s.items()} for s in scans],
                     "trajectory": res.trajectory.tolist(),
                 }
