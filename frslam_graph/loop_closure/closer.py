@@ -136,6 +136,7 @@ THETA_WINDOW_BASE_DEG = 10.0  # deg; heading half-window of the search right aft
 THETA_WINDOW_PER_M_DEG = 0.3  # deg of heading window per m travelled; larger = wider search
 THETA_WINDOW_PER_TURN = 0.05  # deg of heading window per deg turned; larger = wider search
 CANDIDATE_SPACING = 1.5  # m; one candidate per cell of this size; larger = fewer candidates
+SUBMAPS_KEPT = 24  # reference submaps kept (least recently used dropped; ~5 MB each at 30 m range)
 SUBMAP_TRAVEL = 3.0  # m; reference submap: keyframes within ± this travel of the candidate
 QUERY_TRAVEL = 2.0  # m; query submap: this much travel back from the keyframe
 SUBMAP_KEYFRAMES = 30  # keyframes per side of a submap at most
@@ -259,6 +260,8 @@ class LoopCloser:
         # graph distances of the latest plan: (keyframe, closures, travel, turn)
         self._dist: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
+        # submaps a closure made stale (_drop_submaps), freed one per later build
+        self._stale_submaps: list[ReferenceSubmap] = []
         # per keyframe: its points in range (_in_range), the keyframe's own float32 array when all
         # are (no copy), else a float32 subset
         self._local: list[np.ndarray | None] = []
@@ -607,10 +610,25 @@ class LoopCloser:
         if len(pts):
             yield ReferenceSubmap.build_cost(pts, cfg.resolution, cfg.likelihood_sigma, margin)
         sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin)
-        self._submaps[c] = sub
-        while len(self._submaps) > 24:
-            self._submaps.popitem(last=False)
+        self._keep_submap(c, sub)
         return sub
+
+    def _keep_submap(self, c: int, sub: ReferenceSubmap) -> None:
+        """Keep keyframe c's new reference submap; free one stale submap (:meth:`_drop_submaps`),
+        else the least recently used beyond ``SUBMAPS_KEPT`` (stale ones count)."""
+        self._submaps[c] = sub
+        if self._stale_submaps:
+            self._stale_submaps.pop()
+        while len(self._submaps) + len(self._stale_submaps) > SUBMAPS_KEPT:
+            self._submaps.popitem(last=False)
+
+    def _drop_submaps(self) -> None:
+        """Forget the reference submaps (a closure moved their keyframes relative to each other).
+        Their memory goes one submap per later build (:meth:`_keep_submap`), never more than
+        ``SUBMAPS_KEPT`` held: freeing all at once (arrays of ~5 MB each, unmapped page by page)
+        took 15-20 ms of CPU inside a step whose announced cost was a settle iteration's."""
+        self._stale_submaps.extend(self._submaps.values())
+        self._submaps.clear()
 
     def _reject(self, ctx: BackendContext, i: int, c: int, reason: str, **data: Any) -> None:
         self.stats.rejected += 1
@@ -850,7 +868,7 @@ class LoopCloser:
                 robust=not settle,
             )
         if settle:  # neighbouring keyframes may have moved relative to each other
-            self._submaps.clear()
+            self._drop_submaps()
         yield from self._prune(ctx, closures if settle else None)
 
     def _residual_chi2(self, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -930,7 +948,7 @@ class LoopCloser:
             yield from graph.optimize_batch_steps()
             self.stats.batches += 1
         self._dist = None
-        self._submaps.clear()
+        self._drop_submaps()
         self._last_closure = max((c.query for c in self.closures), default=-1)
         for k, lc in zip(which, removed, strict=True):
             self.stats.pruned += 1
