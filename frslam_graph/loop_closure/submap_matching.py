@@ -490,11 +490,11 @@ class _NearestCandidates:
         self.tree, self.ref_points = tree, ref_points
         self.sx, self.sy = np.ascontiguousarray(start[:, 0]), np.ascontiguousarray(start[:, 1])
         self.bound = np.where(found[:, -1], d[:, -1], reach)
-        # the candidates one row per rank (k, N): each rank's column read as a contiguous vector
-        self.idx = np.ascontiguousarray(np.where(found, idx, 0).T)
-        fx = np.where(found, ref_points[np.where(found, idx, 0), 0], np.inf)  # missing: infinitely far
-        fy = np.where(found, ref_points[np.where(found, idx, 0), 1], np.inf)
-        self.cx, self.cy = np.ascontiguousarray(fx.T), np.ascontiguousarray(fy.T)
+        idx = np.where(found, idx, 0)
+        cx = np.where(found, ref_points[idx, 0], np.inf)  # missing candidates: infinitely far
+        cy = np.where(found, ref_points[idx, 1], np.inf)
+        # one row per rank (k, N): a rank's candidates of all points read as a contiguous vector
+        self.idx, self.cx, self.cy = (np.ascontiguousarray(a.T) for a in (idx, cx, cy))
         given = np.zeros(len(ref_points), bool)
         given[idx[found]] = True
         self.indices = np.flatnonzero(given)  # every reference point a query may be given
@@ -862,7 +862,7 @@ def icp_point_to_line(
     for it in range(iterations):
         dmax = max_distance if it < iterations // 2 else max(2.0 * kernel, max_distance / 2.0)
         c, s = np.cos(x[2]), np.sin(x[2])  # transform_points(x, query), on contiguous columns
-        moved = np.empty((len(query), 2))  # a new array: the first one stays the candidates' start
+        moved = np.empty((len(query), 2))
         moved[:, 0] = x[0] + c * qx - s * qy
         moved[:, 1] = x[1] + s * qx + c * qy
         if near is None:
