@@ -964,7 +964,7 @@ def _median(a: np.ndarray) -> float:
 
 def _local_points(points: np.ndarray) -> np.ndarray:
     """Points (M, 2) within _LOCAL_MAP_RANGE of base_link: those the refinement's local map keeps."""
-    return points[np.einsum("ij,ij->i", points, points) <= _LOCAL_MAP_RANGE**2]
+    return points.compress(np.einsum("ij,ij->i", points, points) <= _LOCAL_MAP_RANGE**2, axis=0)
 
 
 def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
@@ -974,7 +974,7 @@ def _valid_points(points: np.ndarray, min_range: float, max_range: float) -> np.
     pts = pts[:, :2]
     r = np.hypot(pts[:, 0], pts[:, 1])
     ok = np.isfinite(r) & (r >= max(min_range, 1e-6)) & (r <= max_range)
-    return pts[ok]
+    return pts.compress(ok, axis=0)  # the rows of pts[ok], ~2x faster
 
 
 __all__ = ["OdometryResult", "OdometryStats", "PreparedScan", "ScanGeometry", "ScanOdometry", "scan_geometry"]
