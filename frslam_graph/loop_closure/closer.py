@@ -11,6 +11,15 @@ few keyframes); ``max_candidates`` per attempt, ``max_candidates_idle`` when not
 matching keeps up with the budget). When the prediction is too uncertain the search is centred on the candidate
 itself ("is the robot back there?") instead of on the prediction.
 
+Where the radius is wide (over ``PLACE_RADIUS``), round robin leaves it to luck whether a search
+lands near the true place (a 128 m corridor loop at 0.3-0.5 deg/m of heading drift was never
+closed: the keyframes back at the start searched its cells 9-31 m off). There each cell's
+candidate is its keyframe that looks most like the current one and those cells go first, the
+best-looking first (after the nearest cell: the prediction's own place). The look is place
+recognition independent of the estimate (:mod:`frslam_graph.loop_closure.place`: a
+rotation-invariant polar occupancy descriptor of each keyframe's query submap, made when the
+keyframe arrives, compared as Scan Context does); ``stats.ranked`` counts the plans ranked so.
+
 Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
 constraint sampling): while the graph ties the current keyframe to an old keyframe within its
 search radius by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
@@ -113,6 +122,7 @@ from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
+from frslam_graph.loop_closure.place import RINGS, SECTORS, blurred, descriptor_distances, polar_occupancy
 from frslam_graph.loop_closure.submap_matching import (
     MIN_COARSE_SCORE,
     ReferenceSubmap,
@@ -136,6 +146,10 @@ THETA_WINDOW_BASE_DEG = 10.0  # deg; heading half-window of the search right aft
 THETA_WINDOW_PER_M_DEG = 0.3  # deg of heading window per m travelled; larger = wider search
 THETA_WINDOW_PER_TURN = 0.05  # deg of heading window per deg turned; larger = wider search
 CANDIDATE_SPACING = 1.5  # m; one candidate per cell of this size; larger = fewer candidates
+# m; candidates searched within a radius above this are ranked by place recognition (the
+# descriptor distance of the two keyframes' submaps) instead of round-robin; larger = fewer plans
+# ranked
+PLACE_RADIUS = 8.0
 SUBMAP_TRAVEL = 3.0  # m; reference submap: keyframes within ± this travel of the candidate
 QUERY_TRAVEL = 2.0  # m; query submap: this much travel back from the keyframe
 SUBMAP_KEYFRAMES = 30  # keyframes per side of a submap at most
@@ -234,6 +248,7 @@ class LoopClosureStats:
     pruned: int = 0  # accepted closures removed again: the rest of the graph disagreed
     verifications: int = 0  # earlier keyframes matched to check a pending closure
     plans_skipped: int = 0  # keyframes that planned no candidate: MAX_QUEUED_JOBS were waiting
+    ranked: int = 0  # plans whose wide-radius candidates were ranked by place recognition
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -263,6 +278,9 @@ class LoopCloser:
         # are (no copy), else a float32 subset
         self._local: list[np.ndarray | None] = []
         self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
+        # per keyframe: its place descriptor's occupancy (loop_closure.place), packed bits (150
+        # bytes), made when the keyframe arrives
+        self._place: list[np.ndarray | None] = []
         self._rng = np.random.default_rng(0)
         # anytime work: candidates planned at a keyframe, matched a few steps per scan
         self._jobs: deque[_Job] = deque()
@@ -309,6 +327,7 @@ class LoopCloser:
         self._travel, self._turn, self._odom = [], [], []
         self._dist = None
         self._local = []
+        self._place = []
         for kf in ctx.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
@@ -330,6 +349,7 @@ class LoopCloser:
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
+            self._descriptor(ctx, i)
             if i >= MIN_KEYFRAME_GAP and i % cfg.attempt_every == 0:
                 self._plan(ctx, i)
             if not work:
@@ -526,10 +546,18 @@ class LoopCloser:
             self.stats.redundant += 1
             return []
         cells = list(map(tuple, np.floor(est[order, :2] / CANDIDATE_SPACING).astype(int).tolist()))
+        looks = self._place_distances(i, order[radius[order] > PLACE_RADIUS])
+        self.stats.ranked += bool(looks)
         order = order.tolist()
         # one candidate per cell (the nearest); the first pick is the nearest cell not tried
         # recently, the others go round-robin (never tried first, then the least recently tried)
-        # so that a wide search area is covered over the keyframes
+        # so that a wide search area is covered over the keyframes. Where the radius is wide
+        # (the estimate no longer says where the robot is), a cell's candidate is its keyframe
+        # that looks most like keyframe i, and those cells go first, the best-looking first.
+        best: dict[tuple[int, int], tuple[float, int]] = {}
+        for c, cell in zip(order, cells, strict=True):
+            if c in looks and looks[c] < best.get(cell, (np.inf, -1))[0]:
+                best[cell] = (looks[c], c)
         picks, seen = [], set()
         for rank, (c, cell) in enumerate(zip(order, cells, strict=True)):
             if cell in seen:
@@ -538,13 +566,14 @@ class LoopCloser:
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue
-            picks.append((-1 if last is None else last, rank, c, cell))
+            look, alike = best.get(cell, (np.inf, c))
+            picks.append((look, -1 if last is None else last, rank, c, alike, cell))
         if picks:
-            first = min(picks, key=lambda t: t[1])
+            first = min(picks, key=lambda t: t[2])
             picks.remove(first)
-            picks = [first, *sorted(picks)]
+            picks = [first[:3] + (first[3],) + first[5:], *((p[:3] + p[4:]) for p in sorted(picks))]
         out = []
-        for _, _, c, cell in picks[:limit]:
+        for _, _, _, c, cell in picks[:limit]:
             window = np.deg2rad(
                 THETA_WINDOW_BASE_DEG
                 + THETA_WINDOW_PER_M_DEG * d_rel[c]
@@ -553,6 +582,18 @@ class LoopCloser:
             out.append((c, float(radius[c]), float(min(window, np.pi))))
             self._tried[cell] = i
         return out
+
+    def _place_distances(self, i: int, cands: np.ndarray) -> dict[int, float]:
+        """Descriptor distance (0: alike, 1: nothing in common) of keyframe i to each of the
+        keyframes ``cands`` (those with a descriptor)."""
+        have = [len(self._place) > k and self._place[k] is not None for k in (i, *cands.tolist())]
+        if not have[0] or not any(have[1:]):
+            return {}
+        ks = [int(k) for k, h in zip(cands.tolist(), have[1:], strict=True) if h]
+        bits = np.stack([self._place[k] for k in (i, *ks)])
+        desc = blurred(np.unpackbits(bits, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS))
+        dist, _ = descriptor_distances(desc[0], desc[1:])
+        return dict(zip(ks, dist.tolist(), strict=True))
 
     def _submap(
         self, ctx: BackendContext, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
@@ -648,6 +689,18 @@ class LoopCloser:
         self._jobs.extend(_Job(c, i, r, w, pred, n) for c, r, w, pred in cands)
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
             self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n))
+
+    def _descriptor(self, ctx: BackendContext, k: int) -> None:
+        """Make the place descriptor of keyframe k (kept as packed bits of its polar occupancy):
+        its query submap (``QUERY_TRAVEL`` of travel back, in its frame) at the estimate when the
+        keyframe arrives, so the points are those the robot saw there, placed by the local
+        estimate (whatever the drift since)."""
+        cache = self._place
+        while len(cache) <= k:
+            cache.append(None)
+        if cache[k] is None:
+            pts, _ = self._submap(ctx, ctx.graph.estimates(), k, k - SUBMAP_KEYFRAMES, k, QUERY_TRAVEL)
+            cache[k] = np.packbits(polar_occupancy(pts))
 
     def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
