@@ -566,7 +566,7 @@ def test_region_tied_by_a_recent_closure_is_not_searched_again():
     assert closer.stats.redundant == 1
     # without the rule the nearest region (keyframe 22, 0.15 m away) is the first candidate
     closer, est = _circle_closer((18, 56), redundant_travel=0.0)
-    refs = [c for c, _, _ in closer._candidates(est, 60)]
+    refs = [c for c, *_ in closer._candidates(est, 60)]
     assert refs[0] == 22 and {26, 29} <= set(refs) and closer.stats.redundant == 0
 
 
