@@ -263,9 +263,11 @@ def test_a_closure_found_through_the_ranking_needs_two_agreeing_closures(monkeyp
     monkeypatch.setattr(
         closer_module,
         "match_scan_steps",
-        lambda ref, query, *a, **k: _ret(replace(closer._pending[0].match, pose=rel))
-        if (ref, query) == (50, 166)
-        else match(ref, query, *a, **k),
+        lambda ref, query, *a, **k: (
+            _ret(replace(closer._pending[0].match, pose=rel))
+            if (ref, query) == (50, 166)
+            else match(ref, query, *a, **k)
+        ),
     )
     closer._plan(slam, 166)
     closer._work(slam, None, None)
