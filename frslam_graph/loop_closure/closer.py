@@ -69,6 +69,16 @@ agreement is no evidence; a confirmation must be acceptable alone. With the whee
 of inlier fraction 0.50 / 0.59 and lost their loops; in session 6's real-log runs every pair over
 2 m that such a match confirmed was removed again or bent its run.
 
+Two more rules keep the confirmation independent of look-alike places (session 19). A check of a
+pending closure's prediction (the check at each attempt, the one from ``verify_back_travel``
+back) confirms that closure only: several pending closures of one aliased region send their
+checks to look-alike places, and a check that fails its own closure would agree with whichever
+other fits. A closure found through the place ranking (or agreeing with one that was) enters
+once *two* closures from other keyframes agree with it: the ranking finds the places that look
+alike wherever the estimate is, and on an aliased stretch a ranked match and the check of its
+own prediction agree on the wrong place. ``found_by`` in ``loop_pending`` / ``loop_rejected``
+says who proposed the candidate (``estimate``, ``ranked``, ``check``).
+
 Closures already in the graph are re-checked after every addition and at the end
 (:meth:`LoopCloser.on_finish`): at the converged estimate (an LM batch first), a closure whose residual
 is far outside its covariance (``prune_chi2``, and ``PRUNE_XY`` / ``PRUNE_THETA_DEG``) is removed,
