@@ -96,6 +96,22 @@ def short_beams(scans: Iterable, max_range: float) -> Iterator:
         yield replace(s, ranges=r, max_range=min(max_range, s.max_range), _points=None)
 
 
+def noisy_ranges(scans: Iterable, sigma: float, seed: int = 0) -> Iterator:
+    """Each valid range gets Gaussian noise of ``sigma`` metres (seeded): a cheaper laser than the
+    logs' SICKs (a Hokuyo URG's +-3 cm, an RPLidar's 1-2 % of the range)."""
+    rng = np.random.default_rng(seed)
+    for s in scans:
+        ok = np.isfinite(s.ranges) & (s.ranges > 0.0) & (s.ranges < s.max_range)
+        noisy = np.clip(s.ranges + rng.normal(0.0, sigma, len(s.ranges)), 1e-3, np.nextafter(s.max_range, 0))
+        yield replace(s, ranges=np.where(ok, noisy, s.ranges), _points=None)
+
+
+def fewer_beams(scans: Iterable, keep_every: int) -> Iterator:
+    """Every ``keep_every``-th beam only: a laser of coarser angular resolution."""
+    for s in scans:
+        yield replace(s, ranges=s.ranges[::keep_every], angles=s.angles[::keep_every], _points=None)
+
+
 #: odometry counters (:class:`~frslam_graph.odometry.scan_odometry.OdometryStats`) in the table
 ODOM_STATS = ("odom_jumps", "icp_rejections", "fallbacks", "degenerate_scans", "gaps")
 
@@ -110,6 +126,9 @@ VARIANTS: dict[str, tuple[Callable[[Iterable], Iterator], bool]] = {
 #: mode; a TurtleBot-class laser: LDS-01 3.5 m, a 4 m cap)
 for _name, _r in (("range8", 8.0), ("range4", 4.0), ("range3.5", 3.5)):
     VARIANTS[_name] = ((lambda r: lambda s: short_beams(s, r))(_r), False)
+#: a cheaper laser: range noise of 3 cm (sigma), half the beams
+VARIANTS["noise3cm"] = (lambda s: noisy_ranges(s, 0.03), False)
+VARIANTS["half_beams"] = (lambda s: fewer_beams(s, 2), False)
 ALL = ["noodom", "drift2", "rate3_gaps", "range8"]
 
 
