@@ -451,11 +451,15 @@ def test_max_filtered_field_equals_filtering_the_whole_grid(cells):
 
 
 def _fake_slam(est: np.ndarray, priors: bool = False):
-    """The part of FRSlam that LoopCloser._plan reads: the estimates and whether floor-plan
-    priors are in the graph."""
+    """The part of FRSlam that LoopCloser._plan and on_keyframe read: the estimates, whether
+    floor-plan priors are in the graph, the keyframes' scans (none: empty place descriptors)."""
     from types import SimpleNamespace
 
-    return SimpleNamespace(graph=SimpleNamespace(estimates=lambda: est.copy(), has_priors=lambda: priors))
+    n = len(est)
+    return SimpleNamespace(
+        graph=SimpleNamespace(estimates=lambda: est.copy(), has_priors=lambda: priors),
+        keyframe_scans=lambda: ([np.zeros((0, 2), np.float32)] * n, [np.zeros(2)] * n),
+    )
 
 
 def test_pending_closure_check_goes_ahead_of_queued_candidates():
@@ -493,7 +497,7 @@ def test_keyframe_scans_get_the_smaller_budget():
     closer._job = _fake_job([3.0] * 6, log)
     closer._jobs.append(None)
     # keyframe 0 (too early to plan): only 3 of the 4 ms fit; the next (plain) scan fits two
-    closer.on_keyframe(None, SimpleNamespace(index=0, pose_odom=np.zeros(3)))
+    closer.on_keyframe(_fake_slam(np.zeros((1, 3))), SimpleNamespace(index=0, pose_odom=np.zeros(3)))
     assert log == [0]
     assert _calls(closer, 1, log) == [[1, 2]]
 
@@ -564,7 +568,7 @@ def test_region_tied_by_a_recent_closure_is_not_searched_again():
     assert closer.stats.redundant == 1
     # without the rule the nearest region (keyframe 22, 0.15 m away) is the first candidate
     closer, est = _circle_closer((18, 56), redundant_travel=0.0)
-    refs = [c for c, _, _ in closer._candidates(est, 60)]
+    refs = [c for c, *_ in closer._candidates(est, 60)]
     assert refs[0] == 22 and {26, 29} <= set(refs) and closer.stats.redundant == 0
 
 
@@ -649,7 +653,9 @@ def test_keyframe_where_the_update_strategy_touched_the_graph_gets_no_closure_wo
     log: list[int] = []
     closer._job = _fake_job([1.0] * 6, log)
     closer._jobs.append(None)
-    closer.on_keyframe(None, SimpleNamespace(index=0, pose_odom=np.zeros(3)), work=False)
+    closer.on_keyframe(
+        _fake_slam(np.zeros((1, 3))), SimpleNamespace(index=0, pose_odom=np.zeros(3)), work=False
+    )
     assert log == [] and closer.steps_last_call == 0 and not closer.idle
     assert _calls(closer, 1, log) and log  # the next scan works on the queue
 

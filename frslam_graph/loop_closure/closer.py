@@ -11,6 +11,15 @@ few keyframes); ``max_candidates`` per attempt, ``max_candidates_idle`` when not
 matching keeps up with the budget). When the prediction is too uncertain the search is centred on the candidate
 itself ("is the robot back there?") instead of on the prediction.
 
+Where the radius is wide (over ``PLACE_RADIUS``), round robin leaves it to luck whether a search
+lands near the true place (a 128 m corridor loop at 0.3-0.5 deg/m of heading drift was never
+closed: the keyframes back at the start searched its cells 9-31 m off). There each cell's
+candidate is its keyframe that looks most like the current one and those cells go first, the
+best-looking first (after the nearest cell: the prediction's own place). The look is place
+recognition independent of the estimate (:mod:`frslam_graph.loop_closure.place`: a
+rotation-invariant polar occupancy descriptor of each keyframe's query submap, made when the
+keyframe arrives, compared as Scan Context does); ``stats.ranked`` counts the plans ranked so.
+
 Redundant work is skipped, as mature systems do (Karto's graph-distance exclusion, Cartographer's
 constraint sampling): while the graph ties the current keyframe to an old keyframe within its
 search radius by a short path (at most ``redundant_travel`` metres and ``redundant_turn_deg`` of
@@ -60,6 +69,16 @@ agreement is no evidence; a confirmation must be acceptable alone. With the whee
 of inlier fraction 0.50 / 0.59 and lost their loops; in session 6's real-log runs every pair over
 2 m that such a match confirmed was removed again or bent its run.
 
+Two more rules keep the confirmation independent of look-alike places (session 19). A check of a
+pending closure's prediction (the check at each attempt, the one from ``verify_back_travel``
+back) confirms that closure only: several pending closures of one aliased region send their
+checks to look-alike places, and a check that fails its own closure would agree with whichever
+other fits. A closure found through the place ranking (or agreeing with one that was) enters
+once *two* closures from other keyframes agree with it: the ranking finds the places that look
+alike wherever the estimate is, and on an aliased stretch a ranked match and the check of its
+own prediction agree on the wrong place. ``found_by`` in ``loop_pending`` / ``loop_rejected``
+says who proposed the candidate (``estimate``, ``ranked``, ``check``).
+
 Closures already in the graph are re-checked after every addition and at the end
 (:meth:`LoopCloser.on_finish`): at the converged estimate (an LM batch first), a closure whose residual
 is far outside its covariance (``prune_chi2``, and ``PRUNE_XY`` / ``PRUNE_THETA_DEG``) is removed,
@@ -101,7 +120,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import gtsam
@@ -113,6 +132,7 @@ from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
+from frslam_graph.loop_closure.place import RINGS, SECTORS, blurred, descriptor_distances, polar_occupancy
 from frslam_graph.loop_closure.submap_matching import (
     MIN_COARSE_SCORE,
     ReferenceSubmap,
@@ -137,6 +157,10 @@ THETA_WINDOW_PER_M_DEG = 0.3  # deg of heading window per m travelled; larger = 
 THETA_WINDOW_PER_TURN = 0.05  # deg of heading window per deg turned; larger = wider search
 CANDIDATE_SPACING = 1.5  # m; one candidate per cell of this size; larger = fewer candidates
 SUBMAPS_KEPT = 24  # reference submaps kept (least recently used dropped; ~5 MB each at 30 m range)
+# m; candidates searched within a radius above this are ranked by place recognition (the
+# descriptor distance of the two keyframes' submaps) instead of round-robin; larger = fewer plans
+# ranked
+PLACE_RADIUS = 8.0
 SUBMAP_TRAVEL = 3.0  # m; reference submap: keyframes within ± this travel of the candidate
 QUERY_TRAVEL = 2.0  # m; query submap: this much travel back from the keyframe
 SUBMAP_KEYFRAMES = 30  # keyframes per side of a submap at most
@@ -186,6 +210,9 @@ class LoopClosure:
     covariance: np.ndarray
     match: ScanMatch
     correction: np.ndarray  # prediction⁻¹ ⊕ relative at the time of the match (x, y, theta)
+    # found through the place ranking (its candidate chosen by look), or agreeing with a pending
+    # closure that was: a large correction needs two agreeing closures, not one
+    ranked: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,6 +227,10 @@ class _Job:
     window_theta: float
     predicted: np.ndarray | None = None
     closures: int = 0  # closures accepted when it was planned
+    ranked: bool = False  # chosen by the place ranking (its look), not by the estimate
+    # the pending closure whose prediction this job checks (its prediction check or the check
+    # from the keyframe before its query): the match confirms that closure only
+    proposer: LoopClosure | None = None
 
 
 def _gather_cost(ctx: BackendContext, lo: int, hi: int) -> float:
@@ -235,6 +266,7 @@ class LoopClosureStats:
     pruned: int = 0  # accepted closures removed again: the rest of the graph disagreed
     verifications: int = 0  # earlier keyframes matched to check a pending closure
     plans_skipped: int = 0  # keyframes that planned no candidate: MAX_QUEUED_JOBS were waiting
+    ranked: int = 0  # plans whose wide-radius candidates were ranked by place recognition
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -256,6 +288,8 @@ class LoopCloser:
         self._last_closure = -1
         self._tried: dict[tuple[int, int], int] = {}
         self._pending: list[LoopClosure] = []
+        # id of a pending closure found through the ranking -> the pending closures it agrees with
+        self._support: dict[int, list[LoopClosure]] = {}
         self._factor_of: dict[int, gtsam.BetweenFactorPose2] = {}  # id(closure) -> its factor
         # graph distances of the latest plan: (keyframe, closures, travel, turn)
         self._dist: tuple[int, int, np.ndarray, np.ndarray] | None = None
@@ -266,6 +300,9 @@ class LoopCloser:
         # are (no copy), else a float32 subset
         self._local: list[np.ndarray | None] = []
         self._query: tuple[int, np.ndarray] | None = None  # (keyframe, query submap points)
+        # per keyframe: its place descriptor's occupancy (loop_closure.place), packed bits (150
+        # bytes), made when the keyframe arrives
+        self._place: list[np.ndarray | None] = []
         self._rng = np.random.default_rng(0)
         # anytime work: candidates planned at a keyframe, matched a few steps per scan
         self._jobs: deque[_Job] = deque()
@@ -312,6 +349,7 @@ class LoopCloser:
         self._travel, self._turn, self._odom = [], [], []
         self._dist = None
         self._local = []
+        self._place = []
         for kf in ctx.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
@@ -333,6 +371,7 @@ class LoopCloser:
             return []
         t0, c0 = time.perf_counter(), time.process_time()
         try:
+            self._descriptor(ctx, i)
             if i >= MIN_KEYFRAME_GAP and i % cfg.attempt_every == 0:
                 self._plan(ctx, i)
             if not work:
@@ -501,9 +540,9 @@ class LoopCloser:
 
     def _candidates(
         self, est: np.ndarray, i: int, limit: int | None = None
-    ) -> list[tuple[int, float, float]]:
-        """(keyframe, search radius, heading window) of the candidates to try now (at most
-        ``limit``, default ``max_candidates``)."""
+    ) -> list[tuple[int, float, float, bool]]:
+        """(keyframe, search radius, heading window, chosen by the place ranking) of the
+        candidates to try now (at most ``limit``, default ``max_candidates``)."""
         cfg = self.config
         limit = cfg.max_candidates if limit is None else limit
         trav, turn = np.asarray(self._travel), np.asarray(self._turn)
@@ -529,10 +568,18 @@ class LoopCloser:
             self.stats.redundant += 1
             return []
         cells = list(map(tuple, np.floor(est[order, :2] / CANDIDATE_SPACING).astype(int).tolist()))
+        looks = self._place_distances(i, order[radius[order] > PLACE_RADIUS])
+        self.stats.ranked += bool(looks)
         order = order.tolist()
         # one candidate per cell (the nearest); the first pick is the nearest cell not tried
         # recently, the others go round-robin (never tried first, then the least recently tried)
-        # so that a wide search area is covered over the keyframes
+        # so that a wide search area is covered over the keyframes. Where the radius is wide
+        # (the estimate no longer says where the robot is), a cell's candidate is its keyframe
+        # that looks most like keyframe i, and those cells go first, the best-looking first.
+        best: dict[tuple[int, int], tuple[float, int]] = {}
+        for c, cell in zip(order, cells, strict=True):
+            if c in looks and looks[c] < best.get(cell, (np.inf, -1))[0]:
+                best[cell] = (looks[c], c)
         picks, seen = [], set()
         for rank, (c, cell) in enumerate(zip(order, cells, strict=True)):
             if cell in seen:
@@ -541,21 +588,36 @@ class LoopCloser:
             last = self._tried.get(cell)
             if last is not None and i - last < cfg.retry_keyframes:
                 continue
-            picks.append((-1 if last is None else last, rank, c, cell))
+            look, alike = best.get(cell, (np.inf, c))
+            picks.append((look, -1 if last is None else last, rank, c, alike, cell))
         if picks:
-            first = min(picks, key=lambda t: t[1])
+            first = min(picks, key=lambda t: t[2])
             picks.remove(first)
-            picks = [first, *sorted(picks)]
+            # the first pick is the estimate's (the nearest cell): not ranked
+            first = (np.inf, *first[1:4], first[5])
+            picks = [first, *((p[:3] + p[4:]) for p in sorted(picks))]
         out = []
-        for _, _, c, cell in picks[:limit]:
+        for look, _, _, c, cell in picks[:limit]:
             window = np.deg2rad(
                 THETA_WINDOW_BASE_DEG
                 + THETA_WINDOW_PER_M_DEG * d_rel[c]
                 + THETA_WINDOW_PER_TURN * np.rad2deg(r_rel[c])
             )
-            out.append((c, float(radius[c]), float(min(window, np.pi))))
+            out.append((c, float(radius[c]), float(min(window, np.pi)), bool(np.isfinite(look))))
             self._tried[cell] = i
         return out
+
+    def _place_distances(self, i: int, cands: np.ndarray) -> dict[int, float]:
+        """Descriptor distance (0: alike, 1: nothing in common) of keyframe i to each of the
+        keyframes ``cands`` (those with a descriptor)."""
+        have = [len(self._place) > k and self._place[k] is not None for k in (i, *cands.tolist())]
+        if not have[0] or not any(have[1:]):
+            return {}
+        ks = [int(k) for k, h in zip(cands.tolist(), have[1:], strict=True) if h]
+        bits = np.stack([self._place[k] for k in (i, *ks)])
+        desc = blurred(np.unpackbits(bits, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS))
+        dist, _ = descriptor_distances(desc[0], desc[1:])
+        return dict(zip(ks, dist.tolist(), strict=True))
 
     def _submap(
         self, ctx: BackendContext, est: np.ndarray, centre: int, lo: int, hi: int, travel: float
@@ -644,14 +706,15 @@ class LoopCloser:
         limit = max(cfg.max_candidates, cfg.max_candidates_idle) if self.idle else cfg.max_candidates
         # pending closures too old when the previous plan was done
         self._pending = [p for p in self._pending if self._last_plan - p.query <= cfg.pending_keyframes]
+        self._support = {id(p): self._support[id(p)] for p in self._pending if id(p) in self._support}
         self._last_plan = i
         self._redundant_travel = (
             cfg.redundant_travel_with_plan if ctx.graph.has_priors() else cfg.redundant_travel
         )
         est = ctx.graph.estimates()
-        cands: list[tuple[int, float, float, np.ndarray | None]] = []
+        cands: list[tuple[int, float, float, bool]] = []
         if len(self._jobs) < MAX_QUEUED_JOBS:
-            cands = [(c, r, w, None) for c, r, w in self._candidates(est, i, limit)]
+            cands = self._candidates(est, i, limit)
         else:
             self.stats.plans_skipped += 1
         hyp = self._hypothesis(est, i)
@@ -663,9 +726,21 @@ class LoopCloser:
         if hyp is not None:
             cands = cands[: limit - 1]
         n = len(self.closures)
-        self._jobs.extend(_Job(c, i, r, w, pred, n) for c, r, w, pred in cands)
+        self._jobs.extend(_Job(c, i, r, w, None, n, ranked) for c, r, w, ranked in cands)
         if hyp is not None:  # time-critical (the pending closure expires): ahead of older jobs
-            self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n))
+            self._jobs.appendleft(_Job(hyp[0], i, hyp[1], hyp[2], hyp[3], n, proposer=self._pending[-1]))
+
+    def _descriptor(self, ctx: BackendContext, k: int) -> None:
+        """Make the place descriptor of keyframe k (kept as packed bits of its polar occupancy):
+        its query submap (``QUERY_TRAVEL`` of travel back, in its frame) at the estimate when the
+        keyframe arrives, so the points are those the robot saw there, placed by the local
+        estimate (whatever the drift since)."""
+        cache = self._place
+        while len(cache) <= k:
+            cache.append(None)
+        if cache[k] is None:
+            pts, _ = self._submap(ctx, ctx.graph.estimates(), k, k - SUBMAP_KEYFRAMES, k, QUERY_TRAVEL)
+            cache[k] = np.packbits(polar_occupancy(pts))
 
     def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
@@ -700,6 +775,8 @@ class LoopCloser:
             self._reject(ctx, i, c, "no_overlap")
             return []
         data = {
+            # who proposed the candidate: the estimate, the place ranking, a pending closure's check
+            "found_by": "check" if job.proposer is not None else "ranked" if job.ranked else "estimate",
             "inliers": round(m.inlier_fraction, 3),
             "ambiguity": round(m.ambiguity, 3),
             "relative": m.pose.tolist(),
@@ -716,15 +793,21 @@ class LoopCloser:
             np.deg2rad(CLOSURE_SIGMA_FLOOR_THETA_DEG),
         )
         corr = between(guess, m.pose)
-        lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr)
+        lc = LoopClosure(c, i, m.pose.copy(), cov, m, corr, job.ranked)
         small = np.hypot(corr[0], corr[1]) <= CONFIRM_XY and abs(corr[2]) <= np.deg2rad(CONFIRM_THETA_DEG)
-        partner = None if small else self._consistent_pending(lc, ctx.graph.estimates(), weak)
+        partner = None if small else self._consistent_pending(lc, ctx.graph.estimates(), weak, job.proposer)
         if weak and partner is None:
             self._reject(ctx, i, c, "low_inliers", **data)
             return []
         if small:
             yield from self._add(ctx, [lc], settle=False)
             return [lc]
+        group = [] if partner is None else [*self._support.get(id(partner), []), partner]
+        if partner is not None and (lc.ranked or partner.ranked) and len(group) < 2:
+            # found through the look: a second agreeing closure is asked (see _consistent_pending)
+            lc = replace(lc, ranked=True)
+            self._support[id(lc)] = group
+            partner = None
         if partner is None:
             self._pending.append(lc)
             self.stats.pending += 1
@@ -738,9 +821,9 @@ class LoopCloser:
             )
             self._verify_back(ctx, lc)
             return []
-        self._pending = [q for q in self._pending if q is not partner]
-        yield from self._add(ctx, [partner, lc], settle=True)
-        return [partner, lc]
+        self._pending = [q for q in self._pending if not any(q is g for g in group)]
+        yield from self._add(ctx, [*group, lc], settle=True)
+        return [*group, lc]
 
     def _search_window(self, job: _Job, guess: np.ndarray) -> tuple[np.ndarray, float]:
         """Centre (the query's pose in the reference's frame) and ± xy window (m) of a search."""
@@ -792,16 +875,34 @@ class LoopCloser:
             return
         window = np.deg2rad(cfg.hypothesis_window_theta_deg)
         self._jobs.appendleft(
-            _Job(c, j, cfg.hypothesis_window_xy, window, between(est[c], pred), len(self.closures))
+            _Job(
+                c, j, cfg.hypothesis_window_xy, window, between(est[c], pred), len(self.closures), proposer=lc
+            )
         )
         self.stats.verifications += 1
 
-    def _consistent_pending(self, lc: LoopClosure, est: np.ndarray, weak: bool = False) -> LoopClosure | None:
+    def _consistent_pending(
+        self, lc: LoopClosure, est: np.ndarray, weak: bool = False, proposer: LoopClosure | None = None
+    ) -> LoopClosure | None:
         """The latest pending closure ``lc`` agrees with (pairwise consistency) among those whose
         query keyframe lies ``QUERY_TRAVEL`` or more of travel from ``lc``'s, or None. A ``weak``
         match (inlier fraction below ``min_inlier_fraction``) only confirms a closure that moves
-        its query at most ``search_window_xy`` from the current estimate (see the module docs)."""
-        for p in reversed(self._pending):
+        its query at most ``search_window_xy`` from the current estimate (see the module docs).
+        A check of a pending closure's prediction (``proposer``) confirms that closure only: it
+        tests that closure, and agreeing with another is chance. Pending closures of one aliased
+        region send their checks to look-alike places, where a check that fails its own closure
+        agrees with whichever other fits (ACES with 3 cm range noise, the ranking on: 554 on 15,
+        554 on 11 (ranked), 560 on 52 and 552 on 10 pending, 20 m and 80 deg off; the check of
+        the latest, 568 on 74, disagreed with it but agreed with 554 on 15: the pair entered and
+        the true loop was lost).
+
+        A closure found through the place ranking (``ranked``) is confirmed by two agreeing
+        closures, not one (the caller keeps the first agreeing one pending as its support): the
+        ranking finds the places that look alike wherever the estimate is, and where a whole
+        stretch is aliased a ranked match and its own check agree on it (ACES with 3 cm range
+        noise: 664 on 160, 30 m and 78 deg off, confirmed by its check 670 on 164)."""
+        pending = self._pending if proposer is None else [p for p in self._pending if p is proposer]
+        for p in reversed(pending):
             if abs(self._travel[lc.query] - self._travel[p.query]) < QUERY_TRAVEL:
                 # query submaps this close share their points: the same match again, not a second
                 # piece of evidence (FR079 with beams cut at 8 m: two closures 0.65 m apart both

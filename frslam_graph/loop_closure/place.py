@@ -1,0 +1,104 @@
+"""Place recognition for loop-closure candidates: a rotation-invariant polar descriptor of a
+keyframe's submap (points in metres in the keyframe's frame; angles in radians).
+
+A polar occupancy grid as Scan Context (Kim & Kim, IROS 2018) in 2-D: ``RINGS`` rings of
+``DESCRIPTOR_RANGE / RINGS`` metres by ``SECTORS`` sectors around the keyframe, a bin is 1 where
+any point falls (binary: the density of a scan falls with range and with the beam count; the
+layout of walls does not), then blurred by a Gaussian of one bin (wrapping round the sectors).
+Points nearer than ``DESCRIPTOR_MIN_RANGE`` are left out: their bearing swings most when the two
+keyframes stand a little apart. On the single loop of ``tools/dev_big_loop.py`` (a keyframe's
+scan against those of the first lap, the query 0.4 m off a first-lap pose and turned at random,
+50 queries) the place within 0.9 m ranked first for 58 % of the queries and among the first three
+for 66 %; without the blur and with all points, 28 % and 42 % (Scan Context is known to be
+sensitive to translation; the blur and the near cut halve that). Two descriptors are compared over every circular shift of the sectors
+(the unknown relative heading): the similarity at a shift is the sum of the cosines of the
+matching sector columns over the number of non-empty columns of the fuller descriptor (Scan
+Context's distance), computed for all shifts at once by an FFT along the sectors. The best shift
+is the relative heading of the two keyframes (to a sector). The distance does not depend on the
+poses the graph estimates, only on what the scans saw: :class:`~frslam_graph.loop_closure.closer.LoopCloser`
+ranks the candidates within a wide search radius by it (the best-looking places are matched
+first) where the estimate no longer says where the robot is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+# Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
+DESCRIPTOR_RANGE = 12.0  # m; points farther from the keyframe are left out of its descriptor
+DESCRIPTOR_MIN_RANGE = 2.0  # m; ... and points nearer than this
+RINGS = 20  # radial bins (0.6 m each)
+SECTORS = 60  # angular bins (6 deg each); the heading resolution of the comparison
+
+
+def polar_descriptor(points: np.ndarray, max_range: float = DESCRIPTOR_RANGE) -> np.ndarray:
+    """Blurred binary polar occupancy (RINGS, SECTORS; float32) of ``points`` (N, 2; m, the
+    keyframe's frame, origin at the keyframe): :func:`blurred` of :func:`polar_occupancy`."""
+    return blurred(polar_occupancy(points, max_range))
+
+
+def blurred(occupancy: np.ndarray) -> np.ndarray:
+    """Occupancies (..., RINGS, SECTORS) blurred by a Gaussian of one bin along the rings and the
+    sectors (wrapping round), each descriptor on its own (float32)."""
+    occ = np.asarray(occupancy, dtype=np.float32)
+    sigma = (0.0,) * (occ.ndim - 2) + (1.0, 1.0)
+    return gaussian_filter(occ, sigma, mode=("nearest",) * (occ.ndim - 1) + ("wrap",))
+
+
+def polar_occupancy(points: np.ndarray, max_range: float = DESCRIPTOR_RANGE) -> np.ndarray:
+    """Binary polar occupancy (RINGS, SECTORS; bool) of ``points`` (N, 2; m, the keyframe's frame,
+    origin at the keyframe). Sector k spans headings [-pi + k·2pi/SECTORS, ...), ring j ranges
+    [j, j + 1) · max_range / RINGS. Points nearer than ``DESCRIPTOR_MIN_RANGE``, at or beyond
+    ``max_range`` and non-finite points are ignored; no points give all False."""
+    out = np.zeros((RINGS, SECTORS), bool)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    p = p[np.isfinite(p).all(axis=1)]
+    if not len(p):
+        return out
+    r = np.hypot(p[:, 0], p[:, 1])
+    ok = (r >= DESCRIPTOR_MIN_RANGE) & (r < max_range)
+    ring = (r[ok] * (RINGS / max_range)).astype(np.int64)
+    a = np.arctan2(p[ok, 1], p[ok, 0])
+    sector = np.minimum(((a + np.pi) * (SECTORS / (2.0 * np.pi))).astype(np.int64), SECTORS - 1)
+    out[ring, sector] = True
+    return out
+
+
+def descriptor_distances(query: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scan Context distance in [0, 1] (0: the same place) of ``query`` (RINGS, SECTORS) to each
+    of ``candidates`` (K, RINGS, SECTORS) at the best sector shift, and that shift as the relative
+    heading (rad, K) of the query in the candidate's frame. An empty descriptor is at distance 1
+    from everything (heading 0)."""
+    cand = np.asarray(candidates, dtype=np.float64).reshape(-1, RINGS, SECTORS)
+    q = np.asarray(query, dtype=np.float64).reshape(RINGS, SECTORS)
+    k = len(cand)
+    if not k:
+        return np.zeros(0), np.zeros(0)
+
+    def unit_columns(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        norm = np.sqrt(np.sum(d * d, axis=-2, keepdims=True))
+        return d / np.where(norm > 0.0, norm, 1.0), np.count_nonzero(norm[..., 0, :], axis=-1)
+
+    qn, q_cols = unit_columns(q)
+    cn, c_cols = unit_columns(cand)
+    # corr[k, s] = sum_j q_j . c_{k, j+s}: cross-correlation along the sectors, summed over rings
+    spec = np.sum(np.conj(np.fft.rfft(qn, axis=-1))[None] * np.fft.rfft(cn, axis=-1), axis=1)
+    corr = np.fft.irfft(spec, n=SECTORS, axis=-1)
+    shift = np.argmax(corr, axis=1)
+    cols = np.maximum(np.maximum(q_cols, c_cols), 1)
+    sim = np.where((q_cols > 0) & (c_cols > 0), corr[np.arange(k), shift] / cols, 0.0)
+    heading = np.where(shift > SECTORS // 2, shift - SECTORS, shift) * (2.0 * np.pi / SECTORS)
+    return np.clip(1.0 - sim, 0.0, 1.0), heading
+
+
+__all__ = [
+    "DESCRIPTOR_MIN_RANGE",
+    "DESCRIPTOR_RANGE",
+    "RINGS",
+    "SECTORS",
+    "blurred",
+    "descriptor_distances",
+    "polar_descriptor",
+    "polar_occupancy",
+]
