@@ -15,6 +15,7 @@ from frslam_graph.loop_closure.place import (
     DESCRIPTOR_RANGE,
     RINGS,
     SECTORS,
+    blurred,
     descriptor_distances,
     polar_descriptor,
 )
@@ -142,6 +143,33 @@ def test_keyframes_without_a_descriptor_are_not_ranked(monkeypatch):
     refs = [c for c, *_ in closer._candidates(est, 199)]
     closer2, _ = _u_turn_closer(monkeypatch, np.inf)
     assert refs == [c for c, *_ in closer2._candidates(est, 199)] and closer.stats.ranked == 0
+
+
+def test_a_plan_transforms_only_the_descriptors_no_earlier_plan_did(monkeypatch):
+    """The ranking keeps each keyframe's spectrum between plans (the next plan's candidates are
+    mostly the same keyframes): only the new query is transformed, and the distances are those
+    of the descriptors compared anew, also when the cache holds fewer keyframes than a plan."""
+
+    def anew(closer: LoopCloser, i: int, ks: list[int]) -> np.ndarray:
+        occ = [
+            np.unpackbits(closer._place[k], count=RINGS * SECTORS).reshape(RINGS, SECTORS) for k in (i, *ks)
+        ]
+        d = blurred(np.stack(occ))
+        return descriptor_distances(d[0], d[1:])[0]
+
+    closer, est = _u_turn_closer(monkeypatch, closer_module.PLACE_RADIUS)
+    cands = np.arange(150)
+    looks = closer._place_distances(198, cands)
+    assert closer._spectra.computed == 151
+    assert np.array_equal(np.array([looks[k] for k in range(150)]), anew(closer, 198, list(range(150))))
+    looks = closer._place_distances(199, cands)
+    assert closer._spectra.computed == 152  # keyframe 199 alone
+    assert np.array_equal(np.array([looks[k] for k in range(150)]), anew(closer, 199, list(range(150))))
+    small, _ = _u_turn_closer(monkeypatch, closer_module.PLACE_RADIUS)
+    small._spectra.capacity = 40  # fewer than a plan's candidates: the rest computed anew
+    for i in (198, 199, 199):
+        assert small._place_distances(i, cands) == closer._place_distances(i, cands)
+    assert len(small._spectra) == 40 and small._spectra.computed > 152
 
 
 # --------------------------------------------------------------- a big loop after a large drift
