@@ -747,6 +747,7 @@ class LoopCloser:
         if cache[k] is None:
             pts, _ = self._submap(ctx, ctx.graph.estimates(), k, k - SUBMAP_KEYFRAMES, k, QUERY_TRAVEL)
             cache[k] = np.packbits(polar_occupancy(pts))
+            self._spectra.keep([k], cache.__getitem__)  # compared with every later query
 
     def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""

@@ -110,12 +110,13 @@ def descriptor_distances(query: np.ndarray, candidates: np.ndarray) -> tuple[np.
 
 
 class SpectrumCache:
-    """The :func:`descriptor_spectra` of the keyframes last compared, ``capacity`` at most (the
-    least recently used dropped first; ~10 kB each), computed from their packed occupancies on
-    first use. A ranked plan compares the query with every keyframe within its radius, most of
-    them the previous plan's too: transforming them all anew each time (blur, unit columns, FFT:
-    ~30 us a keyframe) made a keyframe scan of FR079 take up to 32 ms for the ranking alone at
-    1,100 keyframes. The values are the same as computed anew (each descriptor on its own)."""
+    """The :func:`descriptor_spectra` of at most ``capacity`` keyframes (the least recently used
+    dropped first; ~10 kB each), computed from their packed occupancies: each keyframe's when its
+    descriptor is made (:meth:`keep`), a dropped one's again when it is compared. A ranked plan
+    compares the query with every keyframe within its radius, most of them the previous plan's
+    too: transforming them all anew each time (blur, unit columns, FFT: ~30 us a keyframe) made a
+    keyframe scan of FR079 take up to 32 ms for the ranking alone at 1,100 keyframes. The values
+    are the same as computed anew (each descriptor on its own)."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = int(capacity)
@@ -130,48 +131,47 @@ class SpectrumCache:
     def clear(self) -> None:
         self._slot.clear()
 
+    def keep(self, keys: Sequence[int], packed: Callable[[int], np.ndarray]) -> None:
+        """Compute and keep the spectra of those of keyframes ``keys`` not kept (the last
+        ``capacity`` of them); ``packed(k)`` gives keyframe k's occupancy as packed bits
+        (``np.packbits`` of :func:`polar_occupancy`)."""
+        miss = [k for k in dict.fromkeys(int(k) for k in keys) if k not in self._slot][-self.capacity :]
+        if not miss:
+            return
+        spec, cols = _spectra_of(np.stack([packed(k) for k in miss]))
+        self.computed += len(miss)
+        if len(self._spec) < self.capacity:  # the rows at once (pages are touched as they fill)
+            grown = np.empty((self.capacity, *spec.shape[1:]), spec.dtype)
+            grown[: len(self._spec)] = self._spec
+            self._spec, self._cols = grown, np.resize(self._cols, self.capacity)
+        rows = []
+        for k in miss:
+            row = self._slot.popitem(last=False)[1] if len(self._slot) >= self.capacity else len(self._slot)
+            self._slot[k] = row
+            rows.append(row)
+        self._spec[rows], self._cols[rows] = spec, cols
+
     def spectra(
         self, keys: Sequence[int], packed: Callable[[int], np.ndarray]
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Spectra (K, RINGS, F) and non-empty columns (K,) of keyframes ``keys``; ``packed(k)``
-        gives keyframe k's occupancy as packed bits (``np.packbits`` of :func:`polar_occupancy`)."""
+        """Spectra (K, RINGS, F) and non-empty columns (K,) of keyframes ``keys`` (``packed``: as
+        :meth:`keep`)."""
         keys = [int(k) for k in keys]
-        miss = list(dict.fromkeys(k for k in keys if k not in self._slot))
-        spec = np.empty((len(keys), RINGS, SECTORS // 2 + 1), np.complex128)
-        cols = np.empty(len(keys), np.int64)
-        hit = np.array([k in self._slot for k in keys], bool)
-        if hit.any():
-            rows = np.array([self._slot[k] for k in keys if k in self._slot], np.int64)
-            spec[hit], cols[hit] = self._spec[rows], self._cols[rows]
-            for k in keys:
-                if k in self._slot:
-                    self._slot.move_to_end(k)
-        if miss:
-            bits = np.stack([packed(k) for k in miss])
-            occ = np.unpackbits(bits, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS)
-            m_spec, m_cols = descriptor_spectra(blurred(occ))
-            self.computed += len(miss)
-            where = {k: j for j, k in enumerate(miss)}
-            sel = np.array([where[k] for k in keys if k in where], np.int64)
-            spec[~hit], cols[~hit] = m_spec[sel], m_cols[sel]
-            for j in range(max(0, len(miss) - self.capacity), len(miss)):
-                self._keep(miss[j], m_spec[j], int(m_cols[j]))
-        return spec, cols
+        if len(set(keys)) > self.capacity:  # more than can be kept at once: all anew
+            self.computed += len(keys)
+            return _spectra_of(np.stack([packed(k) for k in keys]))
+        for k in keys:  # the ones kept first, so that keeping the others drops none of them
+            if k in self._slot:
+                self._slot.move_to_end(k)
+        self.keep(keys, packed)
+        rows = [self._slot[k] for k in keys]
+        return self._spec[rows], self._cols[rows]
 
-    def _keep(self, k: int, spec: np.ndarray, cols: int) -> None:
-        """Store keyframe k's spectrum in a free row, or in the least recently used one's."""
-        if len(self._slot) >= self.capacity:
-            _, row = self._slot.popitem(last=False)
-        else:
-            row = len(self._slot)
-            if row >= len(self._spec):  # grow by doubling up to the capacity
-                size = min(max(2 * len(self._spec), 64), self.capacity)
-                self._spec = np.concatenate(
-                    (self._spec, np.empty((size - len(self._spec), *spec.shape), spec.dtype))
-                )
-                self._cols = np.concatenate((self._cols, np.zeros(size - len(self._cols), np.int64)))
-        self._spec[row], self._cols[row] = spec, cols
-        self._slot[k] = row
+
+def _spectra_of(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`descriptor_spectra` of the blurred occupancies given as packed bits (K, bytes)."""
+    occ = np.unpackbits(packed, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS)
+    return descriptor_spectra(blurred(occ))
 
 
 __all__ = [
