@@ -15,6 +15,7 @@ from frslam_graph.loop_closure.place import (
     DESCRIPTOR_RANGE,
     RINGS,
     SECTORS,
+    blurred,
     descriptor_distances,
     polar_descriptor,
 )
@@ -144,6 +145,33 @@ def test_keyframes_without_a_descriptor_are_not_ranked(monkeypatch):
     assert refs == [c for c, *_ in closer2._candidates(est, 199)] and closer.stats.ranked == 0
 
 
+def test_a_plan_transforms_only_the_descriptors_no_earlier_plan_did(monkeypatch):
+    """The ranking keeps each keyframe's spectrum between plans (the next plan's candidates are
+    mostly the same keyframes): only the new query is transformed, and the distances are those
+    of the descriptors compared anew, also when the cache holds fewer keyframes than a plan."""
+
+    def anew(closer: LoopCloser, i: int, ks: list[int]) -> np.ndarray:
+        occ = [
+            np.unpackbits(closer._place[k], count=RINGS * SECTORS).reshape(RINGS, SECTORS) for k in (i, *ks)
+        ]
+        d = blurred(np.stack(occ))
+        return descriptor_distances(d[0], d[1:])[0]
+
+    closer, est = _u_turn_closer(monkeypatch, closer_module.PLACE_RADIUS)
+    cands = np.arange(150)
+    looks = closer._place_distances(198, cands)
+    assert closer._spectra.computed == 151
+    assert np.array_equal(np.array([looks[k] for k in range(150)]), anew(closer, 198, list(range(150))))
+    looks = closer._place_distances(199, cands)
+    assert closer._spectra.computed == 152  # keyframe 199 alone
+    assert np.array_equal(np.array([looks[k] for k in range(150)]), anew(closer, 199, list(range(150))))
+    small, _ = _u_turn_closer(monkeypatch, closer_module.PLACE_RADIUS)
+    small._spectra.capacity = 64  # fewer than some plans' candidates: the least recently used go
+    for i, ks in ((198, cands), (199, cands[:40]), (199, cands[100:140]), (198, cands[:40]), (199, cands)):
+        assert small._place_distances(i, ks) == closer._place_distances(i, ks)
+    assert len(small._spectra) == 64
+
+
 # --------------------------------------------------------------- a big loop after a large drift
 def test_a_single_loop_after_a_large_heading_drift_is_closed():
     """A 20 x 12 m corridor loop (64 m) at 1 m/s with 0.8 deg/m of heading bias and 3 % scale
@@ -167,6 +195,8 @@ def test_a_single_loop_after_a_large_heading_drift_is_closed():
     assert slam.loop_closer.closures
     assert err[-1] < 1.0 and err.max() < 2.0
     assert slam.loop_closer.stats.ranked > 0
+    # each keyframe's descriptor transformed once, when the keyframe arrived (not per plan)
+    assert slam.loop_closer._spectra.computed == len(slam.keyframes())
 
 
 # ------------------------------------------- a pending closure's check confirms that closure only

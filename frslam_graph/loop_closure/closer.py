@@ -132,7 +132,7 @@ from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
-from frslam_graph.loop_closure.place import RINGS, SECTORS, blurred, descriptor_distances, polar_occupancy
+from frslam_graph.loop_closure.place import SpectrumCache, polar_occupancy, spectrum_distances
 from frslam_graph.loop_closure.submap_matching import (
     MIN_COARSE_SCORE,
     ReferenceSubmap,
@@ -161,6 +161,10 @@ SUBMAPS_KEPT = 24  # reference submaps kept (least recently used dropped; ~5 MB 
 # descriptor distance of the two keyframes' submaps) instead of round-robin; larger = fewer plans
 # ranked
 PLACE_RADIUS = 8.0
+# keyframes whose place descriptor's spectrum is kept for the ranking at most (least recently
+# compared dropped first; ~10 kB each: 40 MB): a ranked plan compares its query with every
+# keyframe within its radius; larger = more memory, fewer spectra computed anew
+PLACE_SPECTRA_KEPT = 4096
 SUBMAP_TRAVEL = 3.0  # m; reference submap: keyframes within ± this travel of the candidate
 QUERY_TRAVEL = 2.0  # m; query submap: this much travel back from the keyframe
 SUBMAP_KEYFRAMES = 30  # keyframes per side of a submap at most
@@ -303,6 +307,8 @@ class LoopCloser:
         # per keyframe: its place descriptor's occupancy (loop_closure.place), packed bits (150
         # bytes), made when the keyframe arrives
         self._place: list[np.ndarray | None] = []
+        # the descriptors' spectra last compared (place.SpectrumCache): kept between plans
+        self._spectra = SpectrumCache(PLACE_SPECTRA_KEPT)
         self._rng = np.random.default_rng(0)
         # anytime work: candidates planned at a keyframe, matched a few steps per scan
         self._jobs: deque[_Job] = deque()
@@ -350,6 +356,7 @@ class LoopCloser:
         self._dist = None
         self._local = []
         self._place = []
+        self._spectra.clear()
         for kf in ctx.keyframes()[:index]:
             self._append_motion(kf.pose_odom)
 
@@ -614,9 +621,8 @@ class LoopCloser:
         if not have[0] or not any(have[1:]):
             return {}
         ks = [int(k) for k, h in zip(cands.tolist(), have[1:], strict=True) if h]
-        bits = np.stack([self._place[k] for k in (i, *ks)])
-        desc = blurred(np.unpackbits(bits, axis=1, count=RINGS * SECTORS).reshape(-1, RINGS, SECTORS))
-        dist, _ = descriptor_distances(desc[0], desc[1:])
+        spec, cols = self._spectra.spectra([i, *ks], self._place.__getitem__)
+        dist, _ = spectrum_distances((spec[0], cols[0]), (spec[1:], cols[1:]))
         return dict(zip(ks, dist.tolist(), strict=True))
 
     def _submap(
@@ -741,6 +747,7 @@ class LoopCloser:
         if cache[k] is None:
             pts, _ = self._submap(ctx, ctx.graph.estimates(), k, k - SUBMAP_KEYFRAMES, k, QUERY_TRAVEL)
             cache[k] = np.packbits(polar_occupancy(pts))
+            self._spectra.keep([k], cache.__getitem__)  # compared with every later query
 
     def _query_points(self, ctx: BackendContext, i: int) -> np.ndarray:
         """Query submap of keyframe i (kept: shared by its candidates)."""
