@@ -109,11 +109,9 @@ class Stages:
         self._scan = {}
 
 
-def instrument(st: Stages) -> None:
-    """Wrap the library's stages (coarse: one row per stage a reader can act on)."""
-    from frslam_graph import offline, slam
-    from frslam_graph.backend import context, graph, mapping
-    from frslam_graph.loop_closure import closer, final_alignment, submap_matching
+def wrap_odometry(st: Stages, body_points_label: str = "reader: body points") -> None:
+    """Wrap the scan odometry's stages (in this process) and the reader's body points."""
+    from frslam_graph import offline
     from frslam_graph.odometry import scan_odometry
 
     so = scan_odometry.ScanOdometry
@@ -123,7 +121,16 @@ def instrument(st: Stages) -> None:
     st.wrap(so, "_refine", "odometry: point-to-line refinement")
     st.wrap(so, "_local_map", "odometry: local map rebuild")
     st.wrap(so, "_commit", "odometry: commit (KISS-ICP map update)")
-    st.wrap(offline, "body_points", "reader: body points")
+    st.wrap(offline, "body_points", body_points_label)
+
+
+def instrument(st: Stages) -> None:
+    """Wrap the library's stages (coarse: one row per stage a reader can act on)."""
+    from frslam_graph import offline, slam
+    from frslam_graph.backend import context, graph, mapping
+    from frslam_graph.loop_closure import closer, final_alignment, submap_matching
+
+    wrap_odometry(st)
     st.wrap(slam.FRSlam, "_record", "backend: per-scan glue")
     pg = graph.PoseGraph
     st.wrap(pg, "_isam_update", "graph: iSAM2 update")

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 from _paths import SHARED_DATA as DATA  # noqa: E402
-from dev_stages import LOGS, Stages
+from dev_stages import LOGS, Stages, wrap_odometry
 
 
 def _wrap_job_steps(st: Stages, closer_cls: Any, out: list) -> None:
@@ -80,20 +80,12 @@ def steps_summary(steps: list) -> None:
 def instrument(st: Stages, serial: bool) -> dict[str, Any]:
     """Wrap the backend's stages (and the odometry's with ``serial``); returns a dict the
     per-scan wrapper fills with each scan's facts (keyframe, closer steps and cost)."""
-    from frslam_graph import offline, slam
+    from frslam_graph import slam
     from frslam_graph.backend import graph
     from frslam_graph.loop_closure import closer, submap_matching
-    from frslam_graph.odometry import scan_odometry
 
     if serial:
-        so = scan_odometry.ScanOdometry
-        st.wrap(so, "prepare", "odometry: prepare")
-        st.wrap(so, "process", "odometry: EKF, keyframes")
-        st.wrap(so, "_align", "odometry: KISS-ICP register")
-        st.wrap(so, "_refine", "odometry: refinement")
-        st.wrap(so, "_local_map", "odometry: local map rebuild")
-        st.wrap(so, "_commit", "odometry: commit (map update)")
-        st.wrap(offline, "body_points", "odometry: body points")
+        wrap_odometry(st, "odometry: body points")
     pg = graph.PoseGraph
     st.wrap(pg, "add_first", "graph: keyframe insert (iSAM2)")
     st.wrap(pg, "add_keyframe", "graph: keyframe insert (iSAM2)")
@@ -191,7 +183,7 @@ def summary(
             print(f"{title}: none")
             return
         share = {k: sum(s.get(k, 0.0) for s, t in zip(scans, mask, strict=True) if t) * 1e3 for k in labels}
-        if "odometry: refinement" not in labels:  # the odometry ran in its worker: one figure
+        if "odometry: point-to-line refinement" not in labels:  # the odometry ran in its worker: one figure
             share["odometry (worker)"] = float(odo[mask].sum())
         tot = float(total[mask].sum())
         print(
