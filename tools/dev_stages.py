@@ -20,6 +20,7 @@ import functools
 import json
 import resource
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -77,8 +78,16 @@ class Stages:
         else:
             setattr(owner, name, timed)
 
-    def wrap_gen(self, owner: Any, name: str, label: str) -> None:
-        """Replace the generator function ``owner.name`` by one whose steps are timed."""
+    def wrap_gen(
+        self,
+        owner: Any,
+        name: str,
+        label: str,
+        on_step: Callable[[tuple], Callable[[float], None]] | None = None,
+    ) -> None:
+        """Replace the generator function ``owner.name`` by one whose steps are timed.
+        ``on_step(args)``, called before each step with the call's arguments, returns what is
+        called after it with the step's seconds (its own stages' included)."""
         fn = getattr(owner, name)
         st = self
 
@@ -87,6 +96,7 @@ class Stages:
             gen = fn(*args, **kwargs)
             value = None
             while True:
+                done = on_step(args) if on_step is not None else None
                 frame = [label, st.clock(), 0.0]
                 st._stack.append(frame)
                 try:
@@ -99,6 +109,8 @@ class Stages:
                     st._charge(label, spent - frame[2])
                     if st._stack:
                         st._stack[-1][2] += spent
+                    if done is not None:
+                        done(spent)
                 value = yield item
 
         setattr(owner, name, timed)

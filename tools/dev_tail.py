@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,31 +32,18 @@ def _wrap_job_steps(st: Stages, closer_cls: Any, out: list) -> None:
     """Time each step of the loop closer's jobs (``LoopCloser._job``, the matching and the graph
     updates it drives): (cost the step announced in ms, its thread CPU in ms, the stage that took
     most of it) appended to ``out``; the job's own code is charged as "closer: job glue"."""
-    fn = closer_cls._job
 
-    def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
-        gen = fn(self, *args, **kwargs)
-        value = None
-        while True:
-            announced = self._next_cost  # what the previous yield said this step costs
-            before = dict(st._scan)
-            frame = ["closer: job glue", st.clock(), 0.0]
-            st._stack.append(frame)
-            try:
-                item = gen.send(value)
-            except StopIteration as stop:
-                return stop.value
-            finally:
-                st._stack.pop()
-                spent = st.clock() - frame[1]
-                st._charge(frame[0], spent - frame[2])
-                if st._stack:
-                    st._stack[-1][2] += spent
-                delta = {k: v - before.get(k, 0.0) for k, v in st._scan.items()}
-                out.append((announced, 1e3 * spent, max(delta, key=delta.get)))
-            value = yield item
+    def on_step(args: tuple) -> Callable[[float], None]:
+        announced = args[0]._next_cost  # what the previous yield said this step costs
+        before = dict(st._scan)
 
-    closer_cls._job = timed
+        def done(spent: float) -> None:
+            delta = {k: v - before.get(k, 0.0) for k, v in st._scan.items()}
+            out.append((announced, 1e3 * spent, max(delta, key=delta.get)))
+
+        return done
+
+    st.wrap_gen(closer_cls, "_job", "closer: job glue", on_step)
 
 
 def steps_summary(steps: list) -> None:
