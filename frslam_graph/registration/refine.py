@@ -47,7 +47,7 @@ class DistanceField:
         # 3x3-mask distances: both sides alike, so the zero crossing stays on the pixel edges
         d_in = cv2.distanceTransform(f, cv2.DIST_L2, cv2.DIST_MASK_3)
         d_out = cv2.distanceTransform(1 - f, cv2.DIST_L2, cv2.DIST_MASK_3)
-        sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32) * np.float32(resolution)
+        sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32, copy=False) * np.float32(resolution)
         kn = free.astype(np.float32)
         return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])))
 
@@ -257,7 +257,7 @@ def refine(
     n_known = int((w_all > 0).sum())
     rms = float(np.sqrt((w_all * r * r).sum() / wsum)) if wsum > 0 else float("inf")
     known_pts = w_all > 0
-    inl = float((np.abs(r[known_pts]) < 2.0 * res).mean()) if known_pts.any() else 0.0
+    inl = float((np.abs(r.compress(known_pts)) < 2.0 * res).mean()) if known_pts.any() else 0.0
     cov3 = covf = None
     if jtj is not None and n_known > 6:
         try:
@@ -265,8 +265,7 @@ def refine(
             # residuals of neighbouring points on a wall are correlated (the map's cells along a
             # wall err together): count one independent residual per ``correlation`` points
             covf = np.linalg.inv(jtj) * sigma2 * max(1.0, correlation)
-            idx = [1, 2, 0]
-            cov3 = covf[np.ix_(idx, idx)]
+            cov3 = covf.take(_XY_THETA, axis=0).take(_XY_THETA, axis=1)  # (tx, ty, theta)
         except np.linalg.LinAlgError:
             cov3 = covf = None
     return RefineResult(
@@ -284,6 +283,9 @@ def refine(
         covariance_full=covf,
     )
 
+
+# the rows / columns (tx, ty, theta) of the full covariance (theta, tx, ty, lsx, lsy, delta)
+_XY_THETA = np.array([1, 2, 0])
 
 # map wall cells matched to the best of this many nearest plan boundary samples (:func:`_wall_terms`)
 WALL_NEIGHBOURS = 4
