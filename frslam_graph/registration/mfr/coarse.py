@@ -69,15 +69,27 @@ class Hypothesis:
     rooms: tuple[int, ...] = ()
 
 
+def subset_geometry(pm: PlanModel, masks: np.ndarray) -> SubsetGeometry:
+    """Area moments and bounding boxes of the room subsets ``masks`` (in the plan's frame turned by
+    ``-pm.angle``)."""
+    return SubsetGeometry.of(mask_matrix(masks, len(pm.ids)), pm.moments, pm.bounds)
+
+
 def coarse_hypotheses(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
+    pm: PlanModel,
+    obs: MapObservation,
+    masks: np.ndarray,
+    *,
+    max_aspect: float,
+    top_k: int,
+    door_width_m=None,
+    geo: SubsetGeometry | None = None,
 ) -> dict[str, np.ndarray]:
     """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
     the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
-    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction)."""
-    n = len(pm.ids)
-    member = mask_matrix(masks, n)
-    geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
+    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction).
+    ``geo``: :func:`subset_geometry` of ``masks`` when the caller has it."""
+    geo = subset_geometry(pm, masks) if geo is None else geo
     parts = [
         _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
         for ai in range(len(obs.angles))
@@ -342,7 +354,7 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
 
 
 def search(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict
+    pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict, geo: SubsetGeometry | None = None
 ) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
     no subset fits the map's shape within the aspect bound), and the seeds of
@@ -350,10 +362,17 @@ def search(
 
     The best ``pool_k`` by shape features, the best ``top_k`` of those by the key on
     ``first_pass_points`` points, then all of those on every point; a best IoU below
-    ``search_below_iou`` triggers :func:`local_search` on the two best.
+    ``search_below_iou`` triggers :func:`local_search` on the two best. ``geo``:
+    :func:`subset_geometry` of ``masks`` when the caller has it.
     """
     pool = coarse_hypotheses(
-        pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
+        pm,
+        obs,
+        masks,
+        max_aspect=opts["max_aspect"],
+        top_k=opts["pool_k"],
+        door_width_m=opts["door_width_m"],
+        geo=geo,
     )
     if len(pool["mask"]) == 0:
         return [], []
