@@ -586,3 +586,77 @@ def test_distance_field_lookups_match_the_clipped_bilinear_formula() -> None:
         if img is field.known:
             want = want * inside[ok]
         assert np.array_equal(got, want)
+
+
+def test_best_bounded_gives_argmax_of_the_keys_above_a_threshold() -> None:
+    # the polish restarts' room IoU is computed only where the wall part's bound can still win:
+    # the same restart (np.argmax's first of equal maxima) and key as ranking every one, and
+    # the skipped ones are those that cannot win
+    from frslam_graph.registration.mfr.fine import best_bounded
+
+    rng = np.random.default_rng(11)
+    for _ in range(400):
+        n = int(rng.integers(0, 9))
+        keys = np.round(rng.random(n), 1)  # ties
+        bounds = keys + np.round(rng.random(n), 1) * rng.integers(0, 2, n)
+        above = float(np.round(rng.random(), 1)) if rng.random() < 0.7 else 0.0
+        asked: list[int] = []
+
+        def value(i: int, keys=keys, asked=asked) -> tuple[float, int]:
+            asked.append(i)
+            return float(keys[i]), i
+
+        got = best_bounded(list(bounds), value, above)
+        want = int(np.argmax(keys)) if n and keys.max() > above else None
+        assert (got is None) == (want is None)
+        if want is not None:
+            assert got == (want, (float(keys[want]), want))
+        assert len(set(asked)) == len(asked) and all(bounds[i] > above for i in asked)
+
+
+def test_wall_bound_is_never_below_the_structure_key() -> None:
+    # the product without the IoU (<= 1) bounds the key in floating point too
+    from frslam_graph.registration.mfr.fine import _wall_bound
+
+    rng = np.random.default_rng(3)
+    for _ in range(20000):
+        iou, prec, rec = rng.random(3)
+        door = np.float64(rng.random())
+        assert float(iou * prec * rec * door) <= _wall_bound((float(prec), float(rec), door))
+
+
+def test_map_side_helpers_match_their_full_canvas_formulas() -> None:
+    # the coarse footprint from the integral image is the block mean's >= 0.5; the small
+    # obstacles kept free are those that do not touch the footprint's border ring
+    from frslam_graph.registration.mfr.map_side import _coarse_cover, _ring, _touching
+
+    rng = np.random.default_rng(5)
+    for h, w, k in ((80, 120, 3), (97, 61, 4), (7, 200, 3), (64, 64, 8)):
+        fp = cv2.dilate((rng.random((h, w)) < 0.05).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        hc, wc = max(1, h // k), max(1, w // k)
+        want = fp[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3)) >= 0.5
+        assert np.array_equal(_coarse_cover(fp, fp.view(np.uint8), k, hc, wc), want)
+        nonfree = (fp & (rng.random((h, w)) < 0.2)).astype(np.uint8)
+        m, lab, _, _ = cv2.connectedComponentsWithStats(nonfree, connectivity=8)
+        border = cv2.dilate(_ring(fp).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        touching = np.zeros(m, bool)
+        touching[np.unique(lab[border])] = True
+        touching[0] = True
+        assert np.array_equal(_touching(fp, lab, m), touching)
+
+
+def test_room_subsets_are_kept_with_the_prepared_plan(plan):
+    # the connected subsets and their geometry are computed once per plan object and options,
+    # read-only, equal to a fresh computation
+    from frslam_graph.registration.mfr import coarse
+    from frslam_graph.registration.mfr import register as mfr
+
+    pm, derived = mfr._prepared_entry(plan, "doors")
+    masks, geo = mfr._subsets(pm, derived, None, 3000)
+    again = mfr._subsets(pm, derived, None, 3000)
+    assert again[0] is masks and again[1] is geo and not masks.flags.writeable
+    assert np.array_equal(masks, connected_subsets(pm.adjacency, max_per_level=3000))
+    fresh = coarse.subset_geometry(pm, masks)
+    assert all(np.array_equal(getattr(geo, f), getattr(fresh, f)) for f in ("area", "cx", "vxy", "x0", "y1"))
+    seeded = mfr._subsets(pm, derived, np.array([1]), 3000)[0]
+    assert np.array_equal(seeded, connected_subsets(pm.adjacency, seeds=np.array([1]), max_per_level=3000))
