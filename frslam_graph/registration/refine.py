@@ -73,25 +73,26 @@ class DistanceField:
         """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
-        v = self.sdf.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
-        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
+        # the four corner values, each gathered contiguous (a (N, 4) gather left them strided)
+        flat = self.sdf.ravel()
+        v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         a = v10 - v00
         b = v11 - v01
         top = v00 + fx * a
         bot = v01 + fx * b
-        val = top + fy * (bot - top)
+        d = bot - top
+        val = top + fy * d
         gx = (a + fy * (b - a)) * (1.0 / self.resolution)
-        gy = (bot - top) * (1.0 / self.resolution)
+        gy = d * (1.0 / self.resolution)
         return val, gx, gy, inside
 
     def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear free indicator at points (x, y) (0 outside the grid)."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
-        v = self.known.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
-        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
+        # the four corner values, each gathered contiguous
+        flat = self.known.ravel()
+        v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         top = v00 + fx * (v10 - v00)
         bot = v01 + fx * (v11 - v01)
         return (top + fy * (bot - top)) * inside
@@ -174,8 +175,9 @@ def refine(
     stage_scales = [max(s, 2.0 * res) for s in scales]
     w_all = np.zeros(len(p))
     r = np.zeros(len(p))
-    px, py = p[:, 0], p[:, 1]
-    n0, n1 = nrm[:, 0], f * nrm[:, 1]
+    # the columns contiguous: the same element operations, on unit strides
+    px, py = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
+    n0, n1 = np.ascontiguousarray(nrm[:, 0]), f * nrm[:, 1]
     jac = np.empty((len(p), 6))
     # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
     tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
