@@ -660,3 +660,19 @@ def test_room_subsets_are_kept_with_the_prepared_plan(plan):
     assert all(np.array_equal(getattr(geo, f), getattr(fresh, f)) for f in ("area", "cx", "vxy", "x0", "y1"))
     seeded = mfr._subsets(pm, derived, np.array([1]), 3000)[0]
     assert np.array_equal(seeded, connected_subsets(pm.adjacency, seeds=np.array([1]), max_per_level=3000))
+
+
+def test_room_labels_drawn_as_uint8_equal_the_int32_labels(plan):
+    # placed_rooms_iou draws the labels straight into uint8: the same pixels as the int32 canvas
+    from frslam_graph.registration.mfr import register as mfr
+    from frslam_graph.registration.mfr.plan_side import fill_rooms
+
+    pm = mfr._prepared(plan, "doors")
+    frame = RasterFrame(0.05, (-1.0, -3.0), (260, 300))
+    for flipped, deg in ((False, 0.0), (True, 33.0), (False, 211.0)):
+        m = truth_matrix(flipped, deg)
+        a = fill_rooms(pm.room_rings, pm.room_holes, range(len(pm.ids)), m, frame, labels=True)
+        b = fill_rooms(
+            pm.room_rings, pm.room_holes, range(len(pm.ids)), m, frame, labels=True, label_dtype=np.uint8
+        )
+        assert a.dtype == np.int32 and b.dtype == np.uint8 and a.any() and np.array_equal(a, b)

@@ -98,7 +98,9 @@ def placed_rooms_iou(
         return 0.0, ()
     frame, footprint, unexplored = obs.frame, obs.footprint, obs.unexplored
     n = len(pm.ids)  # at most MAX_ROOMS = 64: the labels fit in uint8
-    labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True).astype(np.uint8)
+    labels = fill_rooms(
+        pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True, label_dtype=np.uint8
+    )
     on = _label_counts(labels, footprint, n)
     px_area = pm.room_areas * det / frame.resolution**2
     off = _label_counts(labels, unexplored, n)
