@@ -676,3 +676,32 @@ def test_room_labels_drawn_as_uint8_equal_the_int32_labels(plan):
             pm.room_rings, pm.room_holes, range(len(pm.ids)), m, frame, labels=True, label_dtype=np.uint8
         )
         assert a.dtype == np.int32 and b.dtype == np.uint8 and a.any() and np.array_equal(a, b)
+
+
+def test_batched_trial_placements_equal_the_matrix_by_matrix_products() -> None:
+    # local_search builds its 15 trials of an axis round at once: the same bits as the
+    # products taken one trial at a time
+    from frslam_graph.se2 import rot
+
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        rm = np.eye(3)
+        rm[:2, :2] = rot(rng.uniform(-np.pi, np.pi))
+        m = np.eye(3)
+        m[:2] = rng.normal(size=(2, 3))
+        c, ext, axis = rng.normal(size=2) * 5, rng.random(2) * 10, int(rng.integers(2))
+        factors, shift = (0.85, 0.92, 1.0, 1.08, 1.17), 0.08
+        f = np.repeat(np.array(factors), 3)
+        sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+        d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
+        d[:, axis, axis] = f
+        d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+        batched = rm @ d @ rm.T @ m
+        one = []
+        for fi in factors:
+            for si in (-shift, 0.0, shift):
+                di = np.eye(3)
+                di[axis, axis] = fi
+                di[axis, 2] = c[axis] * (1.0 - fi) + si * ext[axis]
+                one.append(rm @ di @ rm.T @ m)
+        assert np.array_equal(batched, np.stack(one))

@@ -338,19 +338,19 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
         ext = bbox[2:] - bbox[:2]
         for factors, shift in rounds:
             for axis in (0, 1):
-                trials = []
-                for f in factors:
-                    for sh in (-shift, 0.0, shift):
-                        d = np.eye(3)
-                        d[axis, axis] = f
-                        d[axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
-                        trials.append(
-                            Hypothesis(h.mask, h.k, h.flipped, rm @ d @ rm.T @ h.matrix, h.feature_cost)
-                        )
-                _score_hypotheses(pm, obs, trials, opts["door_width_m"])
-                top = max(trials, key=lambda t: t.key)
-                if top.key > h.key:
-                    h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
+                # every (factor, shift) at once: the same products, matrix by matrix
+                f = np.repeat(np.array(factors), 3)
+                sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+                d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
+                d[:, axis, axis] = f
+                d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+                mats = rm @ d @ rm.T @ h.matrix
+                iou, key = coarse_scores(
+                    pm, obs, mats, np.full(len(mats), h.mask, dtype=np.uint64), opts["door_width_m"]
+                )
+                top = int(np.argmax(key))  # max()'s choice: the first of equal keys
+                if float(key[top]) > h.key:
+                    h.matrix, h.key, h.coarse_iou = mats[top], float(key[top]), float(iou[top])
 
 
 def search(
