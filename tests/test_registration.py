@@ -646,18 +646,22 @@ def test_map_side_helpers_match_their_full_canvas_formulas() -> None:
 
 
 def test_room_subsets_are_kept_with_the_prepared_plan(plan):
-    # the connected subsets and their geometry are computed once per plan object and options,
-    # read-only, equal to a fresh computation
+    # the connected subsets and their shapes per dihedral case are computed once per plan object
+    # and options, read-only, equal to a fresh computation
     from frslam_graph.registration.mfr import coarse
     from frslam_graph.registration.mfr import register as mfr
 
     pm, derived = mfr._prepared_entry(plan, "doors")
-    masks, geo = mfr._subsets(pm, derived, None, 3000)
+    masks, cases = mfr._subsets(pm, derived, None, 3000)
     again = mfr._subsets(pm, derived, None, 3000)
-    assert again[0] is masks and again[1] is geo and not masks.flags.writeable
+    assert again[0] is masks and again[1] is cases and not masks.flags.writeable
     assert np.array_equal(masks, connected_subsets(pm.adjacency, max_per_level=3000))
-    fresh = coarse.subset_geometry(pm, masks)
-    assert all(np.array_equal(getattr(geo, f), getattr(fresh, f)) for f in ("area", "cx", "vxy", "x0", "y1"))
+    fresh = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))
+    assert len(cases) == 8 and all(
+        np.array_equal(u, v) and not u.flags.writeable
+        for c, d in zip(cases, fresh, strict=True)
+        for u, v in zip(c, d, strict=True)
+    )
     seeded = mfr._subsets(pm, derived, np.array([1]), 3000)[0]
     assert np.array_equal(seeded, connected_subsets(pm.adjacency, seeds=np.array([1]), max_per_level=3000))
 

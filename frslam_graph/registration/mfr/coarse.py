@@ -83,15 +83,16 @@ def coarse_hypotheses(
     max_aspect: float,
     top_k: int,
     door_width_m=None,
-    geo: SubsetGeometry | None = None,
+    cases: list[tuple[np.ndarray, ...]] | None = None,
 ) -> dict[str, np.ndarray]:
     """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
     the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
     ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction).
-    ``geo``: :func:`subset_geometry` of ``masks`` when the caller has it."""
-    geo = subset_geometry(pm, masks) if geo is None else geo
+    ``cases``: :func:`dihedral_cases` of their geometry when the caller has them."""
+    if cases is None:
+        cases = dihedral_cases(subset_geometry(pm, masks))
     parts = [
-        _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
+        _coarse_hypotheses_at(pm, obs, masks, cases, ai, max_aspect, top_k, door_width_m)
         for ai in range(len(obs.angles))
     ]
     pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -113,16 +114,11 @@ def smallest_stable(a: np.ndarray, k: int) -> np.ndarray:
     return cand[np.argsort(a[cand], kind="stable")[:k]]
 
 
-def _coarse_hypotheses_at(
-    pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
-) -> dict[str, np.ndarray]:
-    angle = obs.angles[ai]
-    rm = rot(-angle)
-    mc = rm @ obs.centroid
-    mcov = rm @ obs.cov @ rm.T
-    bx0, by0, bx1, by1 = obs.bboxes[ai]
-    fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
-    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
+def dihedral_cases(geo: SubsetGeometry) -> list[tuple[np.ndarray, ...]]:
+    """Per dihedral case (:data:`DIHEDRAL` order) the subsets' shape features as the case turns
+    them (S, 7), and their variances ``vx``, ``vy`` and centroids ``cx``, ``cy`` along the map's
+    axes: what :func:`coarse_hypotheses` compares with the map, independent of it."""
+    out = []
     for k, flipped in DIHEDRAL:
         g = dihedral(k, flipped)  # signed permutation
         swap = g[0, 0] == 0
@@ -136,7 +132,21 @@ def _coarse_hypotheses_at(
         x0, x1 = (lo_x, hi_x) if sx_ > 0 else (-hi_x, -lo_x)
         y0, y1 = (lo_y, hi_y) if sy_ > 0 else (-hi_y, -lo_y)
         vxy = sx_ * sy_ * geo.vxy
-        f = _features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1)
+        out.append((_features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1), vx, vy, cx, cy))
+    return out
+
+
+def _coarse_hypotheses_at(
+    pm: PlanModel, obs: MapObservation, masks, cases, ai: int, max_aspect: float, top_k: int, door_width_m
+) -> dict[str, np.ndarray]:
+    angle = obs.angles[ai]
+    rm = rot(-angle)
+    mc = rm @ obs.centroid
+    mcov = rm @ obs.cov @ rm.T
+    bx0, by0, bx1, by1 = obs.bboxes[ai]
+    fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
+    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
+    for f, vx, vy, cx, cy in cases:
         a = np.sqrt(mcov[0, 0] / vx)
         b = np.sqrt(mcov[1, 1] / vy)
         ratio = b / a
@@ -354,7 +364,11 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
 
 
 def search(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict, geo: SubsetGeometry | None = None
+    pm: PlanModel,
+    obs: MapObservation,
+    masks: np.ndarray,
+    opts: dict,
+    cases: list[tuple[np.ndarray, ...]] | None = None,
 ) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
     no subset fits the map's shape within the aspect bound), and the seeds of
@@ -362,8 +376,8 @@ def search(
 
     The best ``pool_k`` by shape features, the best ``top_k`` of those by the key on
     ``first_pass_points`` points, then all of those on every point; a best IoU below
-    ``search_below_iou`` triggers :func:`local_search` on the two best. ``geo``:
-    :func:`subset_geometry` of ``masks`` when the caller has it.
+    ``search_below_iou`` triggers :func:`local_search` on the two best. ``cases``:
+    :func:`dihedral_cases` of ``masks`` when the caller has them.
     """
     pool = coarse_hypotheses(
         pm,
@@ -372,7 +386,7 @@ def search(
         max_aspect=opts["max_aspect"],
         top_k=opts["pool_k"],
         door_width_m=opts["door_width_m"],
-        geo=geo,
+        cases=cases,
     )
     if len(pool["mask"]) == 0:
         return [], []

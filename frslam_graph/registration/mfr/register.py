@@ -173,17 +173,18 @@ def _prepared_entry(plan, adjacency: str) -> tuple[PlanModel, dict]:
 
 def _subsets(
     pm: PlanModel, derived: dict, seeds: np.ndarray | None, max_per_level: int
-) -> tuple[np.ndarray, coarse.SubsetGeometry]:
+) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
     """The connected room subsets of ``pm``'s room graph (:func:`connected_subsets`) and their
-    geometry (:meth:`SubsetGeometry.of`), kept in ``derived`` (the plan's memo) by their
-    arguments: pure functions of the plan, ~1 ms of a registration on plans of <= 12 rooms."""
+    shapes per dihedral case (:func:`coarse.dihedral_cases`), kept in ``derived`` (the plan's
+    memo) by their arguments: pure functions of the plan, 1-2 ms of a registration on plans of
+    <= 12 rooms."""
     key = ("subsets", None if seeds is None else tuple(int(s) for s in seeds), max_per_level)
     got = derived.get(key)
     if got is None:
         masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=max_per_level)
-        geo = coarse.subset_geometry(pm, masks)
-        _read_only([masks, *(getattr(geo, f.name) for f in dataclasses.fields(geo))])
-        got = derived.setdefault(key, (masks, geo))
+        cases = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))
+        _read_only([masks, cases])
+        got = derived.setdefault(key, (masks, cases))
     return got
 
 
@@ -223,9 +224,9 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         seeds = np.array([pm.ids.index(r) for r in opts["seed_rooms"] if r in pm.ids], dtype=np.int64)
         if len(seeds) == 0:
             return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
-    masks, geo = _subsets(pm, derived, seeds, opts["max_subsets_per_level"])
+    masks, cases = _subsets(pm, derived, seeds, opts["max_subsets_per_level"])
     # 3. coarse search
-    hyps, best_rotations = coarse.search(pm, obs, masks, opts, geo=geo)
+    hyps, best_rotations = coarse.search(pm, obs, masks, opts, cases=cases)
     if not hyps:
         return fail("no room subset fits the map's shape within the aspect bound")
     t_coarse = time.perf_counter()
