@@ -151,6 +151,7 @@ def _ask(p: subprocess.Popen, i: int) -> tuple[float, str]:
 
 def time_trees(path: Path, a: Path, b: Path, rounds: int, limit: int | None, max_rooms: int) -> int:
     """Alternate the two trees case by case; print medians and the differing results."""
+    path, a, b = path.resolve(), a.resolve(), b.resolve()  # the workers run in /
     cases = pickle.loads(path.read_bytes())
     labels = [c[0] for c in cases][:limit]
     n = len(labels)
