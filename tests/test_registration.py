@@ -586,3 +586,126 @@ def test_distance_field_lookups_match_the_clipped_bilinear_formula() -> None:
         if img is field.known:
             want = want * inside[ok]
         assert np.array_equal(got, want)
+
+
+def test_best_bounded_gives_argmax_of_the_keys_above_a_threshold() -> None:
+    # the polish restarts' room IoU is computed only where the wall part's bound can still win:
+    # the same restart (np.argmax's first of equal maxima) and key as ranking every one, and
+    # the skipped ones are those that cannot win
+    from frslam_graph.registration.mfr.fine import best_bounded
+
+    rng = np.random.default_rng(11)
+    for _ in range(400):
+        n = int(rng.integers(0, 9))
+        keys = np.round(rng.random(n), 1)  # ties
+        bounds = keys + np.round(rng.random(n), 1) * rng.integers(0, 2, n)
+        above = float(np.round(rng.random(), 1)) if rng.random() < 0.7 else 0.0
+        asked: list[int] = []
+
+        def value(i: int, keys=keys, asked=asked) -> tuple[float, int]:
+            asked.append(i)
+            return float(keys[i]), i
+
+        got = best_bounded(list(bounds), value, above)
+        want = int(np.argmax(keys)) if n and keys.max() > above else None
+        assert (got is None) == (want is None)
+        if want is not None:
+            assert got == (want, (float(keys[want]), want))
+        assert len(set(asked)) == len(asked) and all(bounds[i] > above for i in asked)
+
+
+def test_wall_bound_is_never_below_the_structure_key() -> None:
+    # the product without the IoU (<= 1) bounds the key in floating point too
+    from frslam_graph.registration.mfr.fine import _wall_bound
+
+    rng = np.random.default_rng(3)
+    for _ in range(20000):
+        iou, prec, rec = rng.random(3)
+        door = np.float64(rng.random())
+        assert float(iou * prec * rec * door) <= _wall_bound((float(prec), float(rec), door))
+
+
+def test_map_side_helpers_match_their_full_canvas_formulas() -> None:
+    # the coarse footprint from the integral image is the block mean's >= 0.5; the small
+    # obstacles kept free are those that do not touch the footprint's border ring
+    from frslam_graph.registration.mfr.map_side import _coarse_cover, _ring, _touching
+
+    rng = np.random.default_rng(5)
+    for h, w, k in ((80, 120, 3), (97, 61, 4), (7, 200, 3), (64, 64, 8)):
+        fp = cv2.dilate((rng.random((h, w)) < 0.05).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        hc, wc = max(1, h // k), max(1, w // k)
+        want = fp[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3)) >= 0.5
+        assert np.array_equal(_coarse_cover(fp, fp.view(np.uint8), k, hc, wc), want)
+        nonfree = (fp & (rng.random((h, w)) < 0.2)).astype(np.uint8)
+        m, lab, _, _ = cv2.connectedComponentsWithStats(nonfree, connectivity=8)
+        border = cv2.dilate(_ring(fp).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        touching = np.zeros(m, bool)
+        touching[np.unique(lab[border])] = True
+        touching[0] = True
+        assert np.array_equal(_touching(fp, lab, m), touching)
+
+
+def test_room_subsets_are_kept_with_the_prepared_plan(plan):
+    # the connected subsets and their shapes per dihedral case are computed once per plan object
+    # and options, read-only, equal to a fresh computation
+    from frslam_graph.registration.mfr import coarse
+    from frslam_graph.registration.mfr import register as mfr
+
+    pm, derived = mfr._prepared_entry(plan, "doors")
+    masks, cases = mfr._subsets(pm, derived, None, 3000)
+    again = mfr._subsets(pm, derived, None, 3000)
+    assert again[0] is masks and again[1] is cases and not masks.flags.writeable
+    assert np.array_equal(masks, connected_subsets(pm.adjacency, max_per_level=3000))
+    fresh = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))
+    assert len(cases) == 8 and all(
+        np.array_equal(u, v) and not u.flags.writeable
+        for c, d in zip(cases, fresh, strict=True)
+        for u, v in zip(c, d, strict=True)
+    )
+    seeded = mfr._subsets(pm, derived, np.array([1]), 3000)[0]
+    assert np.array_equal(seeded, connected_subsets(pm.adjacency, seeds=np.array([1]), max_per_level=3000))
+
+
+def test_room_labels_drawn_as_uint8_equal_the_int32_labels(plan):
+    # placed_rooms_iou draws the labels straight into uint8: the same pixels as the int32 canvas
+    from frslam_graph.registration.mfr import register as mfr
+    from frslam_graph.registration.mfr.plan_side import fill_rooms
+
+    pm = mfr._prepared(plan, "doors")
+    frame = RasterFrame(0.05, (-1.0, -3.0), (260, 300))
+    for flipped, deg in ((False, 0.0), (True, 33.0), (False, 211.0)):
+        m = truth_matrix(flipped, deg)
+        a = fill_rooms(pm.room_rings, pm.room_holes, range(len(pm.ids)), m, frame, labels=True)
+        b = fill_rooms(
+            pm.room_rings, pm.room_holes, range(len(pm.ids)), m, frame, labels=True, label_dtype=np.uint8
+        )
+        assert a.dtype == np.int32 and b.dtype == np.uint8 and a.any() and np.array_equal(a, b)
+
+
+def test_batched_trial_placements_equal_the_matrix_by_matrix_products() -> None:
+    # local_search builds its 15 trials of an axis round at once: the same bits as the
+    # products taken one trial at a time
+    from frslam_graph.se2 import rot
+
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        rm = np.eye(3)
+        rm[:2, :2] = rot(rng.uniform(-np.pi, np.pi))
+        m = np.eye(3)
+        m[:2] = rng.normal(size=(2, 3))
+        c, ext, axis = rng.normal(size=2) * 5, rng.random(2) * 10, int(rng.integers(2))
+        factors, shift = (0.85, 0.92, 1.0, 1.08, 1.17), 0.08
+        f = np.repeat(np.array(factors), 3)
+        sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+        d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
+        d[:, axis, axis] = f
+        d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+        batched = rm @ d @ rm.T @ m
+        one = []
+        for fi in factors:
+            for si in (-shift, 0.0, shift):
+                di = np.eye(3)
+                di[axis, axis] = fi
+                di[axis, 2] = c[axis] * (1.0 - fi) + si * ext[axis]
+                one.append(rm @ di @ rm.T @ m)
+        assert np.array_equal(batched, np.stack(one))

@@ -80,8 +80,8 @@ class Tracer:
             tracer.ctx.update(pm=pm, obs=obs, opts=opts, screened=out[0], final=out[1])
             return out
 
-        def t_search(pm, obs, masks, opts):
-            hyps, rotations = search(pm, obs, masks, opts)
+        def t_search(pm, obs, masks, opts, **kw):
+            hyps, rotations = search(pm, obs, masks, opts, **kw)
             tracer.events.append(("coarse (top 8)", [(h.matrix, h.key) for h in hyps[:8]]))
             return hyps, rotations
 

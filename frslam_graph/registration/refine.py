@@ -47,7 +47,7 @@ class DistanceField:
         # 3x3-mask distances: both sides alike, so the zero crossing stays on the pixel edges
         d_in = cv2.distanceTransform(f, cv2.DIST_L2, cv2.DIST_MASK_3)
         d_out = cv2.distanceTransform(1 - f, cv2.DIST_L2, cv2.DIST_MASK_3)
-        sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32) * np.float32(resolution)
+        sdf = np.where(free, d_in - 0.5, 0.5 - d_out).astype(np.float32, copy=False) * np.float32(resolution)
         kn = free.astype(np.float32)
         return cls(sdf, kn, float(resolution), (float(origin[0]), float(origin[1])))
 
@@ -73,25 +73,26 @@ class DistanceField:
         """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
-        v = self.sdf.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
-        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
+        # the four corner values, each gathered contiguous (a (N, 4) gather left them strided)
+        flat = self.sdf.ravel()
+        v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         a = v10 - v00
         b = v11 - v01
         top = v00 + fx * a
         bot = v01 + fx * b
-        val = top + fy * (bot - top)
+        d = bot - top
+        val = top + fy * d
         gx = (a + fy * (b - a)) * (1.0 / self.resolution)
-        gy = (bot - top) * (1.0 / self.resolution)
+        gy = d * (1.0 / self.resolution)
         return val, gx, gy, inside
 
     def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear free indicator at points (x, y) (0 outside the grid)."""
         w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
-        # the four corner values in one gather: (N, 4) = v00, v10, v01, v11
-        v = self.known.ravel()[k[..., None] + np.array([0, 1, w, w + 1])]
-        v00, v10, v01, v11 = v[..., 0], v[..., 1], v[..., 2], v[..., 3]
+        # the four corner values, each gathered contiguous
+        flat = self.known.ravel()
+        v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         top = v00 + fx * (v10 - v00)
         bot = v01 + fx * (v11 - v01)
         return (top + fy * (bot - top)) * inside
@@ -174,8 +175,9 @@ def refine(
     stage_scales = [max(s, 2.0 * res) for s in scales]
     w_all = np.zeros(len(p))
     r = np.zeros(len(p))
-    px, py = p[:, 0], p[:, 1]
-    n0, n1 = nrm[:, 0], f * nrm[:, 1]
+    # the columns contiguous: the same element operations, on unit strides
+    px, py = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
+    n0, n1 = np.ascontiguousarray(nrm[:, 0]), f * nrm[:, 1]
     jac = np.empty((len(p), 6))
     # the plan samples' k-d tree (plan frame, scaled as started): map wall cells' candidates
     tree = cKDTree(p * np.array([sx, sy])) if map_walls is not None and len(p) else None
@@ -257,7 +259,7 @@ def refine(
     n_known = int((w_all > 0).sum())
     rms = float(np.sqrt((w_all * r * r).sum() / wsum)) if wsum > 0 else float("inf")
     known_pts = w_all > 0
-    inl = float((np.abs(r[known_pts]) < 2.0 * res).mean()) if known_pts.any() else 0.0
+    inl = float((np.abs(r.compress(known_pts)) < 2.0 * res).mean()) if known_pts.any() else 0.0
     cov3 = covf = None
     if jtj is not None and n_known > 6:
         try:
@@ -265,8 +267,7 @@ def refine(
             # residuals of neighbouring points on a wall are correlated (the map's cells along a
             # wall err together): count one independent residual per ``correlation`` points
             covf = np.linalg.inv(jtj) * sigma2 * max(1.0, correlation)
-            idx = [1, 2, 0]
-            cov3 = covf[np.ix_(idx, idx)]
+            cov3 = covf.take(_XY_THETA, axis=0).take(_XY_THETA, axis=1)  # (tx, ty, theta)
         except np.linalg.LinAlgError:
             cov3 = covf = None
     return RefineResult(
@@ -284,6 +285,9 @@ def refine(
         covariance_full=covf,
     )
 
+
+# the rows / columns (tx, ty, theta) of the full covariance (theta, tx, ty, lsx, lsy, delta)
+_XY_THETA = np.array([1, 2, 0])
 
 # map wall cells matched to the best of this many nearest plan boundary samples (:func:`_wall_terms`)
 WALL_NEIGHBOURS = 4

@@ -69,17 +69,30 @@ class Hypothesis:
     rooms: tuple[int, ...] = ()
 
 
+def subset_geometry(pm: PlanModel, masks: np.ndarray) -> SubsetGeometry:
+    """Area moments and bounding boxes of the room subsets ``masks`` (in the plan's frame turned by
+    ``-pm.angle``)."""
+    return SubsetGeometry.of(mask_matrix(masks, len(pm.ids)), pm.moments, pm.bounds)
+
+
 def coarse_hypotheses(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, *, max_aspect: float, top_k: int, door_width_m=None
+    pm: PlanModel,
+    obs: MapObservation,
+    masks: np.ndarray,
+    *,
+    max_aspect: float,
+    top_k: int,
+    door_width_m=None,
+    cases: list[tuple[np.ndarray, ...]] | None = None,
 ) -> dict[str, np.ndarray]:
     """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
     the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
-    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction)."""
-    n = len(pm.ids)
-    member = mask_matrix(masks, n)
-    geo = SubsetGeometry.of(member, pm.moments, pm.bounds)
+    ``case`` (index in :data:`DIHEDRAL`), ``mats`` (H, 3, 3), ``cost``, ``angle`` (map direction).
+    ``cases``: :func:`dihedral_cases` of their geometry when the caller has them."""
+    if cases is None:
+        cases = dihedral_cases(subset_geometry(pm, masks))
     parts = [
-        _coarse_hypotheses_at(pm, obs, masks, geo, ai, max_aspect, top_k, door_width_m)
+        _coarse_hypotheses_at(pm, obs, masks, cases, ai, max_aspect, top_k, door_width_m)
         for ai in range(len(obs.angles))
     ]
     pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -101,16 +114,11 @@ def smallest_stable(a: np.ndarray, k: int) -> np.ndarray:
     return cand[np.argsort(a[cand], kind="stable")[:k]]
 
 
-def _coarse_hypotheses_at(
-    pm: PlanModel, obs: MapObservation, masks, geo, ai: int, max_aspect: float, top_k: int, door_width_m
-) -> dict[str, np.ndarray]:
-    angle = obs.angles[ai]
-    rm = rot(-angle)
-    mc = rm @ obs.centroid
-    mcov = rm @ obs.cov @ rm.T
-    bx0, by0, bx1, by1 = obs.bboxes[ai]
-    fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
-    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
+def dihedral_cases(geo: SubsetGeometry) -> list[tuple[np.ndarray, ...]]:
+    """Per dihedral case (:data:`DIHEDRAL` order) the subsets' shape features as the case turns
+    them (S, 7), and their variances ``vx``, ``vy`` and centroids ``cx``, ``cy`` along the map's
+    axes: what :func:`coarse_hypotheses` compares with the map, independent of it."""
+    out = []
     for k, flipped in DIHEDRAL:
         g = dihedral(k, flipped)  # signed permutation
         swap = g[0, 0] == 0
@@ -124,7 +132,21 @@ def _coarse_hypotheses_at(
         x0, x1 = (lo_x, hi_x) if sx_ > 0 else (-hi_x, -lo_x)
         y0, y1 = (lo_y, hi_y) if sy_ > 0 else (-hi_y, -lo_y)
         vxy = sx_ * sy_ * geo.vxy
-        f = _features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1)
+        out.append((_features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1), vx, vy, cx, cy))
+    return out
+
+
+def _coarse_hypotheses_at(
+    pm: PlanModel, obs: MapObservation, masks, cases, ai: int, max_aspect: float, top_k: int, door_width_m
+) -> dict[str, np.ndarray]:
+    angle = obs.angles[ai]
+    rm = rot(-angle)
+    mc = rm @ obs.centroid
+    mcov = rm @ obs.cov @ rm.T
+    bx0, by0, bx1, by1 = obs.bboxes[ai]
+    fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
+    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
+    for f, vx, vy, cx, cy in cases:
         a = np.sqrt(mcov[0, 0] / vx)
         b = np.sqrt(mcov[1, 1] / vy)
         ratio = b / a
@@ -326,23 +348,27 @@ def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opt
         ext = bbox[2:] - bbox[:2]
         for factors, shift in rounds:
             for axis in (0, 1):
-                trials = []
-                for f in factors:
-                    for sh in (-shift, 0.0, shift):
-                        d = np.eye(3)
-                        d[axis, axis] = f
-                        d[axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
-                        trials.append(
-                            Hypothesis(h.mask, h.k, h.flipped, rm @ d @ rm.T @ h.matrix, h.feature_cost)
-                        )
-                _score_hypotheses(pm, obs, trials, opts["door_width_m"])
-                top = max(trials, key=lambda t: t.key)
-                if top.key > h.key:
-                    h.matrix, h.key, h.coarse_iou = top.matrix, top.key, top.coarse_iou
+                # every (factor, shift) at once: the same products, matrix by matrix
+                f = np.repeat(np.array(factors), 3)
+                sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+                d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
+                d[:, axis, axis] = f
+                d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
+                mats = rm @ d @ rm.T @ h.matrix
+                iou, key = coarse_scores(
+                    pm, obs, mats, np.full(len(mats), h.mask, dtype=np.uint64), opts["door_width_m"]
+                )
+                top = int(np.argmax(key))  # max()'s choice: the first of equal keys
+                if float(key[top]) > h.key:
+                    h.matrix, h.key, h.coarse_iou = mats[top], float(key[top]), float(iou[top])
 
 
 def search(
-    pm: PlanModel, obs: MapObservation, masks: np.ndarray, opts: dict
+    pm: PlanModel,
+    obs: MapObservation,
+    masks: np.ndarray,
+    opts: dict,
+    cases: list[tuple[np.ndarray, ...]] | None = None,
 ) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
     no subset fits the map's shape within the aspect bound), and the seeds of
@@ -350,10 +376,17 @@ def search(
 
     The best ``pool_k`` by shape features, the best ``top_k`` of those by the key on
     ``first_pass_points`` points, then all of those on every point; a best IoU below
-    ``search_below_iou`` triggers :func:`local_search` on the two best.
+    ``search_below_iou`` triggers :func:`local_search` on the two best. ``cases``:
+    :func:`dihedral_cases` of ``masks`` when the caller has them.
     """
     pool = coarse_hypotheses(
-        pm, obs, masks, max_aspect=opts["max_aspect"], top_k=opts["pool_k"], door_width_m=opts["door_width_m"]
+        pm,
+        obs,
+        masks,
+        max_aspect=opts["max_aspect"],
+        top_k=opts["pool_k"],
+        door_width_m=opts["door_width_m"],
+        cases=cases,
     )
     if len(pool["mask"]) == 0:
         return [], []

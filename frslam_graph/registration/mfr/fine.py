@@ -11,6 +11,7 @@ Placements are 3 × 3 matrices from plan units to the map's grid frame (metres).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
@@ -90,13 +91,17 @@ def placed_rooms_iou(
     (>= ``min_cover`` of their area) with the footprint, and those rooms (indices). What it puts
     on the map's unexplored cells (``obs.unexplored``: enclosed regions the map has not observed)
     counts neither for nor against it."""
-    if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:2, :2])) <= 0:
+    if not np.all(np.isfinite(matrix)):
+        return 0.0, ()
+    det = abs(np.linalg.det(matrix[:2, :2]))
+    if det <= 0:
         return 0.0, ()
     frame, footprint, unexplored = obs.frame, obs.footprint, obs.unexplored
     n = len(pm.ids)  # at most MAX_ROOMS = 64: the labels fit in uint8
-    labels = fill_rooms(pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True).astype(np.uint8)
+    labels = fill_rooms(
+        pm.room_rings, pm.room_holes, range(n), matrix, frame, labels=True, label_dtype=np.uint8
+    )
     on = _label_counts(labels, footprint, n)
-    det = abs(np.linalg.det(matrix[:2, :2]))
     px_area = pm.room_areas * det / frame.resolution**2
     off = _label_counts(labels, unexplored, n)
     cover = on / np.maximum(px_area - off, 1e-9)
@@ -237,15 +242,50 @@ def structure_key(
     recall. The coarse key (80-cell footprint, boundaries at the wall centres) ranks a placement
     shifted by a wall or a room above the right one on maps with partly seen rooms and thick
     walls."""
-    iou, rooms = placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
+    return _structure_key_with(pm, obs, r, opts, _wall_part(pm, obs, r, opts, tol))
+
+
+def _wall_part(
+    pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, tol: float
+) -> tuple[float, float, float]:
+    """The factors of :func:`structure_key` but the IoU: (wall precision, recall, door-width
+    plausibility)."""
     prec, rec = wall_precision_recall(pm, obs, r.matrix, tol, 1000, delta=r.delta)
     scale = math.sqrt(abs(float(np.linalg.det(r.matrix[:2, :2]))))
-    return (
-        float(iou * prec * rec * door_prior(pm, np.array([scale]), opts["door_width_m"])[0]),
-        float(iou),
-        len(rooms),
-        float(rec),
-    )
+    return prec, rec, door_prior(pm, np.array([scale]), opts["door_width_m"])[0]
+
+
+def _wall_bound(wall: tuple[float, float, float]) -> float:
+    """An upper bound of :func:`structure_key` from its wall part (the IoU is at most 1): the
+    same products in the same order, each rounding monotone, so never below the key."""
+    prec, rec, door = wall
+    return float(prec * rec * door)
+
+
+def _structure_key_with(
+    pm: PlanModel, obs: MapObservation, r: RefineResult, opts: dict, wall: tuple[float, float, float]
+) -> tuple[float, float, int, float]:
+    """:func:`structure_key` given its wall part (:func:`_wall_part`)."""
+    prec, rec, door = wall
+    iou, rooms = placed_rooms_iou(pm, obs, r.matrix, opts["min_cover"])
+    return float(iou * prec * rec * door), float(iou), len(rooms), float(rec)
+
+
+def best_bounded(bounds: list[float], value, above: float) -> tuple[int, Any] | None:
+    """(i, value(i)) for the first ``i`` of the highest ``value(i)[0]`` (``np.argmax``'s choice)
+    when that exceeds ``above``, else None; ``bounds[i] >= value(i)[0]`` lets it skip ``value(i)``
+    where it cannot change the answer (tried highest bound first)."""
+    best: tuple[float, int, Any] | None = None
+    for i in sorted(range(len(bounds)), key=lambda j: (-bounds[j], j)):
+        b = bounds[i]
+        if not b > above or (best is not None and (b < best[0] or (b == best[0] and i > best[1]))):
+            continue
+        v = value(i)
+        if best is None or v[0] > best[0] or (v[0] == best[0] and i < best[1]):
+            best = (v[0], i, v)
+    if best is None or not best[0] > above:
+        return None
+    return best[1], best[2]
 
 
 # the joint scale steps of :func:`polish_scales`: about the refinement's basin (a start more than
@@ -293,13 +333,17 @@ def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict,
     if not starts:
         return
     # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
-    # restart a wall off above one near the truth scoring it half as high
-    keys = [structure_key(pm, obs, s, opts, tol) for s in starts]
-    best = int(np.argmax([k[0] for k in keys]))
-    cand, q = starts[best], keys[best]
-    if q[0] > h.quick:
-        h.refined = cand
-        h.quick, h.placed_iou, h.placed_rooms, h.recall = q
+    # restart a wall off above one near the truth scoring it half as high. The rooms' IoU (a
+    # full-resolution raster of the plan) only for restarts whose wall part could still win
+    walls = [_wall_part(pm, obs, s, opts, tol) for s in starts]
+    won = best_bounded(
+        [_wall_bound(w) for w in walls],
+        lambda i: _structure_key_with(pm, obs, starts[i], opts, walls[i]),
+        h.quick,
+    )
+    if won is not None:
+        h.refined = starts[won[0]]
+        h.quick, h.placed_iou, h.placed_rooms, h.recall = won[1]
 
 
 def refine_final(
@@ -339,16 +383,18 @@ def face_distances(
     pts = pts[::stride]
     a, t = matrix[:2, :2], matrix[:2, 2]
     q = pts @ a.T + t
-    if delta and abs(float(np.linalg.det(a))) > 0:  # normals map by A^-T: still inward
-        nrm = pm.sample_normals[::stride] @ np.linalg.inv(a)
+    det = abs(float(np.linalg.det(a)))
+    ainv = np.linalg.inv(a) if det > 0 else None
+    if delta and ainv is not None:  # normals map by A^-T: still inward
+        nrm = pm.sample_normals[::stride] @ ainv
         q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
     on_fp, d = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), q[:, 0], q[:, 1], res, (0.0, 0.0))
     inside = on_fp > 0
     d = d[inside]
-    det = abs(float(np.linalg.det(a)))
     if det <= 0:
         return d, None, 0.0
-    ainv = np.linalg.inv(a)
+    if ainv is None:  # a NaN determinant: as before, the inverse taken anyway
+        ainv = np.linalg.inv(a)
     e = (obs.edge_points - t) @ ainv.T
     pf = pm.plan_frame
     pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)

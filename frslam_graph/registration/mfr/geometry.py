@@ -97,7 +97,8 @@ def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndar
     a = a.astype(np.float32)
     t = t.astype(np.float32)
     p = pts.astype(np.float32)
-    px, py = p[None, :, 0], p[None, :, 1]
+    # the columns contiguous (unit-stride broadcasts): the same element operations
+    px, py = np.ascontiguousarray(p[:, 0])[None], np.ascontiguousarray(p[:, 1])[None]
     # a00 * px + a01 * py + t0, left to right, in place (float32 roundings unchanged)
     x = a[:, 0, 0, None] * px
     x += a[:, 0, 1, None] * py

@@ -105,7 +105,9 @@ def observe_map(
     small = np.zeros(m, bool)
     small[1:] = st2[1:, cv2.CC_STAT_AREA] * res * res < obstacle_m2
     # keep components that touch the footprint's outside (outer walls) even when small
-    free = free | (small[lab2] & _interior(footprint, lab2, m))
+    small &= ~_touching(footprint, lab2, m)
+    if small.any():  # one lookup of the components kept (most maps: none)
+        free = free | small[lab2]
     field_ = DistanceField.from_masks(free, res, (0.0, 0.0))
     # free cells on a wall (not on a frontier to unknown): the map's room structure
     walls_in = (footprint & ~free).astype(np.uint8)
@@ -138,12 +140,13 @@ def observe_map(
         sel.flat[idx[:: int(math.ceil(len(idx) / 30000))]] = True
     angles = dominant_angles(np.column_stack([gx[sel], gy[sel]]).astype(np.float64)) if sel.any() else [0.0]
 
-    mom = cv2.moments(footprint.astype(np.uint8), binaryImage=True)
+    footprint_u8 = footprint.view(np.uint8)  # bool is one byte of 0 / 1
+    mom = cv2.moments(footprint_u8, binaryImage=True)
     m00 = max(mom["m00"], 1.0)
     centroid = np.array([(mom["m10"] / m00 + 0.5) * res, (mom["m01"] / m00 + 0.5) * res])
     cov = np.array([[mom["mu20"], mom["mu11"]], [mom["mu11"], mom["mu02"]]]) / m00 * res * res
     cov += np.eye(2) * res * res / 12.0
-    contours, _ = cv2.findContours(footprint.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(footprint_u8, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     pts = (np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64) + 0.5) * res
     half = 0.5 * res
     bboxes = []
@@ -158,7 +161,7 @@ def observe_map(
     h, w = footprint.shape
     k = max(1, int(math.ceil(max(h, w) / coarse_px)))
     hc, wc = max(1, h // k), max(1, w // k)
-    block = footprint[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3))
+    coarse = _coarse_cover(footprint, footprint_u8, k, hc, wc)
     coarse_frame = RasterFrame(res * k, (0.0, 0.0), (hc, wc))
     return MapObservation(
         to_map=g.map_from_grid(),
@@ -172,9 +175,9 @@ def observe_map(
         cov=cov,
         bboxes=bboxes,
         coarse_frame=coarse_frame,
-        coarse_footprint=block >= 0.5,
-        coarse_footprint_u8=(block >= 0.5).astype(np.uint8),
-        footprint_u8=footprint.astype(np.uint8),
+        coarse_footprint=coarse,
+        coarse_footprint_u8=coarse.astype(np.uint8),
+        footprint_u8=footprint_u8.copy(),
         edge_dt=edge_dt,
         edge_points=edge_points,
         exit_points=exit_points,
@@ -193,7 +196,7 @@ def _unexplored_cores(pockets: np.ndarray, radius_px: float) -> np.ndarray:
     np.maximum.at(depth, labels.ravel()[inside], cv2.distanceTransform(p8, cv2.DIST_L2, 3).ravel()[inside])
     core = depth >= radius_px
     core[0] = False
-    return core[labels]
+    return core[labels] if core.any() else np.zeros(pockets.shape, bool)
 
 
 def _ring(mask: np.ndarray) -> np.ndarray:
@@ -201,11 +204,24 @@ def _ring(mask: np.ndarray) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~mask
 
 
-def _interior(footprint: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
-    """Bool per pixel: its non-free component does not touch the footprint's border ring."""
+def _touching(footprint: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool per component of ``labels``: it touches the footprint's border ring (label 0,
+    the background, counts as touching)."""
     ring = _ring(footprint)
-    border = cv2.dilate(ring.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    border = cv2.dilate(ring.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
     touching = np.zeros(n, bool)
-    touching[np.unique(labels[border])] = True
+    touching[labels[border]] = True
     touching[0] = True
-    return ~touching[labels]
+    return touching
+
+
+def _coarse_cover(footprint: np.ndarray, footprint_u8: np.ndarray, k: int, hc: int, wc: int) -> np.ndarray:
+    """(hc, wc) bool: blocks of k x k cells at least half footprint (the mean of the block's cells
+    >= 0.5), from the footprint's integral image (exact integer counts)."""
+    h, w = footprint.shape
+    if hc * k > h or wc * k > w:  # a map thinner than a block: the block mean as it was
+        return footprint[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3)) >= 0.5
+    ii = cv2.integral(footprint_u8)  # (h + 1, w + 1) int32
+    s = ii[::k, ::k][: hc + 1, : wc + 1]
+    counts = s[1:, 1:] - s[:-1, 1:] - s[1:, :-1] + s[:-1, :-1]
+    return 2 * counts >= k * k

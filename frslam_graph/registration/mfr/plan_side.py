@@ -216,14 +216,21 @@ def prepare_plan(
 
 
 def fill_rooms(
-    room_rings, room_holes, rooms, matrix: np.ndarray, frame: RasterFrame, labels: bool = False
+    room_rings,
+    room_holes,
+    rooms,
+    matrix: np.ndarray,
+    frame: RasterFrame,
+    labels: bool = False,
+    label_dtype: type = np.int32,
 ) -> np.ndarray:
     """Rasterise plan rooms (indices) under ``matrix`` (plan -> frame metres) with cv2.fillPoly at
-    sub-pixel precision; a pixel is inside when its centre is. Mask (uint8) or 1-based labels."""
+    sub-pixel precision; a pixel is inside when its centre is. Mask (uint8) or 1-based labels
+    (``label_dtype``: uint8 holds up to 255 rooms)."""
     m = np.diag([1.0 / frame.resolution, 1.0 / frame.resolution, 1.0]) @ matrix
     m[:2, 2] -= np.asarray(frame.origin) / frame.resolution + 0.5
     a, t = m[:2, :2], m[:2, 2]
-    img = np.zeros(frame.shape, np.int32 if labels else np.uint8)
+    img = np.zeros(frame.shape, label_dtype if labels else np.uint8)
     ext, holes = [], []
     for i in rooms:
         for r in room_rings[i]:

@@ -142,7 +142,9 @@ def register_mfr(plan, grid, **options: Any) -> Registration:
 # registration's CPU time on plans of <= 12 rooms
 # (a memo of a pure function of a frozen input, like functools.lru_cache; the lock because the plan
 # updates register in a background thread and several runs may share a process)
-_PREPARED: list[tuple[weakref.ref, str, PlanModel]] = []
+# Each entry also keeps what the registration derives from the plan model alone, by key: the room
+# subsets and their geometry (:func:`_subsets`)
+_PREPARED: list[tuple[weakref.ref, str, PlanModel, dict]] = []
 _PREPARED_KEEP = 4
 _PREPARED_LOCK = threading.Lock()
 
@@ -150,17 +152,40 @@ _PREPARED_LOCK = threading.Lock()
 def _prepared(plan, adjacency: str) -> PlanModel:
     """:func:`prepare_plan` of ``plan`` (a FloorPlan, frozen), reused while the same object is
     registered again; its arrays are read-only (a registration must not change them)."""
+    return _prepared_entry(plan, adjacency)[0]
+
+
+def _prepared_entry(plan, adjacency: str) -> tuple[PlanModel, dict]:
+    """:func:`_prepared`'s plan model and the memo of what is derived from it alone."""
     with _PREPARED_LOCK:
-        for ref, mode, pm in _PREPARED:
+        for ref, mode, pm, derived in _PREPARED:
             if ref() is plan and mode == adjacency:
-                return pm
+                return pm, derived
     pm = prepare_plan(plan, adjacency=adjacency)
     for f in dataclasses.fields(pm):
         _read_only(getattr(pm, f.name))
+    derived: dict = {}
     with _PREPARED_LOCK:
-        _PREPARED.insert(0, (weakref.ref(plan), adjacency, pm))
+        _PREPARED.insert(0, (weakref.ref(plan), adjacency, pm, derived))
         del _PREPARED[_PREPARED_KEEP:]
-    return pm
+    return pm, derived
+
+
+def _subsets(
+    pm: PlanModel, derived: dict, seeds: np.ndarray | None, max_per_level: int
+) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
+    """The connected room subsets of ``pm``'s room graph (:func:`connected_subsets`) and their
+    shapes per dihedral case (:func:`coarse.dihedral_cases`), kept in ``derived`` (the plan's
+    memo) by their arguments: pure functions of the plan, 1-2 ms of a registration on plans of
+    <= 12 rooms."""
+    key = ("subsets", None if seeds is None else tuple(int(s) for s in seeds), max_per_level)
+    got = derived.get(key)
+    if got is None:
+        masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=max_per_level)
+        cases = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))
+        _read_only([masks, cases])
+        got = derived.setdefault(key, (masks, cases))
+    return got
 
 
 def _read_only(value: Any) -> None:
@@ -193,15 +218,15 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         return fail(obs)
     t_map = time.perf_counter()
     # 2. plan side, and the room subsets to try
-    pm = _prepared(plan, opts["adjacency"])
+    pm, derived = _prepared_entry(plan, opts["adjacency"])
     seeds = None
     if opts["seed_rooms"]:
         seeds = np.array([pm.ids.index(r) for r in opts["seed_rooms"] if r in pm.ids], dtype=np.int64)
         if len(seeds) == 0:
             return fail(f"none of the seed rooms {list(opts['seed_rooms'])} is in the plan")
-    masks = connected_subsets(pm.adjacency, seeds=seeds, max_per_level=opts["max_subsets_per_level"])
+    masks, cases = _subsets(pm, derived, seeds, opts["max_subsets_per_level"])
     # 3. coarse search
-    hyps, best_rotations = coarse.search(pm, obs, masks, opts)
+    hyps, best_rotations = coarse.search(pm, obs, masks, opts, cases=cases)
     if not hyps:
         return fail("no room subset fits the map's shape within the aspect bound")
     t_coarse = time.perf_counter()
