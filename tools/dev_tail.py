@@ -3,6 +3,7 @@ each backend stage (issue 19: per-scan CPU p99 <= 20 ms, no scan over 200 ms).
 
     .venv/bin/python tools/dev_tail.py fr079 --json /tmp/tail_fr079.json   # as `frslam run`
     .venv/bin/python tools/dev_tail.py fr079_250 --serial                   # odometry split too
+    .venv/bin/python tools/dev_tail.py aces --config /tmp/budget5.yaml      # another configuration
 
 The run is ``run_recording`` as ``tools/bench_slam.py`` runs it (odometry in its worker unless
 ``--serial``). Library functions are wrapped here (nothing in the library changes) and charged
@@ -208,6 +209,7 @@ def main() -> None:
     ap.add_argument("--serial", action="store_true", help="odometry in this process (its stages too)")
     ap.add_argument("--over", type=float, default=20.0, help="ms; the scans over this are analysed")
     ap.add_argument("--json", type=Path, help="write every scan's stages here")
+    ap.add_argument("--config", type=Path, help="FRSlamConfig YAML/JSON (default: the default configuration)")
     args = ap.parse_args()
 
     from frslam_graph.datasets import open_recording
@@ -218,7 +220,7 @@ def main() -> None:
     facts = instrument(st, args.serial)
     path, _ = (DATA / p for p in LOGS[args.log])
     c0 = time.process_time()
-    run = run_recording(open_recording(path), parallel=False if args.serial else None)
+    run = run_recording(open_recording(path), config=args.config, parallel=False if args.serial else None)
     res = run.result
     total = res.cpu_latencies * 1e3
     rows = facts["rows"]
