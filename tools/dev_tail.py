@@ -3,7 +3,8 @@ each backend stage (issue 19: per-scan CPU p99 <= 20 ms, no scan over 200 ms).
 
     .venv/bin/python tools/dev_tail.py fr079 --json /tmp/tail_fr079.json   # as `frslam run`
     .venv/bin/python tools/dev_tail.py fr079_250 --serial                   # odometry split too
-    .venv/bin/python tools/dev_tail.py aces --config /tmp/budget5.yaml      # another configuration
+    .venv/bin/python tools/dev_tail.py simA0 --plan                         # a simulated house, its plan
+    .venv/bin/python tools/dev_tail.py intel --floor-plan $D/floorplans/ipa/lab_intel.png
 
 The run is ``run_recording`` as ``tools/bench_slam.py`` runs it (odometry in its worker unless
 ``--serial``). Library functions are wrapped here (nothing in the library changes) and charged
@@ -13,6 +14,12 @@ CPU is its ``cpu_latencies`` entry minus the backend's part. Unlike ``tools/dev_
 graph's iSAM2 updates are charged to what asked for them (keyframe insertion, a closure's factor,
 a settle iteration). Prints the per-scan CPU median / p99 / max and, for the scans over
 ``--over`` ms, the top 1 % and the slowest, their stages; ``--json`` keeps every scan's stages.
+
+``simA0`` .. ``simB2``: house 0-2 of ``tools/bench_backend.py``'s section 2 in regime A or B (its
+simulated run: 200 m, the house's seed), streamed through ``process`` as that benchmark does; with
+``--plan`` the house's own floor plan (``FRSlam(floor_plan=plan)``), whose update strategy's stages
+are charged too ("plan: ..."), and the scans where a deferred-steps drain (``run_all``) or a
+re-anchoring of the priors ran are marked (their inclusive CPU).
 """
 
 from __future__ import annotations
@@ -66,6 +73,80 @@ def steps_summary(steps: list) -> None:
         )
 
 
+SIM = {f"sim{r}{k}": (r, k) for r in "AB" for k in range(3)}
+
+
+def simulated(name: str, with_plan: bool) -> tuple[Any, Any, Any]:
+    """(FRSlam, scans, ground truth) of house ``k`` of ``bench_backend``'s section 2 in regime
+    ``r`` (``SIM[name]``), with the house's plan when ``with_plan``."""
+    import bench_backend as bb
+    from frslam_graph.datasets.simulator import SimulationOptions, simulate_run
+
+    from frslam_graph.config import FRSlamConfig
+    from frslam_graph.floorplan import FloorPlan
+    from frslam_graph.slam import FRSlam
+
+    regime, k = SIM[name]
+    spec = bb.REGIMES[regime]
+    plan = FloorPlan.load(bb.candidate_plans()[k])
+    opts = SimulationOptions(length=200.0, beams=720, scan_rate=10.0, max_speed=1.0, **spec["sim"])
+    run = simulate_run(plan, seed=k, options=opts)
+    cfg = FRSlamConfig().with_updates(**spec["cfg"]) if spec["cfg"] else FRSlamConfig()
+    return FRSlam(cfg, floor_plan=plan if with_plan else None), run.scans, run.ground_truth
+
+
+def instrument_plan(st: Stages, facts: dict[str, Any]) -> None:
+    """Wrap the floor-plan update strategy's stages; ``facts["inclusive"]`` gets, per scan, the
+    inclusive CPU (s) of the deferred-steps drains and of the priors' re-anchorings."""
+    import functools
+
+    from frslam_graph import registration
+    from frslam_graph.backend import deferred, graph, mapping
+    from frslam_graph.localisation import relocalisation
+    from frslam_graph.plan_updates import evidence, judge, priors, refiner, updater
+
+    fu = updater.FloorPlanUpdater
+    st.wrap(fu, "on_keyframe", "plan: updater glue")
+    st.wrap(fu, "_attempt_on", "plan: registration attempt glue")
+    st.wrap(fu, "_recheck", "plan: recheck of the accepted")
+    st.wrap(registration, "register", "plan: MFR registration")
+    st.wrap(mapping.OccupancyMapper, "update", "plan: occupancy map")
+    st.wrap(mapping, "occupancy_grid", "plan: occupancy map")
+    st.wrap(judge.RegistrationJudge, "judge", "plan: judge")
+    st.wrap(relocalisation.Relocaliser, "relocalise", "plan: relocalise")
+    st.wrap(relocalisation.Relocaliser, "__init__", "plan: relocaliser build")
+    st.wrap(priors.PriorManager, "offer", "plan: prior gate + add")
+    st.wrap(priors.PriorManager, "check", "plan: priors check")
+    st.wrap(priors.PriorManager, "reanchor", "plan: re-anchor glue")
+    st.wrap(refiner.PlanRefiner, "scale", "plan: scale refinement")
+    st.wrap(refiner.PlanRefiner, "start", "plan: start alignment")
+    st.wrap(refiner, "fit_plan_scale", "plan: scale fit")
+    st.wrap(evidence.ScanEvidence, "fit", "plan: scan evidence")
+    pg = graph.PoseGraph
+    st.wrap(pg, "add_prior", "graph: prior add (iSAM2)")
+    st.wrap(pg, "remove_priors", "graph: prior removal (iSAM2)")
+    st.wrap(pg, "marginal_covariance", "graph: marginal covariance")
+    inclusive: dict[str, float] = {}
+    facts["inclusive_now"] = inclusive
+
+    def incl(owner: Any, name: str, label: str) -> None:
+        fn = getattr(owner, name)
+
+        @functools.wraps(fn)
+        def timed(*a: Any, **k: Any) -> Any:
+            c0 = time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                inclusive[label] = inclusive.get(label, 0.0) + time.thread_time() - c0
+
+        setattr(owner, name, timed)
+
+    incl(deferred.DeferredSteps, "run_all", "deferred run_all")
+    incl(priors.PriorManager, "reanchor", "re-anchoring")
+    incl(fu, "_attempt_on", "registration attempt")
+
+
 def instrument(st: Stages, serial: bool) -> dict[str, Any]:
     """Wrap the backend's stages (and the odometry's with ``serial``); returns a dict the
     per-scan wrapper fills with each scan's facts (keyframe, closer steps and cost)."""
@@ -97,7 +178,7 @@ def instrument(st: Stages, serial: bool) -> dict[str, Any]:
         st.wrap(lc, "_place_distances", "closer: plan, place ranking")
     st.wrap(lc, "_query_points", "closer: query submap")
     st.wrap_gen(lc, "_reference", "closer: reference submap points")
-    facts: dict[str, Any] = {"rows": [], "steps": []}
+    facts: dict[str, Any] = {"rows": [], "steps": [], "inclusive": []}
     _wrap_job_steps(st, lc, facts["steps"])
     st.wrap_gen(lc, "_add", "closer: add closures glue")
     st.wrap_gen(lc, "_prune", "closer: prune glue")
@@ -146,6 +227,10 @@ def instrument(st: Stages, serial: bool) -> dict[str, Any]:
             )
             if closer_ is not None:  # a call that did no work leaves these from the last one
                 closer_.steps_last_call, closer_.cost_last_call = 0, 0.0
+            now = facts.get("inclusive_now")
+            if now is not None:
+                facts["inclusive"].append(dict(now))
+                now.clear()
             st.mark()
 
     slam.FRSlam._record = record_and_mark
@@ -153,9 +238,16 @@ def instrument(st: Stages, serial: bool) -> dict[str, Any]:
 
 
 def summary(
-    name: str, total: np.ndarray, odo: np.ndarray, scans: list[dict], rows: list, over: float
+    name: str,
+    total: np.ndarray,
+    odo: np.ndarray,
+    scans: list[dict],
+    rows: list,
+    over: float,
+    inclusive: list[dict] | None = None,
 ) -> None:
-    """Print the spread and the stages of the slow scans."""
+    """Print the spread and the stages of the slow scans (``inclusive``: per scan, the inclusive
+    CPU in s of the drains and re-anchorings, :func:`instrument_plan`)."""
     kf = np.array([r[0] for r in rows])
     steps = np.array([r[2] for r in rows])
     cost = np.array([r[3] for r in rows])
@@ -197,19 +289,21 @@ def summary(
             if v * 1e3 > 0.1 * total[i]
         )
         kind = "KF" if kf[i] else "  "
+        within = ", ".join(f"{k} {1e3 * v:.0f}" for k, v in (inclusive[i] if inclusive else {}).items())
         print(
             f"  {i} {kind}: {total[i]:.0f}, odo {odo[i]:.0f}; {parts}; {steps[i]} / {cost[i]:.1f} "
-            f"({rows[i][1]} keyframes)"
+            f"({rows[i][1]} keyframes){'; within: ' + within if within else ''}"
         )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("log", choices=sorted(LOGS))
+    ap.add_argument("log", choices=sorted(LOGS) + sorted(SIM))
     ap.add_argument("--serial", action="store_true", help="odometry in this process (its stages too)")
+    ap.add_argument("--plan", action="store_true", help="sim*: with the house's floor plan")
+    ap.add_argument("--floor-plan", type=Path, help="a real log: with this floor plan (its stages charged)")
     ap.add_argument("--over", type=float, default=20.0, help="ms; the scans over this are analysed")
     ap.add_argument("--json", type=Path, help="write every scan's stages here")
-    ap.add_argument("--config", type=Path, help="FRSlamConfig YAML/JSON (default: the default configuration)")
     args = ap.parse_args()
 
     from frslam_graph.datasets import open_recording
@@ -218,10 +312,38 @@ def main() -> None:
 
     st = Stages(clock=time.thread_time)
     facts = instrument(st, args.serial)
-    path, _ = (DATA / p for p in LOGS[args.log])
+    parallel = False if args.serial else None
     c0 = time.process_time()
-    run = run_recording(open_recording(path), config=args.config, parallel=False if args.serial else None)
-    res = run.result
+    if args.log in SIM:
+        from frslam_graph.evaluation.metrics import ate
+        from frslam_graph.offline import process
+
+        if args.plan:
+            instrument_plan(st, facts)
+        slam, scans_in, truth = simulated(args.log, args.plan)
+        res = process(slam, scans_in, parallel=parallel)
+        run = type("Run", (), {"result": res, "slam": slam})
+        stats, _ = ate(res.trajectory, truth)
+        up = slam.update_strategy
+        n_priors = len([h for h in slam.context.graph.priors() if h.source.startswith("reloc:")])
+        print(
+            f"{args.log}{' with its plan' if args.plan else ''}: ATE {stats.rmse:.4f} m; wall latency "
+            f"max {1e3 * np.max(res.latencies):.0f} ms; priors at the end {n_priors}"
+            + (
+                f", registrations accepted {sum(1 for e in up.events('register') if e.data.get('accepted'))}"
+                if up
+                else ""
+            )
+        )
+    else:
+        path, _ = (DATA / p for p in LOGS[args.log])
+        if args.floor_plan is not None:
+            from frslam_graph.floorplan import FloorPlan
+
+            instrument_plan(st, facts)
+        plan = FloorPlan.load(args.floor_plan) if args.floor_plan is not None else None
+        run = run_recording(open_recording(path), floor_plan=plan, parallel=parallel)
+        res = run.result
     total = res.cpu_latencies * 1e3
     rows = facts["rows"]
     back = np.array([r[4] for r in rows]) * 1e3
@@ -234,7 +356,7 @@ def main() -> None:
         f"{args.log}: run CPU here {time.process_time() - c0:.1f} s; closures {lc.accepted if lc else 0}, "
         f"batches {lc.batches if lc else 0}, attempts {lc.attempts if lc else 0}"
     )
-    summary(args.log, total, odo, scans, rows, args.over)
+    summary(args.log, total, odo, scans, rows, args.over, facts["inclusive"][: len(total)])
     steps_summary(facts["steps"])
     if args.json:
         args.json.write_text(
