@@ -5,6 +5,7 @@ each backend stage (issue 19: per-scan CPU p99 <= 20 ms, no scan over 200 ms).
     .venv/bin/python tools/dev_tail.py fr079_250 --serial                   # odometry split too
     .venv/bin/python tools/dev_tail.py simA0 --plan                         # a simulated house, its plan
     .venv/bin/python tools/dev_tail.py intel --floor-plan $D/floorplans/ipa/lab_intel.png
+    .venv/bin/python tools/dev_tail.py aces --config /tmp/budget5.yaml      # another configuration (real logs)
 
 The run is ``run_recording`` as ``tools/bench_slam.py`` runs it (odometry in its worker unless
 ``--serial``). Library functions are wrapped here (nothing in the library changes) and charged
@@ -304,6 +305,7 @@ def main() -> None:
     ap.add_argument("--floor-plan", type=Path, help="a real log: with this floor plan (its stages charged)")
     ap.add_argument("--over", type=float, default=20.0, help="ms; the scans over this are analysed")
     ap.add_argument("--json", type=Path, help="write every scan's stages here")
+    ap.add_argument("--config", type=Path, help="FRSlamConfig YAML/JSON (default: the default configuration)")
     args = ap.parse_args()
 
     from frslam_graph.datasets import open_recording
@@ -342,7 +344,7 @@ def main() -> None:
 
             instrument_plan(st, facts)
         plan = FloorPlan.load(args.floor_plan) if args.floor_plan is not None else None
-        run = run_recording(open_recording(path), floor_plan=plan, parallel=parallel)
+        run = run_recording(open_recording(path), config=args.config, floor_plan=plan, parallel=parallel)
         res = run.result
     total = res.cpu_latencies * 1e3
     rows = facts["rows"]
