@@ -384,17 +384,15 @@ def face_distances(
     a, t = matrix[:2, :2], matrix[:2, 2]
     q = pts @ a.T + t
     det = abs(float(np.linalg.det(a)))
-    ainv = np.linalg.inv(a) if det > 0 else None
-    if delta and ainv is not None:  # normals map by A^-T: still inward
+    ainv = None if det <= 0 else np.linalg.inv(a)  # a NaN determinant: the inverse taken, as ever
+    if delta and det > 0:  # normals map by A^-T: still inward
         nrm = pm.sample_normals[::stride] @ ainv
         q = q + delta * nrm / np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
     on_fp, d = lookups(((obs.footprint_u8, 0), (obs.edge_dt, 1e9)), q[:, 0], q[:, 1], res, (0.0, 0.0))
     inside = on_fp > 0
     d = d[inside]
-    if det <= 0:
+    if ainv is None:
         return d, None, 0.0
-    if ainv is None:  # a NaN determinant: as before, the inverse taken anyway
-        ainv = np.linalg.inv(a)
     e = (obs.edge_points - t) @ ainv.T
     pf = pm.plan_frame
     pc = np.floor((e[:, 0] - pf.origin[0]) / pf.resolution).astype(np.intp)

@@ -161,7 +161,7 @@ def observe_map(
     h, w = footprint.shape
     k = max(1, int(math.ceil(max(h, w) / coarse_px)))
     hc, wc = max(1, h // k), max(1, w // k)
-    coarse = _coarse_cover(footprint, footprint_u8, k, hc, wc)
+    coarse = _coarse_cover(footprint, k, hc, wc)
     coarse_frame = RasterFrame(res * k, (0.0, 0.0), (hc, wc))
     return MapObservation(
         to_map=g.map_from_grid(),
@@ -215,13 +215,13 @@ def _touching(footprint: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     return touching
 
 
-def _coarse_cover(footprint: np.ndarray, footprint_u8: np.ndarray, k: int, hc: int, wc: int) -> np.ndarray:
+def _coarse_cover(footprint: np.ndarray, k: int, hc: int, wc: int) -> np.ndarray:
     """(hc, wc) bool: blocks of k x k cells at least half footprint (the mean of the block's cells
     >= 0.5), from the footprint's integral image (exact integer counts)."""
     h, w = footprint.shape
     if hc * k > h or wc * k > w:  # a map thinner than a block: the block mean as it was
         return footprint[: hc * k, : wc * k].reshape(hc, k, wc, k).mean(axis=(1, 3)) >= 0.5
-    ii = cv2.integral(footprint_u8)  # (h + 1, w + 1) int32
+    ii = cv2.integral(footprint.view(np.uint8))  # (h + 1, w + 1) int32
     s = ii[::k, ::k][: hc + 1, : wc + 1]
     counts = s[1:, 1:] - s[:-1, 1:] - s[1:, :-1] + s[:-1, :-1]
     return 2 * counts >= k * k
