@@ -421,8 +421,15 @@ def search(
         iou, key = coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
     hyps = [
         Hypothesis(int(m), DIHEDRAL[c][0], DIHEDRAL[c][1], mat, float(cost), int(ai), float(i), key=float(k))
-        for m, c, mat, cost, ai, i, k in zip(
-            pool["mask"], pool["case"], pool["mats"], pool["cost"], pool["angle"], iou, key, strict=True
+        for m, c, mat, cost, ai, i, k in zip(  # Python numbers from tolist: the same values
+            pool["mask"].tolist(),
+            pool["case"].tolist(),
+            pool["mats"],
+            pool["cost"].tolist(),
+            pool["angle"].tolist(),
+            iou.tolist(),
+            key.tolist(),
+            strict=True,
         )
     ]
     hyps.sort(key=lambda h: -h.key)
