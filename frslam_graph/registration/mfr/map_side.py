@@ -254,7 +254,9 @@ def component_stats(
         np.minimum.at(lo[k], lab, c)
         np.maximum.at(hi[k], lab, c)
     size = hi[:, 1:] - lo[:, 1:] + 1
-    sums = np.stack([np.bincount(lab, weights=c.astype(np.float64), minlength=n)[1:] for c in (xs, ys)], axis=1)
+    sums = np.stack(
+        [np.bincount(lab, weights=c.astype(np.float64), minlength=n)[1:] for c in (xs, ys)], axis=1
+    )
     return area, size[0], size[1], sums / area.astype(np.float64)[:, None]
 
 
