@@ -252,3 +252,49 @@ def test_label_counts_on_an_empty_mask_are_the_zeros_placed_rooms_iou_skips_to()
     labels = np.random.default_rng(2).integers(0, 9, (40, 50)).astype(np.uint8)
     got = _label_counts(labels, np.zeros(labels.shape, bool), 8)
     assert got.dtype == np.int64 and np.array_equal(got, np.zeros(8, np.int64))
+
+
+def _old_fill_rooms(room_rings, room_holes, rooms, matrix, frame, labels=False, label_dtype=np.int32):
+    """``plan_side.fill_rooms`` as it was: ring by ring."""
+    from frslam_graph.registration.mfr.plan_side import FIX, SHIFT
+
+    m = np.diag([1.0 / frame.resolution, 1.0 / frame.resolution, 1.0]) @ matrix
+    m[:2, 2] -= np.asarray(frame.origin) / frame.resolution + 0.5
+    a, t = m[:2, :2], m[:2, 2]
+    img = np.zeros(frame.shape, label_dtype if labels else np.uint8)
+    ext, holes = [], []
+    for i in rooms:
+        for r in room_rings[i]:
+            ext.append(np.round((r @ a.T + t) * FIX).astype(np.int32).reshape(-1, 1, 2))
+        if labels:
+            cv2.fillPoly(img, ext, int(i) + 1, lineType=cv2.LINE_8, shift=SHIFT)
+            ext = []
+        for r in room_holes[i]:
+            holes.append(np.round((r @ a.T + t) * FIX).astype(np.int32).reshape(-1, 1, 2))
+    if ext:
+        cv2.fillPoly(img, ext, 1, lineType=cv2.LINE_8, shift=SHIFT)
+    if holes:
+        cv2.fillPoly(img, holes, 0, lineType=cv2.LINE_8, shift=SHIFT)
+    return img
+
+
+def test_fill_rooms_batched_equals_ring_by_ring() -> None:
+    from frslam_graph.raster import RasterFrame
+    from frslam_graph.registration.mfr.plan_side import fill_rooms, prepare_plan
+    from frslam_graph.se2 import to_matrix
+
+    plan = _grid_plan()
+    rooms = list(plan.rooms)
+    rooms[4] = Room(rooms[4].id, "room", rooms[4].polygon.difference(box(5, 4.5, 6, 6)))  # a hole
+    pm = prepare_plan(FloorPlan(rooms, list(plan.doors), units="px", name="holes"))
+    assert any(pm.room_holes)
+    frame = RasterFrame(0.05, (-1.0, -3.0), (160, 200))
+    for yaw, sx in ((0.0, 0.5), (0.3, 0.41), (-1.2, 0.66)):
+        m = to_matrix((0.4, -0.7, yaw)) @ np.diag([sx, -0.9 * sx, 1.0])
+        for sel in (range(9), [4], [0, 4, 8], []):
+            for lab, dt in ((False, np.uint8), (True, np.int32), (True, np.uint8)):
+                got = fill_rooms(pm.room_rings, pm.room_holes, sel, m, frame, labels=lab, label_dtype=dt)
+                want = _old_fill_rooms(
+                    pm.room_rings, pm.room_holes, sel, m, frame, labels=lab, label_dtype=dt
+                )
+                assert got.dtype == want.dtype and np.array_equal(got, want)
