@@ -298,3 +298,17 @@ def test_fill_rooms_batched_equals_ring_by_ring() -> None:
                     pm.room_rings, pm.room_holes, sel, m, frame, labels=lab, label_dtype=dt
                 )
                 assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_lookup_cells_without_a_zero_origin_equal_the_subtraction() -> None:
+    from frslam_graph.registration.mfr.geometry import _scaled
+
+    rng = np.random.default_rng(5)
+    for v in (rng.normal(0, 3, (7, 300)).astype(np.float32), rng.normal(0, 3, 500)):
+        v.flat[:4] = [-0.0, 0.0, np.nan, -np.inf]
+        for o, inv in ((0.0, np.float32(20.0)), (-0.0, np.float32(33.333332)), (0.35, np.float32(20.0))):
+            want = v - np.float32(o)
+            want *= inv
+            got = _scaled(v, o, inv)
+            assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+            assert np.array_equal(np.signbit(got), np.signbit(want))

@@ -101,11 +101,9 @@ def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> li
     inv = np.float32(1.0 / resolution)
     half = np.float32(0.5)
     # (x - origin) * inv - 0.5 in place: the same dtypes and roundings, fewer temporaries
-    mx = x2 - np.float32(origin[0])
-    mx *= inv
+    mx = _scaled(x2, origin[0], inv)
     mx -= half
-    my = y2 - np.float32(origin[1])
-    my *= inv
+    my = _scaled(y2, origin[1], inv)
     my -= half
     mx = mx.astype(np.float32, copy=False)
     my = my.astype(np.float32, copy=False)
@@ -115,6 +113,16 @@ def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> li
         ).reshape(shape)
         for img, fill in imgs
     ]
+
+
+def _scaled(v: np.ndarray, o: float, inv: np.float32) -> np.ndarray:
+    """``(v - np.float32(o)) * inv`` as a new array; without the subtraction when ``o`` is +0.0
+    (``v - 0.0`` is ``v`` for every float, -0.0 and NaN included)."""
+    if o == 0.0 and math.copysign(1.0, o) > 0:
+        return v * inv
+    out = v - np.float32(o)
+    out *= inv
+    return out
 
 
 def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
