@@ -11,13 +11,16 @@ on even cases and B then A on odd ones, for ``--rounds`` rounds; each worker mea
 time of its ``register`` call (``time.process_time``: BLAS or OpenCV threads count) and returns
 a digest of the result (every field of the Registration and its details but the times, pickled).
 Prints the median CPU per registration of each tree (per-case minimum over the rounds) by group,
-and how many results differ. ``profile`` runs cProfile over the cases in this process.
+and how many results differ. ``profile`` runs cProfile over the cases in this process;
+``stages`` times the registration's stage functions (:data:`STAGES`, inclusive process CPU)
+per registration, split by whether the wide search ran.
 
     .venv/bin/python tools/dev_reg_cpu.py capture --set styles --out /tmp/styles.pkl
     .venv/bin/python tools/dev_reg_cpu.py capture --set quick --out /tmp/quick.pkl
     git archive main | tar -x -C /tmp/main_src   # then move datasets/ and factors/ into its frslam_graph/
     nice -n 10 .venv/bin/python tools/dev_reg_cpu.py time /tmp/styles.pkl --a /tmp/main_src --b . --rounds 2
     .venv/bin/python tools/dev_reg_cpu.py profile /tmp/styles.pkl --limit 60 --top 40
+    .venv/bin/python tools/dev_reg_cpu.py stages /tmp/quick.pkl --group quick-r2v
 """
 
 from __future__ import annotations
