@@ -11,13 +11,16 @@ on even cases and B then A on odd ones, for ``--rounds`` rounds; each worker mea
 time of its ``register`` call (``time.process_time``: BLAS or OpenCV threads count) and returns
 a digest of the result (every field of the Registration and its details but the times, pickled).
 Prints the median CPU per registration of each tree (per-case minimum over the rounds) by group,
-and how many results differ. ``profile`` runs cProfile over the cases in this process.
+and how many results differ. ``profile`` runs cProfile over the cases in this process;
+``stages`` times the registration's stage functions (:data:`STAGES`, inclusive process CPU)
+per registration, split by whether the wide search ran.
 
     .venv/bin/python tools/dev_reg_cpu.py capture --set styles --out /tmp/styles.pkl
     .venv/bin/python tools/dev_reg_cpu.py capture --set quick --out /tmp/quick.pkl
     git archive main | tar -x -C /tmp/main_src   # then move datasets/ and factors/ into its frslam_graph/
     nice -n 10 .venv/bin/python tools/dev_reg_cpu.py time /tmp/styles.pkl --a /tmp/main_src --b . --rounds 2
     .venv/bin/python tools/dev_reg_cpu.py profile /tmp/styles.pkl --limit 60 --top 40
+    .venv/bin/python tools/dev_reg_cpu.py stages /tmp/quick.pkl --group quick-r2v
 """
 
 from __future__ import annotations
@@ -220,6 +223,105 @@ def profile(path: Path, limit: int | None, top: int, sort: str) -> int:
     return 0
 
 
+# (module, function) pairs timed by ``stages``: the registration's stages and their main parts
+STAGES = (
+    ("frslam_graph.registration.mfr.register", "observe_map"),
+    ("frslam_graph.registration.mfr.register", "_prepared_entry"),
+    ("frslam_graph.registration.mfr.register", "_subsets"),
+    ("frslam_graph.registration.mfr.coarse", "coarse_hypotheses"),
+    ("frslam_graph.registration.mfr.coarse", "local_search"),
+    ("frslam_graph.registration.mfr.coarse", "coarse_scores"),
+    ("frslam_graph.registration.mfr.coarse", "search"),
+    ("frslam_graph.registration.mfr.coarse", "wide_search"),
+    ("frslam_graph.registration.mfr.fine", "choose_distinct"),
+    ("frslam_graph.registration.mfr.fine", "screen"),
+    ("frslam_graph.registration.mfr.fine", "refine_from"),
+    ("frslam_graph.registration.mfr.fine", "structure_key"),
+    ("frslam_graph.registration.mfr.fine", "placed_rooms_iou"),
+    ("frslam_graph.registration.mfr.fine", "wall_precision_recall"),
+    ("frslam_graph.registration.mfr.fine", "polish_scales"),
+    ("frslam_graph.registration.mfr.register", "_ambiguity"),
+    ("frslam_graph.registration.mfr.register", "_final"),
+    ("frslam_graph.registration.mfr.register", "_drawing_gate"),
+    ("frslam_graph.registration.mfr.register", "_alternatives"),
+    ("frslam_graph.registration.mfr.register", "_merge"),
+)
+
+
+def stages(path: Path, limit: int | None, max_rooms: int, group: str | None) -> int:
+    """Per-stage CPU (``time.process_time``, inclusive of what a stage calls) of the registrations
+    of a capture in this process: the stage functions of :data:`STAGES` wrapped with timers
+    (every module's name for them); mean and median per registration over the cases of
+    ``group`` (a capture label's set, e.g. ``quick-r2v``) on plans of at most ``max_rooms``."""
+    import functools
+    import importlib
+
+    import cv2
+
+    from frslam_graph.registration import register
+
+    cv2.setNumThreads(1)
+    acc: dict[str, float] = {}
+    calls: dict[str, int] = {}
+    depth = {"on": {}}
+
+    def timed(name: str, fn):
+        @functools.wraps(fn)
+        def run(*a, **k):
+            if depth["on"].get(name):  # recursion / re-entry: the outer call times it
+                return fn(*a, **k)
+            depth["on"][name] = True
+            c0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                acc[name] = acc.get(name, 0.0) + time.process_time() - c0
+                calls[name] = calls.get(name, 0) + 1
+                depth["on"][name] = False
+
+        return run
+
+    mods = [importlib.import_module(m) for m in {m for m, _ in STAGES}]
+    for m, f in STAGES:
+        orig = getattr(importlib.import_module(m), f)
+        w = timed(f, orig)
+        for mod in mods:  # every module's reference (``from ... import`` copies)
+            if getattr(mod, f, None) is orig:
+                setattr(mod, f, w)
+    cases = pickle.loads(path.read_bytes())[:limit]
+    rows: list[dict[str, float]] = []
+    for lab, plan, grid in cases:
+        acc.clear()
+        calls.clear()
+        c0 = time.process_time()
+        reg = register(plan, grid, method="mfr")
+        total = time.process_time() - c0
+        s, rooms = lab.split("/")
+        if int(rooms) > max_rooms or (group is not None and s != group):
+            continue
+        row = dict(acc)
+        row["total"] = total
+        row["_wide"] = float(reg.details.get("wide_searched", False))
+        row.update({f"#{k}": float(v) for k, v in calls.items()})
+        rows.append(row)
+    keys = ["total"] + [f for _, f in STAGES]
+    n = len(rows)
+    wide = [r for r in rows if r["_wide"]]
+    print(f"{n} registrations ({len(wide)} with the wide search); CPU ms per registration, inclusive")
+    print("| stage | mean | median | mean calls | mean, no wide search | mean, wide search |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for k in keys:
+        v = np.array([r.get(k, 0.0) for r in rows])
+        c = np.array([r.get(f"#{k}", 0.0) for r in rows])
+        nw = np.array([r.get(k, 0.0) for r in rows if not r["_wide"]])
+        ww = np.array([r.get(k, 0.0) for r in wide])
+        print(
+            f"| {k} | {1000 * v.mean():.2f} | {1000 * np.median(v):.2f} | {c.mean():.1f} | "
+            f"{1000 * nw.mean() if len(nw) else float('nan'):.2f} | {1000 * ww.mean() if len(ww) else float('nan'):.2f} |"
+        )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -243,6 +345,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--limit", type=int, default=None)
     p.add_argument("--top", type=int, default=40)
     p.add_argument("--sort", default="tottime")
+    st = sub.add_parser("stages", help="per-stage CPU in this process (timers around the stage functions)")
+    st.add_argument("path", type=Path)
+    st.add_argument("--limit", type=int, default=None)
+    st.add_argument("--max-rooms", type=int, default=12)
+    st.add_argument("--group", default=None, help="only cases of this set label, e.g. quick-r2v")
     args = ap.parse_args(argv)
     if args.cmd == "capture":
         return capture(args.set, args.out, args.style_plans, args.seed, args.max_rooms)
@@ -250,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
         return worker(args.path)
     if args.cmd == "time":
         return time_trees(args.path, args.a, args.b, args.rounds, args.limit, args.max_rooms)
+    if args.cmd == "stages":
+        return stages(args.path, args.limit, args.max_rooms, args.group)
     return profile(args.path, args.limit, args.top, args.sort)
 
 

@@ -91,8 +91,9 @@ def coarse_hypotheses(
     ``cases``: :func:`dihedral_cases` of their geometry when the caller has them."""
     if cases is None:
         cases = dihedral_cases(subset_geometry(pm, masks))
+    stacked = tuple(np.stack([c[j] for c in cases]) for j in range(5))  # (8, S, 7), 4 x (8, S)
     parts = [
-        _coarse_hypotheses_at(pm, obs, masks, cases, ai, max_aspect, top_k, door_width_m)
+        _coarse_hypotheses_at(pm, obs, masks, stacked, ai, max_aspect, top_k, door_width_m)
         for ai in range(len(obs.angles))
     ]
     pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -136,37 +137,39 @@ def dihedral_cases(geo: SubsetGeometry) -> list[tuple[np.ndarray, ...]]:
     return out
 
 
+# the dihedral cases' signed permutations (:func:`dihedral`), in :data:`DIHEDRAL` order
+_DIHEDRAL_MATS = np.stack([dihedral(k, f) for k, f in DIHEDRAL])
+
+
 def _coarse_hypotheses_at(
-    pm: PlanModel, obs: MapObservation, masks, cases, ai: int, max_aspect: float, top_k: int, door_width_m
+    pm: PlanModel, obs: MapObservation, masks, stacked, ai: int, max_aspect: float, top_k: int, door_width_m
 ) -> dict[str, np.ndarray]:
+    """:func:`coarse_hypotheses` for map wall direction ``ai``; ``stacked``: the dihedral cases'
+    features (8, S, 7) and ``vx``, ``vy``, ``cx``, ``cy`` (8, S) (:func:`dihedral_cases`, stacked:
+    every case in one call of each operation, the same element operations)."""
     angle = obs.angles[ai]
     rm = rot(-angle)
     mc = rm @ obs.centroid
     mcov = rm @ obs.cov @ rm.T
     bx0, by0, bx1, by1 = obs.bboxes[ai]
     fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
-    costs, a_all, b_all, cx_all, cy_all = [], [], [], [], []
-    for f, vx, vy, cx, cy in cases:
-        a = np.sqrt(mcov[0, 0] / vx)
-        b = np.sqrt(mcov[1, 1] / vy)
-        ratio = b / a
-        # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
-        cost = np.sum((f - fmap) ** 2, axis=1) + 0.01 * np.log(ratio) ** 2
-        cost = cost - 0.01 * np.log(np.maximum(door_prior(pm, np.sqrt(a * b), door_width_m), 1e-6))
-        costs.append(np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost))
-        a_all.append(a)
-        b_all.append(b)
-        cx_all.append(cx)
-        cy_all.append(cy)
-    costs = np.stack(costs, axis=1)  # (S, 8)
+    f, vx, vy, cx_all, cy_all = stacked
+    a_all = np.sqrt(mcov[0, 0] / vx)  # (8, S)
+    b_all = np.sqrt(mcov[1, 1] / vy)
+    ratio = b_all / a_all
+    # shape distance; ties (every rectangle looks alike) go to plausible aspect and door width
+    cost = np.sum((f - fmap) ** 2, axis=2) + 0.01 * np.log(ratio) ** 2
+    cost = cost - 0.01 * np.log(np.maximum(door_prior(pm, np.sqrt(a_all * b_all), door_width_m), 1e-6))
+    cost = np.where((ratio > max_aspect) | (ratio < 1.0 / max_aspect), np.inf, cost)
+    costs = np.ascontiguousarray(cost.T)  # (S, 8): subset-major, as ranked
     flat = smallest_stable(costs.ravel(), top_k)
     flat = flat[np.isfinite(costs.ravel()[flat])]
     si, ji = np.divmod(flat, len(DIHEDRAL))
-    a = np.stack(a_all, axis=1)[si, ji]
-    b = np.stack(b_all, axis=1)[si, ji]
-    cx = np.stack(cx_all, axis=1)[si, ji]
-    cy = np.stack(cy_all, axis=1)[si, ji]
-    gs = np.stack([dihedral(k, f) for k, f in DIHEDRAL])[ji]  # (H, 2, 2)
+    a = a_all[ji, si]
+    b = b_all[ji, si]
+    cx = cx_all[ji, si]
+    cy = cy_all[ji, si]
+    gs = _DIHEDRAL_MATS[ji]  # (H, 2, 2)
     rp = rot(-pm.angle)
     rmap = rot(angle)
     lin = rmap[None] @ (np.stack([a, b], axis=1)[:, :, None] * gs) @ rp[None]
@@ -421,8 +424,15 @@ def search(
         iou, key = coarse_scores(pm, obs, pool["mats"], pool["mask"], opts["door_width_m"])
     hyps = [
         Hypothesis(int(m), DIHEDRAL[c][0], DIHEDRAL[c][1], mat, float(cost), int(ai), float(i), key=float(k))
-        for m, c, mat, cost, ai, i, k in zip(
-            pool["mask"], pool["case"], pool["mats"], pool["cost"], pool["angle"], iou, key, strict=True
+        for m, c, mat, cost, ai, i, k in zip(  # Python numbers from tolist: the same values
+            pool["mask"].tolist(),
+            pool["case"].tolist(),
+            pool["mats"],
+            pool["cost"].tolist(),
+            pool["angle"].tolist(),
+            iou.tolist(),
+            key.tolist(),
+            strict=True,
         )
     ]
     hyps.sort(key=lambda h: -h.key)

@@ -103,7 +103,8 @@ def placed_rooms_iou(
     )
     on = _label_counts(labels, footprint, n)
     px_area = pm.room_areas * det / frame.resolution**2
-    off = _label_counts(labels, unexplored, n)
+    # most maps have no unexplored core: no pixel there, zero counts without the histogram
+    off = _label_counts(labels, unexplored, n) if unexplored.any() else np.zeros(n, np.int64)
     cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:

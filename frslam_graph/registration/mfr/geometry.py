@@ -31,18 +31,21 @@ def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) 
         vectors = vectors[:: int(math.ceil(len(vectors) / 6000))]
     mag = np.hypot(vectors[:, 0], vectors[:, 1])
     ok = mag > 0
-    if not ok.any():
+    if ok.all():  # the map's gradients: every one (the same arrays as indexed by ``ok``)
+        v, w = vectors, mag
+    elif not ok.any():
         return [0.0]
-    v, w = vectors[ok], mag[ok]
+    else:
+        v, w = vectors[ok], mag[ok]
     a4 = np.mod(4.0 * np.arctan2(v[:, 1], v[:, 0]), 2 * np.pi)  # 4x angle: walls at 90° agree
     bins = 360
     hist = np.bincount((a4 / (2 * np.pi) * bins).astype(np.intp) % bins, weights=w, minlength=bins)
     # smoothing σ = 3° of wall angle (12 bins of the 4x angle): gradients of rasterised oblique
     # walls alias into two lobes a few degrees either side of the true direction
-    half = 36
-    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / 12.0) ** 2)
-    smooth = np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), kernel, mode="valid")
-    is_peak = (smooth >= np.roll(smooth, 1)) & (smooth > np.roll(smooth, -1))
+    half = len(_ANGLE_KERNEL) // 2
+    smooth = np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), _ANGLE_KERNEL, mode="valid")
+    ring = np.concatenate([smooth[-1:], smooth, smooth[:1]])  # np.roll by 1 and -1, as slices
+    is_peak = (smooth >= ring[:-2]) & (smooth > ring[2:])
     peaks = np.flatnonzero(is_peak)
     peaks = peaks[np.argsort(-smooth[peaks], kind="stable")].tolist()
     out: list[float] = []
@@ -50,13 +53,35 @@ def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) 
         if out and smooth[i] < rel * smooth[peaks[0]]:
             break
         centre = (i + 0.5) / bins * 2 * np.pi
-        d = np.angle(np.exp(1j * (a4 - centre)))
-        near = np.abs(d) < np.radians(40.0)  # ±10° of wall angle
-        mean = centre + (np.sum(w[near] * d[near]) / max(np.sum(w[near]), 1e-12))
+        d, wn = _near_turns(a4, centre, w)
+        mean = centre + (np.sum(wn * d) / max(np.sum(wn), 1e-12))
         ang = float(np.angle(np.exp(1j * mean)) / 4.0)
         if all(abs(np.angle(np.exp(4j * (ang - o)))) > np.radians(80.0) for o in out):  # 20° apart
             out.append(ang)
     return out or [0.0]
+
+
+# the circular histogram's smoothing kernel (bins of the 4x angle, σ = 12 bins, ±36)
+_ANGLE_KERNEL = np.exp(-0.5 * (np.arange(-36, 37) / 12.0) ** 2)
+
+# how far (radians of the 4x angle) an angle's difference is kept by :func:`_near_turns` before
+# it is wrapped: the ±40° it keeps, and a margin far beyond the wrap's rounding
+_NEAR = np.radians(40.0)
+_NEAR_PRE = np.radians(45.0)
+
+
+def _near_turns(a4: np.ndarray, centre: float, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The differences ``d = np.angle(np.exp(1j * (a4 - centre)))`` (wrapped to (-pi, pi]) within
+    ±40° (``np.abs(d) < np.radians(40.0)``), in order, and their weights ``w``: ``d[near]``,
+    ``w[near]``, with the complex exponential taken only where the raw difference (``a4`` and
+    ``centre`` in [0, 2 pi]) is within 45° of a multiple of 2 pi (elsewhere the wrapped
+    difference is more than 40°: the same elements, the same values)."""
+    raw = a4 - centre
+    mag = np.abs(raw)
+    cand = np.flatnonzero((mag < _NEAR_PRE) | (mag > 2 * np.pi - _NEAR_PRE))
+    d = np.angle(np.exp(1j * raw.take(cand)))
+    near = np.abs(d) < _NEAR
+    return d[near], w.take(cand)[near]
 
 
 def lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, origin, fill) -> np.ndarray:
@@ -76,11 +101,9 @@ def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> li
     inv = np.float32(1.0 / resolution)
     half = np.float32(0.5)
     # (x - origin) * inv - 0.5 in place: the same dtypes and roundings, fewer temporaries
-    mx = x2 - np.float32(origin[0])
-    mx *= inv
+    mx = _scaled(x2, origin[0], inv)
     mx -= half
-    my = y2 - np.float32(origin[1])
-    my *= inv
+    my = _scaled(y2, origin[1], inv)
     my -= half
     mx = mx.astype(np.float32, copy=False)
     my = my.astype(np.float32, copy=False)
@@ -90,6 +113,16 @@ def lookups(imgs, x: np.ndarray, y: np.ndarray, resolution: float, origin) -> li
         ).reshape(shape)
         for img, fill in imgs
     ]
+
+
+def _scaled(v: np.ndarray, o: float, inv: np.float32) -> np.ndarray:
+    """``(v - np.float32(o)) * inv`` as a new array; without the subtraction when ``o`` is +0.0
+    (``v - 0.0`` is ``v`` for every float, -0.0 and NaN included)."""
+    if o == 0.0 and math.copysign(1.0, o) > 0:
+        return v * inv
+    out = v - np.float32(o)
+    out *= inv
+    return out
 
 
 def apply_affine(a: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

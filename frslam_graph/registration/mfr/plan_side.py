@@ -231,17 +231,30 @@ def fill_rooms(
     m[:2, 2] -= np.asarray(frame.origin) / frame.resolution + 0.5
     a, t = m[:2, :2], m[:2, 2]
     img = np.zeros(frame.shape, label_dtype if labels else np.uint8)
-    ext, holes = [], []
-    for i in rooms:
-        for r in room_rings[i]:
-            ext.append(np.round((r @ a.T + t) * FIX).astype(np.int32).reshape(-1, 1, 2))
-        if labels:
-            cv2.fillPoly(img, ext, int(i) + 1, lineType=cv2.LINE_8, shift=SHIFT)
-            ext = []
-        for r in room_holes[i]:
-            holes.append(np.round((r @ a.T + t) * FIX).astype(np.int32).reshape(-1, 1, 2))
-    if ext:
+    rooms = list(rooms)
+    ext = _fixed_rings([r for i in rooms for r in room_rings[i]], a, t)
+    holes = _fixed_rings([r for i in rooms for r in room_holes[i]], a, t)
+    if labels:
+        at = 0
+        for i in rooms:
+            k = len(room_rings[i])
+            cv2.fillPoly(img, ext[at : at + k], int(i) + 1, lineType=cv2.LINE_8, shift=SHIFT)
+            at += k
+    elif ext:
         cv2.fillPoly(img, ext, 1, lineType=cv2.LINE_8, shift=SHIFT)
     if holes:
         cv2.fillPoly(img, holes, 0, lineType=cv2.LINE_8, shift=SHIFT)
     return img
+
+
+def _fixed_rings(rings: list[np.ndarray], a: np.ndarray, t: np.ndarray) -> list[np.ndarray]:
+    """Each ring (k, 2) as ``np.round((r @ a.T + t) * FIX).astype(np.int32).reshape(-1, 1, 2)``
+    (cv2.fillPoly's fixed-point vertices): each ring's own product, the element operations on
+    all rings at once (the same values)."""
+    if not rings:
+        return []
+    q = np.concatenate([r @ a.T for r in rings])
+    q += t
+    q *= FIX
+    q = np.round(q).astype(np.int32)
+    return [v.reshape(-1, 1, 2) for v in np.split(q, np.cumsum([len(r) for r in rings])[:-1])]
