@@ -4,6 +4,7 @@ relations themselves agree (issue 19: where a log's maximum comes from).
     .venv/bin/python tools/dev_worst_relations.py worst RUN RELATIONS [--k 10]
     .venv/bin/python tools/dev_worst_relations.py near RUN RELATIONS --from 2060 --to 2095
     .venv/bin/python tools/dev_worst_relations.py keyframes intel.bag /tmp/kf_bag.csv
+    .venv/bin/python tools/dev_worst_relations.py keyframes intel /tmp/kf_hb.csv --variant half_beams
     .venv/bin/python tools/dev_worst_relations.py closures RUN /tmp/kf_bag.csv REFERENCE.tum --from 2040 --to 2120
     .venv/bin/python tools/dev_worst_relations.py triangles RELATIONS [--k 5]
 
@@ -12,12 +13,15 @@ relations themselves agree (issue 19: where a log's maximum comes from).
 ``worst``: the relations with the largest translation error (stamps, span, estimate and truth
 in the frame of the pose at t1). ``near``: every relation with a stamp in the window.
 ``keyframes``: the keyframes (index, stamp) of a log's odometry alone (the same as a run's: the
-odometry does not depend on the backend). ``closures``: each accepted or pending closure whose
-query lies in the window, its measured relative pose against ``REFERENCE`` (e.g. another run of
-the same recording that fits the relations) at the two keyframes' stamps (``meas-ref``) and the
-run's own final one (``final-ref``). ``triangles``: every relation (a, c) that two others
-(a, b), (b, c) compose (either direction), and how far the composition is from it: the noise of
-the reference itself, a floor under any trajectory's error on those relations.
+odometry does not depend on the backend; ``--variant``: of a degraded log). ``closures``: each
+accepted or pending closure whose query lies in the window, its measured relative pose against
+``REFERENCE`` (e.g. another run of the same recording that fits the relations) at the two
+keyframes' stamps (``meas-ref``) and the run's own final one (``final-ref``); also each match
+rejected as ``contradicted`` and each pending closure so dropped, with the closure in the graph
+that contradicted it (``by``) and their disagreement (``off``: m, deg). ``triangles``: every
+relation (a, c) that two others (a, b), (b, c) compose (either direction), and how far the
+composition is from it: the noise of the reference itself, a floor under any trajectory's error
+on those relations.
 """
 
 from __future__ import annotations
@@ -76,7 +80,7 @@ def near(run: Path, relations: Path, a: float, b: float) -> None:
         print(f"{j:5d} {s1[j]:9.2f} -> {s2[j]:9.2f} err {t[j]:.3f} m {r[j]:.2f} deg  d {d.round(3)}")
 
 
-def keyframes(log: str, out: Path) -> None:
+def keyframes(log: str, out: Path, variant: str | None = None) -> None:
     from frslam_graph.datasets import open_recording
 
     from frslam_graph.config import FRSlamConfig
@@ -85,7 +89,12 @@ def keyframes(log: str, out: Path) -> None:
 
     odo = ScanOdometry(FRSlamConfig().odometry)
     rows = []
-    for s in open_recording(DATA / LOGS[log][0]):
+    scans = open_recording(DATA / LOGS[log][0])
+    if variant is not None:  # a degraded log of tools/degrade_logs.py
+        from degrade_logs import VARIANTS
+
+        scans = VARIANTS[variant][0](scans)
+    for s in scans:
         res = odo.process(s.stamp, body_points(s.points, s.sensor_offset)[0], s.odom)
         if res.is_keyframe:
             rows.append((res.keyframe, s.stamp))
@@ -106,22 +115,31 @@ def closures(run: Path, kf_csv: Path, reference: Path, a: float, b: float) -> No
         return tr[j, 1:]
 
     events = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    pending: dict[tuple[int, int], dict] = {}
     for e in events:
-        if e["kind"] not in ("loop_closure", "loop_pending"):
+        kind, d = e["kind"], e["data"]
+        if kind == "loop_pending":
+            pending[e["keyframe"], d["reference"]] = d
+        if kind == "loop_rejected" and e["message"].endswith("contradicted"):
+            # a rejected match, or a pending closure dropped (its match as logged when it waited)
+            kind = "contradicted" if "relative" in d else "dropped"
+            d = {**pending.get((e["keyframe"], d["reference"]), {}), **d}
+        elif kind not in ("loop_closure", "loop_pending"):
             continue
-        d = e["data"]
         q, c = e["keyframe"], d["reference"]
         if not a <= stamp[q] - t0 <= b:
             continue
         truth = between(pose(ref, stamp[c]), pose(ref, stamp[q]))
         err = between(truth, np.array(d["relative"]))
         fin = between(truth, between(pose(own, stamp[c]), pose(own, stamp[q])))
+        corr = f"{np.hypot(*d['correction'][:2]):.2f} m" if "correction" in d else "-"  # not for a rejection
         print(
-            f"{e['stamp'] - t0:8.2f} {e['kind']:12s} {q} ({stamp[q] - t0:7.1f} s) on {c} ({stamp[c] - t0:7.1f} s)"
-            f" correction {np.hypot(*d['correction'][:2]):.2f} m, meas-ref {np.hypot(err[0], err[1]):.3f} m"
+            f"{e['stamp'] - t0:8.2f} {kind:12s} {q} ({stamp[q] - t0:7.1f} s) on {c} ({stamp[c] - t0:7.1f} s)"
+            f" correction {corr}, meas-ref {np.hypot(err[0], err[1]):.3f} m"
             f" {np.degrees(err[2]):+.2f} deg, final-ref {np.hypot(fin[0], fin[1]):.3f} m,"
             f" inliers {d['inliers']} ambiguity {d['ambiguity']} {d.get('found_by', '')}"
             + ("" if d.get("robust") is None else f" robust {d['robust']}")
+            + ("" if "by" not in d else f" by {d['by'][0]} on {d['by'][1]}, off {d['off']}")
         )
 
 
@@ -160,6 +178,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=10)
     ap.add_argument("--from", dest="a", type=float, default=-np.inf)
     ap.add_argument("--to", dest="b", type=float, default=np.inf)
+    ap.add_argument("--variant", help="keyframes: of this degraded log (tools/degrade_logs.py)")
     o = ap.parse_args()
     p = [Path(x) for x in o.args]
     if o.what == "worst":
@@ -167,7 +186,7 @@ def main() -> None:
     elif o.what == "near":
         near(p[0], p[1], o.a, o.b)
     elif o.what == "keyframes":
-        keyframes(o.args[0], p[1])
+        keyframes(o.args[0], p[1], o.variant)
     elif o.what == "closures":
         closures(p[0], p[1], p[2], o.a, o.b)
     else:
