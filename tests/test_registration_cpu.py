@@ -231,11 +231,12 @@ def test_coarse_hypotheses_stacked_equal_case_by_case(yaw: float) -> None:
     obs, pm = observe_map(grid), prepare_plan(plan)
     masks = connected_subsets(pm.adjacency, max_per_level=3000)
     cases = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))
+    by_case = [tuple(u[j] for u in cases) for j in range(len(coarse.DIHEDRAL))]  # the former layout
     got = coarse.coarse_hypotheses(
         pm, obs, masks, max_aspect=1.6, top_k=64, door_width_m=(0.3, 4.0), cases=cases
     )
     parts = [
-        _old_coarse_hypotheses_at(pm, obs, masks, cases, ai, 1.6, 64, (0.3, 4.0))
+        _old_coarse_hypotheses_at(pm, obs, masks, by_case, ai, 1.6, 64, (0.3, 4.0))
         for ai in range(len(obs.angles))
     ]
     pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -83,7 +83,7 @@ def coarse_hypotheses(
     max_aspect: float,
     top_k: int,
     door_width_m=None,
-    cases: list[tuple[np.ndarray, ...]] | None = None,
+    cases: tuple[np.ndarray, ...] | None = None,
 ) -> dict[str, np.ndarray]:
     """The ``top_k`` (subset, dihedral case, map wall direction) by shape-feature distance to
     the map, each with its moment-matched plan -> grid-frame matrix, as arrays: ``mask``,
@@ -91,9 +91,8 @@ def coarse_hypotheses(
     ``cases``: :func:`dihedral_cases` of their geometry when the caller has them."""
     if cases is None:
         cases = dihedral_cases(subset_geometry(pm, masks))
-    stacked = tuple(np.stack([c[j] for c in cases]) for j in range(5))  # (8, S, 7), 4 x (8, S)
     parts = [
-        _coarse_hypotheses_at(pm, obs, masks, stacked, ai, max_aspect, top_k, door_width_m)
+        _coarse_hypotheses_at(pm, obs, masks, cases, ai, max_aspect, top_k, door_width_m)
         for ai in range(len(obs.angles))
     ]
     pool = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -115,10 +114,11 @@ def smallest_stable(a: np.ndarray, k: int) -> np.ndarray:
     return cand[np.argsort(a[cand], kind="stable")[:k]]
 
 
-def dihedral_cases(geo: SubsetGeometry) -> list[tuple[np.ndarray, ...]]:
-    """Per dihedral case (:data:`DIHEDRAL` order) the subsets' shape features as the case turns
-    them (S, 7), and their variances ``vx``, ``vy`` and centroids ``cx``, ``cy`` along the map's
-    axes: what :func:`coarse_hypotheses` compares with the map, independent of it."""
+def dihedral_cases(geo: SubsetGeometry) -> tuple[np.ndarray, ...]:
+    """The subsets' shape features as each dihedral case (:data:`DIHEDRAL` order) turns them
+    (8, S, 7), and their variances ``vx``, ``vy`` and centroids ``cx``, ``cy`` along the map's
+    axes (8, S each): what :func:`coarse_hypotheses` compares with the map, independent of it,
+    stacked by case so that it scores every case in one call of each operation."""
     out = []
     for k, flipped in DIHEDRAL:
         g = dihedral(k, flipped)  # signed permutation
@@ -134,7 +134,7 @@ def dihedral_cases(geo: SubsetGeometry) -> list[tuple[np.ndarray, ...]]:
         y0, y1 = (lo_y, hi_y) if sy_ > 0 else (-hi_y, -lo_y)
         vxy = sx_ * sy_ * geo.vxy
         out.append((_features(geo.area, cx, cy, vx, vxy, vy, x0, y0, x1, y1), vx, vy, cx, cy))
-    return out
+    return tuple(np.stack([c[j] for c in out]) for j in range(5))
 
 
 # the dihedral cases' signed permutations (:func:`dihedral`), in :data:`DIHEDRAL` order
@@ -142,18 +142,17 @@ _DIHEDRAL_MATS = np.stack([dihedral(k, f) for k, f in DIHEDRAL])
 
 
 def _coarse_hypotheses_at(
-    pm: PlanModel, obs: MapObservation, masks, stacked, ai: int, max_aspect: float, top_k: int, door_width_m
+    pm: PlanModel, obs: MapObservation, masks, cases, ai: int, max_aspect: float, top_k: int, door_width_m
 ) -> dict[str, np.ndarray]:
-    """:func:`coarse_hypotheses` for map wall direction ``ai``; ``stacked``: the dihedral cases'
-    features (8, S, 7) and ``vx``, ``vy``, ``cx``, ``cy`` (8, S) (:func:`dihedral_cases`, stacked:
-    every case in one call of each operation, the same element operations)."""
+    """:func:`coarse_hypotheses` for map wall direction ``ai``; ``cases``: :func:`dihedral_cases`
+    (every case in one call of each operation)."""
     angle = obs.angles[ai]
     rm = rot(-angle)
     mc = rm @ obs.centroid
     mcov = rm @ obs.cov @ rm.T
     bx0, by0, bx1, by1 = obs.bboxes[ai]
     fmap = _features(obs.area, mc[0], mc[1], mcov[0, 0], mcov[0, 1], mcov[1, 1], bx0, by0, bx1, by1)
-    f, vx, vy, cx_all, cy_all = stacked
+    f, vx, vy, cx_all, cy_all = cases
     a_all = np.sqrt(mcov[0, 0] / vx)  # (8, S)
     b_all = np.sqrt(mcov[1, 1] / vy)
     ratio = b_all / a_all
@@ -371,7 +370,7 @@ def search(
     obs: MapObservation,
     masks: np.ndarray,
     opts: dict,
-    cases: list[tuple[np.ndarray, ...]] | None = None,
+    cases: tuple[np.ndarray, ...] | None = None,
 ) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """The coarse step: hypotheses for the room subsets ``masks``, best ``key`` first (empty when
     no subset fits the map's shape within the aspect bound), and the seeds of

@@ -22,13 +22,21 @@ def dihedral(k: int, flipped: bool) -> np.ndarray:
     return r @ np.diag([1.0, -1.0 if flipped else 1.0])
 
 
+#: vectors :func:`dominant_angles` takes at most (a regular subsample of more keeps the histogram)
+ANGLE_SAMPLES = 6000
+
+
+def regular_subsample(a: np.ndarray, cap: int) -> np.ndarray:
+    """Every k-th element of ``a`` (k = ceil(len / cap)) when it holds more than ``cap``; else ``a``."""
+    return a[:: int(math.ceil(len(a) / cap))] if len(a) > cap else a
+
+
 def dominant_angles(vectors: np.ndarray, max_peaks: int = 2, rel: float = 0.35) -> list[float]:
     """Wall directions modulo 90° (radians in (-pi/4, pi/4]) of (N, 2) vectors weighted by their
     length: peaks of a circular histogram (smoothed, σ = 3°), the strongest first, each refined by
     the weighted circular mean within ±10°; a second peak counts when it is at least ``rel`` of
     the first and 20° away. Robust to a few diagonal walls, unlike one overall mean."""
-    if len(vectors) > 6000:  # a regular subsample keeps the histogram
-        vectors = vectors[:: int(math.ceil(len(vectors) / 6000))]
+    vectors = regular_subsample(vectors, ANGLE_SAMPLES)
     mag = np.hypot(vectors[:, 0], vectors[:, 1])
     ok = mag > 0
     if ok.all():  # the map's gradients: every one (the same arrays as indexed by ``ok``)

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from frslam_graph.raster import RasterFrame
-from frslam_graph.registration.mfr.geometry import dominant_angles
+from frslam_graph.registration.mfr.geometry import ANGLE_SAMPLES, dominant_angles, regular_subsample
 from frslam_graph.registration.refine import DistanceField
 from frslam_graph.se2 import rot
 
@@ -138,10 +138,9 @@ def observe_map(
     gx = cv2.Sobel(fimg, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(fimg, cv2.CV_32F, 0, 1, ksize=3)
     at = np.flatnonzero((np.abs(gx) + np.abs(gy)) > 0.05)  # the edge cells, row-major
-    if len(at) > 30000:  # plenty: a regular subsample keeps the histogram
-        at = at[:: int(math.ceil(len(at) / 30000))]
-    if len(at) > 6000:  # and dominant_angles' own subsample of those, taken here
-        at = at[:: int(math.ceil(len(at) / 6000))]
+    # plenty: a regular subsample keeps the histogram; then dominant_angles' own, taken here so
+    # that only the cells it keeps are gathered
+    at = regular_subsample(regular_subsample(at, 30000), ANGLE_SAMPLES)
     vectors = np.column_stack([gx.ravel().take(at), gy.ravel().take(at)]).astype(np.float64)
     angles = dominant_angles(vectors) if len(at) else [0.0]
 

@@ -173,7 +173,7 @@ def _prepared_entry(plan, adjacency: str) -> tuple[PlanModel, dict]:
 
 def _subsets(
     pm: PlanModel, derived: dict, seeds: np.ndarray | None, max_per_level: int
-) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
+) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """The connected room subsets of ``pm``'s room graph (:func:`connected_subsets`) and their
     shapes per dihedral case (:func:`coarse.dihedral_cases`), kept in ``derived`` (the plan's
     memo) by their arguments: pure functions of the plan, 1-2 ms of a registration on plans of
