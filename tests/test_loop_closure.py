@@ -422,12 +422,12 @@ def test_padded_reference_equals_the_unpadded_one():
     assert wide._inner[0] > 0 and tight._inner[0] == 0  # the wide one is padded
     k = int(round((tight.origin[0] - wide.origin[0]) / res))  # wide cells before the tight grid
     h, w = tight.shape
-    f_wide = wide.field.reshape(wide.shape)
+    f_wide = wide.padded(wide.field, 0.0).reshape(wide.shape)
     np.testing.assert_array_equal(f_wide[k : k + h, k : k + w], tight.field)
     assert f_wide.sum() == pytest.approx(tight.field.sum())  # nothing outside
     free_wide = wide.free.reshape(wide.shape)[k : k + h, k : k + w]
     np.testing.assert_array_equal(free_wide, tight.free.reshape(h, w))
-    near_wide = wide.nearest.reshape(wide.shape)[k : k + h, k : k + w]
+    near_wide = wide.padded(wide.nearest, -1).reshape(wide.shape)[k : k + h, k : k + w]
     np.testing.assert_array_equal(near_wide, tight.nearest.reshape(h, w))
     # and the matcher finds the same pose on both
     q = _points(world, np.array([4.3, 3.2, 0.25]), 2)
@@ -446,7 +446,9 @@ def test_max_filtered_field_equals_filtering_the_whole_grid(cells):
     pts = _points(world, np.array([4.0, 3.0, 0.2]), 1)
     ref = ReferenceSubmap(pts, 0.05, 0.1, 6.0, [(np.zeros(2), pts)])
     assert ref._inner[0] > cells or cells == 200  # padded (200: wider than the padding)
-    whole = cv2.dilate(ref.field, np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)).ravel()
+    whole = cv2.dilate(
+        ref.padded(ref.field, 0.0).reshape(ref.shape), np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
+    ).ravel()
     np.testing.assert_array_equal(ref.dilated(cells), whole)
 
 
@@ -1059,12 +1061,18 @@ def test_submaps_a_closure_made_stale_are_freed_one_per_later_build():
     per submap built afterwards, never more than SUBMAPS_KEPT held, and none is used again."""
 
     class Sub:  # stands in for a ReferenceSubmap (only its lifetime matters)
-        pass
+        def release(self) -> None:
+            pass
+
+    def build(c: int) -> None:  # as LoopCloser._reference: room made, then the new submap kept
+        lc._make_room()
+        lc._keep_submap(c, Sub())
 
     kept = closer_module.SUBMAPS_KEPT
     lc = LoopCloser()
     subs = [Sub() for _ in range(kept)]
     for c, s in enumerate(subs):
+        lc._make_room()
         lc._keep_submap(c, s)
     alive = [weakref.ref(s) for s in subs]
     del subs, s
@@ -1072,8 +1080,8 @@ def test_submaps_a_closure_made_stale_are_freed_one_per_later_build():
     assert not lc._submaps  # no stale submap is looked up again
     assert sum(r() is not None for r in alive) == kept  # none freed in the closure's step
     for n in range(1, kept + 1):
-        lc._keep_submap(100 + n, Sub())
+        build(100 + n)
         assert sum(r() is not None for r in alive) == kept - n  # one per build
         assert len(lc._submaps) + len(lc._stale_submaps) <= kept
-    lc._keep_submap(200, Sub())  # then the least recently used, as before
+    build(200)  # then the least recently used, as before
     assert len(lc._submaps) == kept and 101 not in lc._submaps

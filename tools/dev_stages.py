@@ -3,6 +3,7 @@
     .venv/bin/python tools/dev_stages.py fr079                 # as `frslam run`: odometry in a worker
     .venv/bin/python tools/dev_stages.py fr079 --serial        # everything here: the worker's stages too
     .venv/bin/python tools/dev_stages.py intel --json /tmp/intel_stages.json
+    .venv/bin/python tools/dev_stages.py fr079 --faults        # minor page faults per stage instead
 
 Each stage is a function of the library wrapped here (nothing in the library changes) and charged
 its *exclusive* process CPU time (time.process_time, minus the wrapped calls inside it), so the
@@ -179,11 +180,32 @@ def instrument(st: Stages) -> None:
     st.wrap(offline, "_run_metrics", "outputs: metrics")
 
 
+def thread_faults() -> float:
+    """Minor page faults of the calling thread so far (a :class:`Stages` clock for ``--faults``:
+    fresh pages the kernel zero-fills, each a fault; the reader's read-ahead thread left out)."""
+    return float(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt)
+
+
+def wrap_property(st: Stages, cls: Any, name: str, label: str) -> None:
+    """Wrap the getter of property ``cls.name`` as :meth:`Stages.wrap` wraps a method."""
+
+    class _Holder:
+        fget = getattr(cls, name).fget
+
+    st.wrap(_Holder, "fget", label)
+    setattr(cls, name, property(_Holder.fget))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("log", choices=sorted(LOGS))
     ap.add_argument("--serial", action="store_true", help="odometry in this process (stages + streaming CPU)")
     ap.add_argument("--json", type=Path, help="write the stage table and per-scan figures here")
+    ap.add_argument(
+        "--faults",
+        action="store_true",
+        help="charge minor page faults (this thread's) instead of CPU seconds",
+    )
     args = ap.parse_args()
 
     from frslam_graph.datasets import open_recording
@@ -191,9 +213,13 @@ def main() -> None:
     from frslam_graph.evaluation.trajectory_io import load_relations
     from frslam_graph.offline import run_recording, write_outputs
 
-    st = Stages()
+    st = Stages(clock=thread_faults if args.faults else time.process_time)
     instrument(st)
     from frslam_graph import slam
+    from frslam_graph.loop_closure import submap_matching as sm
+
+    wrap_property(st, sm.ReferenceSubmap, "nearest", "matcher: nearest-point map")
+    wrap_property(st, sm.ReferenceSubmap, "free", "matcher: free-space mask")
 
     record = slam.FRSlam._record  # already timed: mark a scan after it
 
@@ -213,7 +239,7 @@ def main() -> None:
         def __iter__(self):
             it = iter(rec)
             while True:
-                frame = ["reader: records -> scans", time.process_time(), 0.0]
+                frame = ["reader: records -> scans", st.clock(), 0.0]
                 st._stack.append(frame)
                 try:
                     scan = next(it)
@@ -221,15 +247,29 @@ def main() -> None:
                     return
                 finally:
                     st._stack.pop()
-                    spent = time.process_time() - frame[1]
+                    spent = st.clock() - frame[1]
                     st._charge(frame[0], spent - frame[2])
                     if st._stack:
                         st._stack[-1][2] += spent
                 yield scan
 
-    c0, t0 = time.process_time(), time.perf_counter()
+    c0, t0, f0 = time.process_time(), time.perf_counter(), thread_faults()
     run = run_recording(Timed(), parallel=False if args.serial else None)
     c_run, wall_run = time.process_time() - c0, time.perf_counter() - t0
+    if args.faults:
+        faults = thread_faults() - f0
+        me = resource.getrusage(resource.RUSAGE_SELF)
+        print(
+            f"{args.log}: minor page faults of this thread in run_recording {faults / 1e6:.3f} M "
+            f"(the process's {me.ru_minflt / 1e6:.3f} M, system CPU {me.ru_stime:.2f} s, peak RSS "
+            f"{me.ru_maxrss / 1024:.0f} MB); run CPU {c_run:.1f} s"
+        )
+        print("\n| stage | faults (k) | calls |\n|---|---:|---:|")
+        for label, n in sorted(st.total.items(), key=lambda kv: -kv[1]):
+            if n >= 500:
+                print(f"| {label} | {n / 1e3:.0f} | {st.calls.get(label, '')} |")
+        print(f"| (unwrapped) | {(faults - sum(st.total.values())) / 1e3:.0f} | |")
+        return
     write_outputs(run, Path("/tmp") / f"dev_stages_{args.log}", relations=load_relations(rel_path))
     cpu_all = time.process_time() - c0
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -132,9 +132,10 @@ from frslam_graph.backend.graph import MS_PER_KEYFRAME_UPDATE, key
 from frslam_graph.config import LoopClosureConfig
 from frslam_graph.factors.between import pose2, regularise_covariance
 from frslam_graph.factors.floorplan_prior import m_estimator
-from frslam_graph.loop_closure.place import SpectrumCache, polar_occupancy, spectrum_distances
+from frslam_graph.loop_closure.place import SpectrumCache, polar_occupancy
 from frslam_graph.loop_closure.submap_matching import (
     MIN_COARSE_SCORE,
+    GridPool,
     ReferenceSubmap,
     ScanMatch,
     match_scan_steps,
@@ -300,6 +301,8 @@ class LoopCloser:
         self._submaps: OrderedDict[int, ReferenceSubmap] = OrderedDict()
         # submaps a closure made stale (_drop_submaps), freed one per later build
         self._stale_submaps: list[ReferenceSubmap] = []
+        # the large arrays of dropped submaps, for the next ones (no fresh mappings to fault in)
+        self._pool = GridPool()
         # per keyframe: its points in range (_in_range), the keyframe's own float32 array when all
         # are (no copy), else a float32 subset
         self._local: list[np.ndarray | None] = []
@@ -621,8 +624,7 @@ class LoopCloser:
         if not have[0] or not any(have[1:]):
             return {}
         ks = [int(k) for k, h in zip(cands.tolist(), have[1:], strict=True) if h]
-        spec, cols = self._spectra.spectra([i, *ks], self._place.__getitem__)
-        dist, _ = spectrum_distances((spec[0], cols[0]), (spec[1:], cols[1:]))
+        dist = self._spectra.distances([i, *ks], self._place.__getitem__)
         return dict(zip(ks, dist.tolist(), strict=True))
 
     def _submap(
@@ -677,22 +679,31 @@ class LoopCloser:
         margin = 2.0 * cfg.search_window_xy + 4.0 * cfg.likelihood_sigma + 1.5
         if len(pts):
             yield ReferenceSubmap.build_cost(pts, cfg.resolution, cfg.likelihood_sigma, margin)
-        sub = ReferenceSubmap(pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin)
+        self._make_room()  # first: the new submap's arrays may come from the one dropped
+        sub = ReferenceSubmap(
+            pts, cfg.resolution, cfg.likelihood_sigma, margin, scans, cfg.free_space_margin, pool=self._pool
+        )
         self._keep_submap(c, sub)
         return sub
 
-    def _keep_submap(self, c: int, sub: ReferenceSubmap) -> None:
-        """Keep keyframe c's new reference submap; free one stale submap (:meth:`_drop_submaps`),
-        else the least recently used beyond ``SUBMAPS_KEPT`` (stale ones count)."""
-        self._submaps[c] = sub
+    def _make_room(self) -> None:
+        """Before a new submap is built: free one stale submap (:meth:`_drop_submaps`), else
+        the least recently used while ``SUBMAPS_KEPT`` are held (stale ones count); their
+        arrays go to the pool (:class:`GridPool`)."""
         if self._stale_submaps:
-            self._stale_submaps.pop()
-        while len(self._submaps) + len(self._stale_submaps) > SUBMAPS_KEPT:
-            self._submaps.popitem(last=False)
+            self._stale_submaps.pop().release()
+        while len(self._submaps) + len(self._stale_submaps) >= SUBMAPS_KEPT:
+            self._submaps.popitem(last=False)[1].release()
+
+    def _keep_submap(self, c: int, sub: ReferenceSubmap) -> None:
+        """Keep keyframe c's new reference submap (built after :meth:`_make_room`)."""
+        self._submaps[c] = sub
+        while len(self._submaps) + len(self._stale_submaps) > SUBMAPS_KEPT:  # pragma: no cover - made room
+            self._submaps.popitem(last=False)[1].release()
 
     def _drop_submaps(self) -> None:
         """Forget the reference submaps (a closure moved their keyframes relative to each other).
-        Their memory goes one submap per later build (:meth:`_keep_submap`), never more than
+        Their memory goes one submap per later build (:meth:`_make_room`), never more than
         ``SUBMAPS_KEPT`` held: freeing all at once (arrays of ~5 MB each, unmapped page by page)
         took 15-20 ms of CPU inside a step whose announced cost was a settle iteration's."""
         self._stale_submaps.extend(self._submaps.values())

@@ -213,7 +213,9 @@ class _ReferenceStack:
         self.refs = refs
         self.resolution = refs[0].resolution
         self.origin = np.array([r.origin for r in refs])
-        self.shape = np.array([r.shape for r in refs], dtype=np.int64)  # (h, w) per submap
+        # each submap's nearest-point map: its inner grid ((h, w), ``pad`` cells in from its origin)
+        self.shape = np.array([r._inner[1:] for r in refs], dtype=np.int64)
+        self.pad = np.array([r._inner[0] for r in refs], dtype=np.int64)
         cells = self.shape[:, 0] * self.shape[:, 1]
         self.cell_offset = np.concatenate(([0], np.cumsum(cells)[:-1]))
         sizes = np.array([len(r.points) for r in refs])
@@ -238,6 +240,7 @@ class _ReferenceStack:
         ``max_distance``, those points' indices into ``self.points``)."""
         h, w = self.shape[ref, 0], self.shape[ref, 1]
         ij = np.floor((points - self.origin[ref]) / self.resolution).astype(np.int64)
+        ij -= self.pad[ref][:, None]
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
         sel = np.flatnonzero(inside)
         rs = ref[sel]

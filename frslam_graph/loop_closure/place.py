@@ -109,6 +109,11 @@ def descriptor_distances(query: np.ndarray, candidates: np.ndarray) -> tuple[np.
     return spectrum_distances(descriptor_spectra(query), descriptor_spectra(candidates))
 
 
+# candidates per spectrum_distances call of SpectrumCache.distances (its arrays ~160 kB: from the
+# heap, under the pinned mmap threshold offline.MMAP_THRESHOLD)
+_DISTANCE_ROWS = 16
+
+
 class SpectrumCache:
     """The :func:`descriptor_spectra` of at most ``capacity`` keyframes (the least recently used
     dropped first; ~10 kB each), computed from their packed occupancies: each keyframe's when its
@@ -156,16 +161,38 @@ class SpectrumCache:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Spectra (K, RINGS, F) and non-empty columns (K,) of keyframes ``keys`` (``packed``: as
         :meth:`keep`)."""
+        spec, cols, rows = self._rows(keys, packed)
+        return (spec, cols) if rows is None else (spec[rows], cols[rows])
+
+    def distances(self, keys: Sequence[int], packed: Callable[[int], np.ndarray]) -> np.ndarray:
+        """:func:`spectrum_distances` of keyframe ``keys[0]`` to each of ``keys[1:]`` (K - 1,),
+        ``_DISTANCE_ROWS`` candidates at a time: the same numbers as on :meth:`spectra`'s arrays,
+        without their (K, RINGS, F) copies and products (10 kB per keyframe: arrays of 0.3-4 MB
+        were fresh mappings whose pages the kernel zero-filled)."""
+        spec, cols, rows = self._rows(keys, packed)
+        at = np.arange(len(keys)) if rows is None else np.asarray(rows)
+        query = (spec[at[0]], cols[at[0]])
+        parts = [
+            spectrum_distances(query, (spec[at[a : a + _DISTANCE_ROWS]], cols[at[a : a + _DISTANCE_ROWS]]))[0]
+            for a in range(1, len(at), _DISTANCE_ROWS)
+        ]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def _rows(
+        self, keys: Sequence[int], packed: Callable[[int], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray, list[int] | None]:
+        """(spectra, columns, rows of ``keys`` in them): the cache's arrays, or the spectra of
+        ``keys`` computed anew (rows None) when more than can be kept at once."""
         keys = [int(k) for k in keys]
         if len(set(keys)) > self.capacity:  # more than can be kept at once: all anew
             self.computed += len(keys)
-            return _spectra_of(np.stack([packed(k) for k in keys]))
+            spec, cols = _spectra_of(np.stack([packed(k) for k in keys]))
+            return spec, cols, None
         for k in keys:  # the ones kept first, so that keeping the others drops none of them
             if k in self._slot:
                 self._slot.move_to_end(k)
         self.keep(keys, packed)
-        rows = [self._slot[k] for k in keys]
-        return self._spec[rows], self._cols[rows]
+        return self._spec, self._cols, [self._slot[k] for k in keys]
 
 
 def _spectra_of(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

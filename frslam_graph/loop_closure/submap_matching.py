@@ -14,8 +14,11 @@ bounded steps, each announcing its estimated cost (:mod:`frslam_graph.steps`).
 
 from __future__ import annotations
 
+import ctypes
 import math
+import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -97,6 +100,90 @@ def _blank_grid(n: int) -> np.ndarray:
     if grid is None or len(grid) < n:
         grid = _SCRATCH.blank = np.full(n, -1, np.int32)
     return grid
+
+
+# a block of the pool goes to a request of at least 1 / _POOL_SLACK of its size (its whole pages
+# past the request are given back to the kernel: GridPool.take); 1.25 reused 42 % of FR079's
+# requests, 2 79 %
+_POOL_SLACK = 2.0
+_PAGE = 4096  # bytes
+# bytes of the correlative search's block gathers at most (below the pinned mmap threshold,
+# offline.MMAP_THRESHOLD: from the heap)
+_GATHER_BYTES = 192 << 10
+_MADV_DONTNEED = 4  # madvise(2): the pages are dropped; zero-filled again on the next touch
+
+
+def _dontneed() -> Callable[[int, int], object] | None:
+    """Linux's ``madvise(addr, length, MADV_DONTNEED)``, or None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = ctypes.CDLL(None).madvise
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int
+    return lambda addr, length: fn(addr, length, _MADV_DONTNEED)
+
+
+_POOLED_BYTES = 256 << 10  # smaller arrays come from the heap (no fresh mapping): not pooled
+
+
+class GridPool:
+    """The large arrays of reference submaps the loop closer dropped (likelihood field, labels
+    and nearest-point map on the inner grid; max-filtered fields on the whole grid: 0.5-2 MB
+    each at 5 cm), handed to its next submaps instead of fresh ones.
+
+    Under the pinned mmap threshold (:func:`frslam_graph.offline._pin_mmap_threshold`) a fresh
+    array is a new mapping whose every 4 kB page the kernel zero-fills on first touch: FR079's
+    backend took ~1.9 million page faults, most in submap builds. A pooled block is resident
+    already; every array taken from it is written whole (a max-filtered field's margin is set
+    to zero) and the block's whole pages past it are dropped (``madvise(MADV_DONTNEED)``), so it
+    holds no more memory than a fresh one once that one is written. Best fit, within
+    ``_POOL_SLACK`` of the request; at most ``capacity`` blocks wait (the oldest freed)."""
+
+    def __init__(self, capacity: int = 8):
+        self.capacity = capacity
+        self._blocks: list[np.ndarray] = []  # 1-D uint8, oldest first
+        self._dontneed = _dontneed()
+        self.reused = 0  # arrays handed out of the pool (tests, tools)
+        self.kept = 0  # blocks taken in
+
+    def take(self, shape: tuple[int, ...], dtype: type) -> np.ndarray | None:
+        """A C-order array of ``shape`` / ``dtype`` (contents undefined) on a pooled block, or
+        None when no block fits."""
+        n = math.prod(shape) * np.dtype(dtype).itemsize
+        best = -1
+        for i, b in enumerate(self._blocks):
+            if n <= b.nbytes <= _POOL_SLACK * n and (best < 0 or b.nbytes < self._blocks[best].nbytes):
+                best = i
+        if best < 0:
+            return None
+        self.reused += 1
+        block = self._blocks.pop(best)
+        if self._dontneed is not None:  # the whole pages past the request: not held for nothing
+            start = block.__array_interface__["data"][0]
+            lo, hi = -(-(start + n) // _PAGE) * _PAGE, (start + block.nbytes) // _PAGE * _PAGE
+            if hi > lo:
+                self._dontneed(lo, hi - lo)
+        return block[:n].view(dtype).reshape(shape)
+
+    def put(self, a: np.ndarray) -> None:
+        """Keep the block under ``a``, an array the caller hands over holding no reference to
+        it (``pool.put(arrays.pop())``), unless another array or view still refers to it (a
+        suspended match's look-ups): then it is left to be freed."""
+        # references: this frame's `a` and getrefcount's argument; a view's block also a's base
+        # and `block`
+        if sys.getrefcount(a) > 2:
+            return
+        block = a if a.base is None else a.base
+        if block is not a and sys.getrefcount(block) > 3:
+            return
+        if not isinstance(block, np.ndarray) or not block.flags.c_contiguous or block.nbytes < _POOLED_BYTES:
+            return
+        self._blocks.append(block.reshape(-1).view(np.uint8))
+        self.kept += 1
+        if len(self._blocks) > self.capacity:
+            self._blocks.pop(0)
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -249,9 +336,12 @@ class ReferenceSubmap:
         scans: list[tuple[np.ndarray, np.ndarray]] | None = None,
         free_margin: float = 0.3,
         likelihood: bool = True,
+        pool: GridPool | None = None,
     ):
         """``likelihood`` False: no likelihood field (``field`` None; for ICP and inlier tests
-        only, which need the nearest-point map alone)."""
+        only, which need the nearest-point map alone). ``pool``: where its large arrays come
+        from when it has one that fits (:class:`GridPool`; the same values either way)."""
+        self._pool = pool
         pts = voxel_downsample(np.asarray(points, dtype=np.float64), resolution)
         self.points = pts
         self.resolution = res = float(resolution)
@@ -283,23 +373,23 @@ class ReferenceSubmap:
             cv2.DIST_MASK_5,
             labelType=cv2.DIST_LABEL_PIXEL,
             dst=_scratch(1, free.shape, np.float32),
+            labels=self._take(free.shape, np.int32),
         )
         dist *= res
         self._occupied = free.ravel() == 0  # inner grid
         self._scans = scans
-        # free space must be farther than free_margin from any end point
-        self._far = None
-        if scans:
-            far = np.ones((h, w), bool)
-            far[pad : pad + hi_, pad : pad + wi] = dist > free_margin
-            self._far = far.ravel()
+        # Kept on the inner grid only (the margin's values are implied: likelihood 0, no
+        # nearest point, far from every end point): a full-grid array is a fresh mapping whose
+        # pages the kernel zero-fills as they are first touched, ~1,500 per submap on FR079.
+        # free space must be farther than free_margin from any end point (inner grid)
+        self._far = dist > free_margin if scans else None
+        #: the likelihood field on the inner grid (hi_, wi) float32 (0 beyond it), or None
         self.field: np.ndarray | None = None
         if likelihood:  # exp(-0.5 (dist / sigma)²), in place (dist is not needed after it)
             lik = np.divide(dist, sigma, out=dist)
             np.square(lik, out=lik)
             lik *= -0.5
-            self.field = np.zeros((h, w), np.float32)
-            self.field[pad : pad + hi_, pad : pad + wi] = np.exp(lik, out=lik)
+            self.field = np.exp(lik, out=self._take(lik.shape, np.float32))
         self._nearest: np.ndarray | None = None
         self._tree: cKDTree | None = None
         self._normals: tuple[np.ndarray, np.ndarray] | None = None
@@ -308,14 +398,43 @@ class ReferenceSubmap:
         self._dilated: dict[int, np.ndarray] = {}
 
     # ----- built on first use (ICP, free-space test)
+    def _take(self, shape: tuple[int, ...], dtype: type) -> np.ndarray | None:
+        """An array from the pool (contents undefined), or None (then a fresh one is made)."""
+        return None if self._pool is None else self._pool.take(shape, dtype)
+
+    def release(self) -> None:
+        """Hand the large arrays to the pool when the caller drops this submap and holds no
+        reference to it (``submaps.pop().release()``); a submap still referenced elsewhere (a
+        suspended match) keeps them."""
+        # this call's `self` and getrefcount's argument
+        if self._pool is None or sys.getrefcount(self) > 2:
+            return
+        arrays = [
+            a for a in (self.field, self._labels, self._nearest, *self._dilated.values()) if a is not None
+        ]
+        self.field = self._labels = self._nearest = None
+        self._dilated = {}
+        while arrays:
+            self._pool.put(arrays.pop())
+
+    def padded(self, inner: np.ndarray, fill: float | bool) -> np.ndarray:
+        """An inner-grid array (:attr:`field`, :attr:`nearest`) laid on the whole grid
+        (``shape``, flattened), ``fill`` in the margin (0, -1): what it stands for."""
+        pad, hi_, wi = self._inner
+        out = np.full(self.shape, fill, inner.dtype)
+        out[pad : pad + hi_, pad : pad + wi] = inner.reshape(hi_, wi)
+        return out.ravel()
+
     @property
     def nearest(self) -> np.ndarray:
-        """Index of the nearest reference point of every cell (flattened; -1 without points)."""
+        """Index of the nearest reference point of every cell of the inner grid (``_inner``;
+        flattened; -1 without points; the margin has none: :meth:`padded`)."""
         if self._nearest is None:
-            h, w = self.shape
+            w = self.shape[1]
             pad, hi_, wi = self._inner
-            nearest = np.full((h, w), -1, np.int32)
-            if len(self.points):
+            if not len(self.points):
+                nearest = np.full(hi_ * wi, -1, np.int32)
+            else:
                 # the reference point in each occupied cell (the last one in it), on the inner
                 # grid, where every point lies, in a scratch buffer (_scratch): only the occupied
                 # cells are read, and each was written (a full-grid table and three inner-grid
@@ -330,9 +449,14 @@ class ReferenceSubmap:
                 table = np.empty(len(occupied) + 1, np.int32)
                 table[1:] = owner[occupied]
                 table[0] = table[1]
-                inner = np.take(table, self._labels, out=_scratch(1, (hi_, wi), np.int32), mode="clip")
-                nearest[pad : pad + hi_, pad : pad + wi] = inner
-            self._nearest = nearest.ravel()
+                labels = self._labels.ravel()
+                nearest = np.take(table, labels, out=self._take(labels.shape, np.int32), mode="clip")
+                del labels
+            self._nearest = nearest
+            if self._pool is not None and self._labels is not None:
+                done = [self._labels]  # handed over without a reference left here
+                self._labels = None
+                self._pool.put(done.pop())
             self._labels = None
         return self._nearest
 
@@ -370,7 +494,10 @@ class ReferenceSubmap:
                 )
                 polys = np.split(ij.astype(np.int32), np.cumsum([len(e) + 1 for _, e in scans])[:-1])
                 cv2.fillPoly(seen, polys, 1)
-            self._free = (seen.ravel() > 0) & self._far
+            free = seen > 0
+            pad, hi_, wi = self._inner
+            free[pad : pad + hi_, pad : pad + wi] &= self._far  # beyond the inner grid: far
+            self._free = free.ravel()
         return self._free
 
     def prepare_icp(self) -> None:
@@ -405,11 +532,14 @@ class ReferenceSubmap:
         """(indices into ``points`` with a reference point within max_distance, those reference
         points' indices): nearest neighbours by a cell look-up (exact up to one cell; for
         counting inliers, not for ICP's correspondences: see :meth:`exact_nearest_offsets`)."""
-        h, w = self.shape
+        pad, h, w = self._inner  # the nearest-point map's grid: beyond it no point is near
         ix = np.floor((points[:, 0] - self.origin[0]) / self.resolution).astype(np.int64)
         iy = np.floor((points[:, 1] - self.origin[1]) / self.resolution).astype(np.int64)
+        if pad:
+            ix -= pad
+            iy -= pad
         inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
-        if inside.all():  # usual: the grid's margin holds the query (no gathers then)
+        if inside.all():  # usual: the inner grid holds the query (no gathers then)
             sel, ps, flat = np.arange(len(points)), points, iy * w + ix
         else:
             sel = np.flatnonzero(inside)
@@ -430,14 +560,23 @@ class ReferenceSubmap:
                 r0, r1 = max(pad - cells, 0), min(pad + hi_ + cells, h)
                 c0, c1 = max(pad - cells, 0), min(pad + wi + cells, w)
                 kernel = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
-                f = np.zeros((h, w), np.float32)
-                # the block and its max filter in scratch buffers (_scratch), the result kept
+                f = self._take((h, w), np.float32)
+                if f is None:
+                    f = np.zeros((h, w), np.float32)
+                else:  # a pooled block: zeros where the max filter does not write
+                    f[:r0] = 0.0
+                    f[r1:] = 0.0
+                    f[r0:r1, :c0] = 0.0
+                    f[r0:r1, c1:] = 0.0
+                # the block (the inner grid's field in its zero ring) and its max filter in
+                # scratch buffers (_scratch), the result kept
                 src = _scratch(0, (r1 - r0, c1 - c0), np.float32)
-                np.copyto(src, self.field[r0:r1, c0:c1])
+                src.fill(0.0)
+                src[pad - r0 : pad - r0 + hi_, pad - c0 : pad - c0 + wi] = self.field
                 f[r0:r1, c0:c1] = cv2.dilate(src, kernel, dst=_scratch(1, src.shape, np.float32))
                 f = f.ravel()
             else:
-                f = self.field.ravel()
+                f = self.padded(self.field, 0.0)
             self._dilated[cells] = f
         return f
 
@@ -738,10 +877,16 @@ def _grid_search(
         blocks = as_strided(
             field, shape=(field.size - 2 * lim * (w + 1), n, n), strides=(step, step * s * w, step * s)
         )
-        g = blocks[corner[a : a + chunk]]  # (t, M, n, n): offset (oy, ox) at [.., iy, ix]
-        t, m = g.shape[:2]
+        at = corner[a : a + chunk]
+        t, m = at.shape
         o_m = _scratch(0, (t, n * n, m), np.float32)  # (t, O, M), as np.ascontiguousarray
-        np.copyto(o_m, g.reshape(t, m, n * n).transpose(0, 2, 1))
+        # gathered a few headings at a time: a gather's result is a fresh array, from the heap
+        # below _GATHER_BYTES, above a fresh mapping the kernel zero-fills page by page (the
+        # pinned mmap threshold; FR079: 0.3 million page faults)
+        sub = max(1, _GATHER_BYTES // (m * n * n * field.itemsize))
+        for b in range(0, t, sub):
+            g = blocks[at[b : b + sub]]  # (t', M, n, n): offset (oy, ox) at [.., iy, ix]
+            np.copyto(o_m[b : b + sub], g.reshape(len(g), m, n * n).transpose(0, 2, 1))
         scores[a : a + chunk] = o_m.mean(axis=2)
     tt = np.repeat(thetas, n * n)
     poses = np.column_stack(
