@@ -17,6 +17,7 @@ scan's stamp has no pose of its own). × real time CPU: log duration / CPU secon
 
     .venv/bin/python tools/degrade_logs.py --out /tmp/degrade                  # aces intel, all variants
     .venv/bin/python tools/degrade_logs.py --out /tmp/degrade --logs fr079 --variants noodom
+    .venv/bin/python tools/degrade_logs.py --out /tmp/degrade --variants noise3cm noise3cm_s1 noise3cm_s2
 """
 
 from __future__ import annotations
@@ -128,6 +129,10 @@ for _name, _r in (("range8", 8.0), ("range4", 4.0), ("range3.5", 3.5)):
     VARIANTS[_name] = ((lambda r: lambda s: short_beams(s, r))(_r), False)
 #: a cheaper laser: range noise of 3 cm (sigma), half the beams
 VARIANTS["noise3cm"] = (lambda s: noisy_ranges(s, 0.03), False)
+#: the same laser, other draws of its noise (``noise3cm`` is seed 0): a second and third sample of a
+#: change's effect on a noisy log, where one run cannot tell a change from a changed trajectory
+for _k in (1, 2):
+    VARIANTS[f"noise3cm_s{_k}"] = ((lambda k: lambda s: noisy_ranges(s, 0.03, seed=k))(_k), False)
 VARIANTS["half_beams"] = (lambda s: fewer_beams(s, 2), False)
 ALL = ["noodom", "drift2", "rate3_gaps", "range8"]
 
