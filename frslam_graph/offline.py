@@ -18,7 +18,6 @@ import contextlib
 import ctypes
 import json
 import math
-import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -33,6 +32,7 @@ from frslam_graph.backend.decisions import PRIOR_REMOVAL_CAUSES, DecisionEvent
 from frslam_graph.backend.keyframes import Rows
 from frslam_graph.config import FRSlamConfig
 from frslam_graph.errors import ConfigError, TrajectoryError
+from frslam_graph.libc import libc_function
 from frslam_graph.odometry import worker as odometry_worker
 from frslam_graph.odometry.scan_odometry import OdometryStats
 from frslam_graph.slam import FRSlam, body_points
@@ -186,13 +186,9 @@ def _pin_mmap_threshold() -> bool:
     peak RSS - trimmed RSS: 35 MB at 4,000 scans, 119 MB at 16,000). Pinned, such blocks go back
     to the system when freed: 11 and 29 MB. The trim threshold goes with it
     (:data:`TRIM_THRESHOLD`). It moves no live object: results are unchanged."""
-    if not sys.platform.startswith("linux"):
+    mallopt = libc_function("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
         mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
     )
@@ -206,14 +202,8 @@ def _heap_trimmer() -> Callable[[], object] | None:
     threshold, mallopt(3)). On Intel the backend held ~80 MB of freed memory (RSS 288 MB at
     2,000 scans, 207 MB after a trim; 318 / 237 MB at 6,000). Trimming every few hundred scans
     gives it back; it moves no live object, so results are unchanged."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    return lambda: trim(0)
+    trim = libc_function("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
+    return None if trim is None else lambda: trim(0)
 
 
 @dataclass

@@ -696,10 +696,9 @@ class LoopCloser:
             self._submaps.popitem(last=False)[1].release()
 
     def _keep_submap(self, c: int, sub: ReferenceSubmap) -> None:
-        """Keep keyframe c's new reference submap (built after :meth:`_make_room`)."""
+        """Keep keyframe c's new reference submap (built after :meth:`_make_room`, which left
+        room for it)."""
         self._submaps[c] = sub
-        while len(self._submaps) + len(self._stale_submaps) > SUBMAPS_KEPT:  # pragma: no cover - made room
-            self._submaps.popitem(last=False)[1].release()
 
     def _drop_submaps(self) -> None:
         """Forget the reference submaps (a closure moved their keyframes relative to each other).

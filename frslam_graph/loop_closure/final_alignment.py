@@ -214,8 +214,8 @@ class _ReferenceStack:
         self.resolution = refs[0].resolution
         self.origin = np.array([r.origin for r in refs])
         # each submap's nearest-point map: its inner grid ((h, w), ``pad`` cells in from its origin)
-        self.shape = np.array([r._inner[1:] for r in refs], dtype=np.int64)
-        self.pad = np.array([r._inner[0] for r in refs], dtype=np.int64)
+        self.shape = np.array([r.inner_grid[1:] for r in refs], dtype=np.int64)
+        self.pad = np.array([r.inner_grid[0] for r in refs], dtype=np.int64)
         cells = self.shape[:, 0] * self.shape[:, 1]
         self.cell_offset = np.concatenate(([0], np.cumsum(cells)[:-1]))
         sizes = np.array([len(r.points) for r in refs])

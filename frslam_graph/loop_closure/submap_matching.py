@@ -28,6 +28,7 @@ from numpy.lib.stride_tricks import as_strided
 from scipy.spatial import cKDTree
 
 from frslam_graph.config import LoopClosureConfig
+from frslam_graph.libc import libc_function
 from frslam_graph.steps import Steps, run_steps
 
 # Fixed settings (config fields until issue 20; never changed by a test, tool or doc):
@@ -115,14 +116,8 @@ _MADV_DONTNEED = 4  # madvise(2): the pages are dropped; zero-filled again on th
 
 def _dontneed() -> Callable[[int, int], object] | None:
     """Linux's ``madvise(addr, length, MADV_DONTNEED)``, or None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        fn = ctypes.CDLL(None).madvise
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes, fn.restype = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int
-    return lambda addr, length: fn(addr, length, _MADV_DONTNEED)
+    fn = libc_function("madvise", [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int)
+    return None if fn is None else lambda addr, length: fn(addr, length, _MADV_DONTNEED)
 
 
 _POOLED_BYTES = 256 << 10  # smaller arrays come from the heap (no fresh mapping): not pooled
@@ -417,6 +412,12 @@ class ReferenceSubmap:
         while arrays:
             self._pool.put(arrays.pop())
 
+    @property
+    def inner_grid(self) -> tuple[int, int, int]:
+        """(pad, rows, cols): the inner grid, ``pad`` cells in from the whole grid's origin, on
+        which :attr:`field` and :attr:`nearest` are kept."""
+        return self._inner
+
     def padded(self, inner: np.ndarray, fill: float | bool) -> np.ndarray:
         """An inner-grid array (:attr:`field`, :attr:`nearest`) laid on the whole grid
         (``shape``, flattened), ``fill`` in the margin (0, -1): what it stands for."""
@@ -453,11 +454,10 @@ class ReferenceSubmap:
                 nearest = np.take(table, labels, out=self._take(labels.shape, np.int32), mode="clip")
                 del labels
             self._nearest = nearest
-            if self._pool is not None and self._labels is not None:
-                done = [self._labels]  # handed over without a reference left here
-                self._labels = None
-                self._pool.put(done.pop())
+            done = [self._labels]  # handed to the pool without a reference left here
             self._labels = None
+            if self._pool is not None and done[0] is not None:
+                self._pool.put(done.pop())
         return self._nearest
 
     @property
