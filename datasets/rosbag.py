@@ -52,11 +52,13 @@ Units: seconds, metres, radians; frames: the scan in its sensor frame, odometry 
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import math
-from collections.abc import Iterator
+import struct
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from frslam_graph.datasets.recording import PoseInterpolator, Recording, RecordingStats, acquisition_times
@@ -84,6 +86,55 @@ TILT_WARN_DEG = 5.0  # a laser tilted more than this from level is flagged (its 
 TF_SEARCH_MESSAGES = 2000  # tf messages read for an odom -> base transform when there is no Odometry topic
 SEQ_WINDOW = 256  # messages held to put scans back in header.seq order (Intel: displaced by <= 14)
 _PC2_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+Decoders = dict[str, Callable[[bytes], Any]] | None  # message type -> decoder of its ROS 1 bytes
+
+
+class OdometryPose(NamedTuple):
+    """What the reader uses of a nav_msgs/Odometry: ``header.seq`` (None in ROS 2), header stamp
+    (ns, 0 when unset), the child frame, and the pose: x, y (m) and yaw (rad) in the odometry frame."""
+
+    seq: int | None
+    stamp_ns: int
+    child_frame_id: str
+    x: float
+    y: float
+    yaw: float
+
+    @classmethod
+    def of(cls, msg: Any) -> OdometryPose:
+        """The fields of a decoded Odometry message."""
+        st, p = msg.header.stamp, msg.pose.pose.position
+        ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+        return cls(_seq(msg), ns, msg.child_frame_id, p.x, p.y, _yaw(msg.pose.pose.orientation))
+
+
+_ODOM_HEAD = struct.Struct(
+    "<IiII"
+)  # header seq, stamp sec (int32, as rosbags reads it), nanosec, frame_id length
+_U32 = struct.Struct("<I")
+_POSE = struct.Struct("<7d")  # position x, y, z; orientation x, y, z, w
+_ODOM_TAIL = 8 * (36 + 6 + 36)  # pose covariance, twist, twist covariance: bytes after the pose
+
+
+def ros1_odometry_pose(raw: bytes) -> OdometryPose:
+    """:class:`OdometryPose` of a ROS 1 (Noetic) nav_msgs/Odometry from its bytes, without building
+    the message (a tenth of the cost); raises where rosbags' ``deserialize_ros1`` raises: a
+    string running past the end or not UTF-8, a message shorter or longer than its fields."""
+    seq, sec, nsec, n = _ODOM_HEAD.unpack_from(raw, 0)
+    start = _ODOM_HEAD.size
+    (m,) = _U32.unpack_from(raw, start + n)
+    end = start + n + 4 + m
+    if end > len(raw):
+        raise ValueError("nav_msgs/msg/Odometry: a string runs past the end of the message")
+    bytes(raw[start : start + n]).decode()  # frame_id: decoded only to fail as rosbags would
+    child = bytes(raw[start + n + 4 : end]).decode()
+    x, y, _z, qx, qy, qz, qw = _POSE.unpack_from(raw, end)
+    if end + _POSE.size + _ODOM_TAIL != len(raw):
+        raise ValueError("ROS1 message size mismatch for 'nav_msgs/msg/Odometry'")
+    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return OdometryPose(seq, sec * 1_000_000_000 + nsec, child, x, y, yaw)
 
 
 def bag_path(path: Path) -> Path | None:
@@ -114,18 +165,22 @@ class _AnySource:
         self.problems: dict[str, int] = {}
         self.first_problem: dict[str, str] = {}
         self._topics: dict[str, tuple[str, int]] = {}
+        self._idle: Any = None  # an open reader between two passes (its index read once)
         if self.ros1:
             self.typestore = get_typestore(Stores.ROS1_NOETIC)
-            with self._open() as reader:
-                for c in reader.connections:
-                    self._count(c.topic, c.msgtype, c.msgcount)
-                    if c.msgtype not in self.typestore.fielddefs and c.msgdef.data:
-                        self.typestore.register(get_types_from_msg(c.msgdef.data, c.msgtype))
         else:
             self._default = get_typestore(Stores.ROS2_HUMBLE)
-            with self._open() as reader:
-                for c in reader.connections:
-                    self._count(c.topic, c.msgtype, c.msgcount)
+        reader = self._open()
+        reader.open()
+        try:
+            for c in reader.connections:
+                self._count(c.topic, c.msgtype, c.msgcount)
+                if self.ros1 and c.msgtype not in self.typestore.fielddefs and c.msgdef.data:
+                    self.typestore.register(get_types_from_msg(c.msgdef.data, c.msgtype))
+        except BaseException:
+            reader.close()
+            raise
+        self._idle = reader
 
     def _count(self, topic: str, msgtype: str, n: int) -> None:
         msgtype, total = self._topics.get(topic, (msgtype, 0))
@@ -143,18 +198,46 @@ class _AnySource:
     def topics(self) -> dict[str, tuple[str, int]]:
         return dict(self._topics)
 
-    def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
-        with self._open() as reader:
+    def messages(
+        self, topics: set[str], ros1_decoders: Decoders = None
+    ) -> Iterator[tuple[str, str, int, Any]]:
+        """(topic, type, bag time ns, message or the Exception decoding it) in bag order; a ROS 1
+        message whose type ``ros1_decoders`` names is decoded by it. The open reader of the
+        previous pass is taken when free (a pass inside another opens its own), and left open for
+        the next one."""
+        reader, self._idle = self._idle, None
+        if reader is None:
+            reader = self._open()
+            reader.open()
+        decoders = (ros1_decoders or {}) if self.ros1 else {}
+        try:
             conns = [c for c in reader.connections if c.topic in topics]
             for c, t, raw in reader.messages(connections=conns):
                 try:
-                    if self.ros1:
+                    if c.msgtype in decoders:
+                        msg = decoders[c.msgtype](raw)
+                    elif self.ros1:
                         msg = self.typestore.deserialize_ros1(raw, c.msgtype)
                     else:
                         msg = reader.deserialize(raw, c.msgtype)
                 except Exception as exc:  # corrupt message: reported by the caller
                     msg = exc
                 yield c.topic, c.msgtype, t, msg
+        finally:
+            if self._idle is None:
+                self._idle = reader
+            else:
+                reader.close()
+
+    def close(self) -> None:
+        """Close the reader kept open between passes (the next pass opens one again)."""
+        reader, self._idle = self._idle, None
+        if reader is not None:
+            reader.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
 
 
 class _RawSource:
@@ -168,14 +251,22 @@ class _RawSource:
     def topics(self) -> dict[str, tuple[str, int]]:
         return self.bag.topics()
 
-    def messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any]]:
+    ros1 = True
+
+    def messages(
+        self, topics: set[str], ros1_decoders: Decoders = None
+    ) -> Iterator[tuple[str, str, int, Any]]:
+        decoders = ros1_decoders or {}
         for c, t, raw in self.bag.messages(topics):
             msgtype = c.msgtype
             try:
-                msg = self.bag.deserialize(raw, msgtype)
+                msg = decoders[msgtype](raw) if msgtype in decoders else self.bag.deserialize(raw, msgtype)
             except Exception as exc:  # corrupt message or unknown type: reported by the caller
                 msg = exc
             yield c.topic, msgtype, t, msg
+
+    def close(self) -> None:
+        """Nothing held open between passes."""
 
 
 def _stamp(msg: Any, bag_ns: int) -> float:
@@ -184,10 +275,20 @@ def _stamp(msg: Any, bag_ns: int) -> float:
     return (ns if ns > 0 else bag_ns) / 1_000_000_000  # int / int: correctly rounded
 
 
+def _seq(msg: Any) -> int | None:
+    return getattr(getattr(msg, "header", None), "seq", None)
+
+
+def header_seq(item: tuple) -> int | None:
+    """ROS 1 ``header.seq`` of a (topic, type, bag time, message, ...) item; None without one."""
+    return _seq(item[3])
+
+
 def in_seq_order(
-    messages: Iterator[tuple[str, str, int, Any]], window: int = SEQ_WINDOW
-) -> Iterator[tuple[bool, tuple[str, str, int, Any]]]:
-    """``messages`` sorted by their ROS 1 ``header.seq`` within a window; yields (moved, message).
+    messages: Iterator[tuple], window: int = SEQ_WINDOW, seq_of: Callable[[tuple], int | None] = header_seq
+) -> Iterator[tuple[bool, tuple]]:
+    """``messages`` sorted by their ROS 1 ``header.seq`` (``seq_of``) within a window; yields
+    (moved, message).
 
     ``moved`` is True for a message yielded after one that came later in the bag. Messages
     without a seq (ROS 2, undecodable) take the seq of the message before them, ties keep the
@@ -204,7 +305,7 @@ def in_seq_order(
         return moved, item
 
     for i, item in enumerate(messages):
-        seq = getattr(getattr(item[3], "header", None), "seq", None)
+        seq = seq_of(item)
         seq = last_seq if seq is None else int(seq)
         if seq < last_seq - window:
             run += 1
@@ -302,6 +403,7 @@ class RosBag(Recording):
         self._odom: np.ndarray | None = None
         self._odom_track = np.zeros((0, 4))  # records or their acquisition times: what scans pair with
         self._odom_stats = RecordingStats()
+        self._acquired: np.ndarray | None = None  # the scans' acquisition times (see _prologue)
 
     def _open(self, reader: str) -> tuple[str, str]:
         is_ros1 = self.bag.suffix.lower() == ".bag"
@@ -460,29 +562,68 @@ class RosBag(Recording):
     def odometry(self) -> np.ndarray:
         """(M, 4) ``stamp, x, y, theta`` of the odometry topic (increasing stamps; others dropped)."""
         if self._odom is None:
-            self._odom, self._odom_track = self._read_odometry()
+            self._prologue()
         return self._odom.copy()
 
-    def _read_odometry(self) -> tuple[np.ndarray, np.ndarray]:
+    def _prologue(self) -> None:
+        """One pass over the odometry, scan and static tf topics, keeping light rows: the odometry
+        records and the track scans pair with (:meth:`_odometry_tables`), the scans' acquisition
+        times (:meth:`_scan_acquisition`) and the fixed transforms (:meth:`_frame_tree`). Both
+        estimates need their whole stream (its median period and share of bursts), hence a pass
+        before the first scan; an Odometry message of a ROS 1 bag is read for its pose only
+        (:func:`ros1_odometry_pose`)."""
+        if self.odom_topic is None:
+            self._odom, self._odom_track, self._acquired = np.zeros((0, 4)), np.zeros((0, 4)), None
+            return
+        odom_items: list[tuple] = []  # (seq, bag index, type, row or None if undecodable, child frame)
+        scan_items: list[tuple[int | None, float]] = []  # (seq, stamp; NaN if undecodable)
+        frames: dict[str, str] = {}  # one string object per frame name
+        k = -1
+        static = self._static_tf_topics() if self._tree is None else set()
+        if static:  # the fixed transforms (:meth:`_frame_tree`) in the same pass
+            self._tree = FrameTree()
+        topics = {self.odom_topic, self.scan_topic} | static
+        for topic, msgtype, t, msg in self.source.messages(topics, {ODOMETRY: ros1_odometry_pose}):
+            if topic == self.scan_topic:
+                stamp = math.nan if isinstance(msg, Exception) else _stamp(msg, t)
+                scan_items.append((_seq(msg), stamp))
+                continue
+            if topic in static and not isinstance(msg, Exception):
+                self._tree.add_message(msg)
+            if topic != self.odom_topic:
+                continue
+            k += 1
+            if isinstance(msg, Exception):
+                odom_items.append((None, k, msgtype, None, ""))
+            elif self.odom_frames is None:
+                o = msg if isinstance(msg, OdometryPose) else OdometryPose.of(msg)
+                child = frames.setdefault(o.child_frame_id, o.child_frame_id)
+                row = ((o.stamp_ns if o.stamp_ns > 0 else t) / 1_000_000_000, o.x, o.y, o.yaw)
+                odom_items.append((o.seq, k, msgtype, row, child))
+            else:
+                odom, base = self.odom_frames
+                for tr in getattr(msg, "transforms", ()):
+                    if frame_name(tr.header.frame_id) == odom and frame_name(tr.child_frame_id) == base:
+                        p, q = tr.transform.translation, tr.transform.rotation
+                        row = (_stamp(tr, t), p.x, p.y, _yaw(q))
+                        odom_items.append((_seq(tr), k, msgtype, row, ""))
+        self._odom, self._odom_track = self._odometry_tables(odom_items)
+        self._acquired = self._scan_acquisition(scan_items) if self._odom.shape[0] else None
+
+    def _odometry_tables(self, items: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
         """The odometry records (bag order, increasing stamps), and the track scans are paired
         with: the same records, or all of them in ``header.seq`` order at their acquisition times
-        (:func:`acquisition_times`) when their stamps are arrival times of a bursty stream."""
-        if self.odom_topic is None:
-            return np.zeros((0, 4)), np.zeros((0, 4))
+        (:func:`acquisition_times`) when their stamps are arrival times of a bursty stream.
+        ``items``: (seq, bag index, type, (stamp, x, y, theta) or None, child frame) in bag order."""
         rows = []  # bag index, stamp, x, y, theta; in header.seq order
         stats = self._odom_stats
-        for _moved, (_topic, msgtype, t, msg, k) in in_seq_order(self._odometry_items()):
+        for _moved, (_s, k, msgtype, row, child) in in_seq_order(iter(items), seq_of=lambda it: it[0]):
             where = f"{self.odom_topic} message {k}"
-            if isinstance(msg, Exception):
+            if row is None:
                 stats.skip(f"undecodable {msgtype} messages", where)
                 continue
-            if self.odom_frames is None:
-                if self.base_frame is None:
-                    self.base_frame = frame_name(msg.child_frame_id) or None
-                p, q = msg.pose.pose.position, msg.pose.pose.orientation
-            else:
-                p, q = msg.transform.translation, msg.transform.rotation
-            row = (_stamp(msg, t), p.x, p.y, _yaw(q))
+            if self.odom_frames is None and self.base_frame is None:
+                self.base_frame = frame_name(child) or None
             if not all(math.isfinite(v) for v in row):
                 stats.skip("odometry messages with non-finite values", where)
                 continue
@@ -505,32 +646,13 @@ class RosBag(Recording):
         ok[1:] = track[1:, 0] > np.maximum.accumulate(track[:, 0])[:-1]
         return records[keep, 1:], track[ok]
 
-    def _odometry_items(self) -> Iterator[tuple[str, str, int, Any, int]]:
-        """(topic, type, bag time, message, bag index) of the odometry in bag order: the Odometry
-        messages, or each ``odom`` -> base transform of the tf topic (a TransformStamped)."""
-        messages = self.source.messages({self.odom_topic})
-        if self.odom_frames is None:
-            for k, m in enumerate(messages):
-                yield (*m, k)
-            return
-        odom, base = self.odom_frames
-        for k, (topic, msgtype, t, msg) in enumerate(messages):
-            if isinstance(msg, Exception):
-                yield topic, msgtype, t, msg, k
-                continue
-            for tr in getattr(msg, "transforms", ()):
-                if frame_name(tr.header.frame_id) == odom and frame_name(tr.child_frame_id) == base:
-                    yield topic, msgtype, t, tr, k
-
-    def _scan_acquisition(self) -> np.ndarray | None:
+    @staticmethod
+    def _scan_acquisition(items: list[tuple[int | None, float]]) -> np.ndarray | None:
         """Acquisition times of the scan messages in the order :meth:`_scans` takes them (NaN for
-        an undecodable one), or None when their stamps follow a steady clock. One pass over the
-        scan topic reading stamps only (intel.bag: 0.6 s of CPU for 13,631 scans)."""
+        an undecodable one), or None when their stamps follow a steady clock. ``items``: (seq,
+        stamp) of each scan message in bag order."""
         stamps = np.array(
-            [
-                math.nan if isinstance(msg, Exception) else _stamp(msg, t)
-                for _moved, (_topic, _type, t, msg) in in_seq_order(self.source.messages({self.scan_topic}))
-            ],
+            [stamp for _moved, (_s, stamp) in in_seq_order(iter(items), seq_of=lambda it: it[0])],
             dtype=np.float64,
         )
         good = np.isfinite(stamps)
@@ -549,7 +671,7 @@ class RosBag(Recording):
         for reason, n in self._odom_stats.problems.items():
             stats.problems[reason] += n
             stats.first.setdefault(reason, self._odom_stats.first[reason])
-        acquired = self._scan_acquisition() if odom.shape[0] else None
+        acquired = self._acquired
         angles_cache: dict[tuple[int, float, float], np.ndarray] = {}
         last_stamp = -math.inf
         reordered = False
@@ -591,6 +713,7 @@ class RosBag(Recording):
                 scan = self._cloud_scan(msg, stamp, pose, mount, stats, where)
             if scan is not None:
                 yield scan
+        self.source.close()
         for reason, n in self.source.problems.items():
             stats.problems[reason] += n
             stats.first.setdefault(reason, self.source.first_problem.get(reason, "?"))
@@ -637,15 +760,19 @@ class RosBag(Recording):
         return mount, note
 
     def _frame_tree(self) -> FrameTree:
-        """The fixed transforms of the static tf topics (read once)."""
+        """The fixed transforms of the static tf topics (read once: by :meth:`_prologue` in a bag
+        with odometry)."""
         if self._tree is None:
             self._tree = FrameTree()
-            static = {t for t in self.tf_topics if t.rstrip("/").endswith("tf_static")}
+            static = self._static_tf_topics()
             if static:
                 for _topic, _type, _t, msg in self.source.messages(static):
                     if not isinstance(msg, Exception):
                         self._tree.add_message(msg)
         return self._tree
+
+    def _static_tf_topics(self) -> set[str]:
+        return {t for t in self.tf_topics if t.rstrip("/").endswith("tf_static")}
 
     def _walk_dynamic_tf(self, tree: FrameTree, frame: str) -> tuple[np.ndarray | None, str | None]:
         """Add the first transform of each fixed-looking edge of the dynamic tf topics (not the
