@@ -18,6 +18,7 @@ from frslam_graph.datasets import open_recording
 from frslam_graph.datasets.ros1_raw import Ros1RawBag
 from frslam_graph.datasets.rosbag import OdometryPose, ros1_odometry_pose
 from rosbags.rosbag1 import Reader
+from rosbags.rosbag1 import Writer as Writer1
 from test_rosbag import ODOM, Msgs, check_standard, read_all, standard_messages, write_bag
 from test_rosbag_tf import laser_bag, quat
 
@@ -112,3 +113,43 @@ def test_the_odometry_pose_of_ros1_bytes_is_what_rosbags_decodes():
     for bad in damaged:
         assert outcome(ros1_odometry_pose, bad) == outcome(lambda b: rosbags_pose(ts, b), bad), bad.hex()
     assert sum(outcome(ros1_odometry_pose, bad) == "error" for bad in damaged) > len(raw)
+
+
+@pytest.mark.parametrize("reader", ["auto", "sequential"])
+def test_damaged_odometry_and_scans_are_skipped_and_reported_as_before(tmp_path, reader):
+    """An undecodable, a non-finite and a repeated odometry record, an undecodable scan: each
+    skipped and named (the prologue keeps them apart from the records it uses)."""
+    m = Msgs(True)
+    messages = standard_messages()
+    odom = [i for i, (topic, *_rest) in enumerate(messages) if topic == "/odom"]
+    scans = [i for i, (topic, *_rest) in enumerate(messages) if topic == "/scan"]
+    raw = [(topic, msgtype, t, bytes(m.serialize(msg, msgtype))) for topic, msgtype, t, msg in messages]
+    topic, msgtype, t, data = raw[odom[3]]
+    raw[odom[3]] = (topic, msgtype, t, data[:-8])
+    topic, msgtype, t, msg = messages[odom[5]]
+    msg.pose.pose.position.x = math.nan
+    raw[odom[5]] = (topic, msgtype, t, bytes(m.serialize(msg, msgtype)))
+    topic, msgtype, t, msg = messages[odom[7]]
+    msg.header.stamp = messages[odom[6]][3].header.stamp
+    raw[odom[7]] = (topic, msgtype, t, bytes(m.serialize(msg, msgtype)))
+    topic, msgtype, t, data = raw[scans[2]]
+    raw[scans[2]] = (topic, msgtype, t, data[:-3])
+    path = tmp_path / "damaged.bag"
+    with Writer1(path) as writer:
+        conns = {}
+        for topic, msgtype, t, data in raw:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=m.ts)
+            writer.write(conns[topic], int(round(t * 1e9)), data)
+    rec = open_recording(path, reader=reader)
+    scans_read, warns = read_all(rec)
+    assert len(scans_read) == 4 and all(s.odom is not None for s in scans_read)
+    assert rec.odometry().shape == (28, 4)
+    assert len(warns) == 1
+    for part in (
+        "1 skipped: undecodable nav_msgs/msg/Odometry messages (first at /odom message 3)",
+        "1 skipped: odometry messages with non-finite values (first at /odom message 5)",
+        "1 skipped: odometry messages not after the previous one (first at /odom message 7)",
+        "1 skipped: undecodable sensor_msgs/msg/LaserScan messages (first at /scan message 2)",
+    ):
+        assert part in warns[0], warns[0]
