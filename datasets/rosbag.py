@@ -46,6 +46,10 @@ stamps, 0.26° / 1.9° / 8.4° re-timed. Its LaserScan states 180 beams over 180
 π/179) where the CARMEN reader uses CARMEN's 1° steps; the message is read as stated (the angles
 are not what separates the two readings: tools/README.md).
 
+Both re-timings need their whole stream (its median period, its share of bursts), so one pass
+reads the odometry, the scan stamps and the static tf before the first scan (a ROS 1 Odometry
+message for its pose only); the scans follow in a second pass of the same open bag.
+
 Units: seconds, metres, radians; frames: the scan in its sensor frame, odometry ``base_link`` in
 ``odom`` (REP-105).
 """
@@ -112,9 +116,8 @@ class OdometryPose(NamedTuple):
         return cls(_seq(msg), ns, msg.child_frame_id, p.x, p.y, _yaw(msg.pose.pose.orientation))
 
 
-_ODOM_HEAD = struct.Struct(
-    "<IiII"
-)  # header seq, stamp sec (int32, as rosbags reads it), nanosec, frame_id length
+# header seq, stamp sec (int32, as rosbags reads it), nanosec, frame_id length
+_ODOM_HEAD = struct.Struct("<IiII")
 _U32 = struct.Struct("<I")
 _POSE = struct.Struct("<7d")  # position x, y, z; orientation x, y, z, w
 _ODOM_TAIL = 8 * (36 + 6 + 36)  # pose covariance, twist, twist covariance: bytes after the pose
@@ -122,7 +125,7 @@ _ODOM_TAIL = 8 * (36 + 6 + 36)  # pose covariance, twist, twist covariance: byte
 
 def ros1_odometry_pose(raw: bytes) -> OdometryPose:
     """:class:`OdometryPose` of a ROS 1 (Noetic) nav_msgs/Odometry from its bytes, without building
-    the message (a tenth of the cost); raises where rosbags' ``deserialize_ros1`` raises: a
+    the message (a tenth of the CPU); raises where rosbags' ``deserialize_ros1`` raises: a
     string running past the end or not UTF-8, a message shorter or longer than its fields."""
     seq, sec, nsec, n = _ODOM_HEAD.unpack_from(raw, 0)
     start = _ODOM_HEAD.size
@@ -245,6 +248,8 @@ class _AnySource:
 class _RawSource:
     """Our sequential ROS 1 reader, for bags whose index rosbags rejects."""
 
+    ros1 = True
+
     def __init__(self, path: Path):
         self.bag = Ros1RawBag(path)
         self.problems = self.bag.problems
@@ -252,8 +257,6 @@ class _RawSource:
 
     def topics(self) -> dict[str, tuple[str, int]]:
         return self.bag.topics()
-
-    ros1 = True
 
     def messages(
         self, topics: set[str], ros1_decoders: Decoders = None
