@@ -183,6 +183,43 @@ def test_child_work_runs_in_another_process_and_a_failed_child_gives_none():
     assert fa._in_child(fail)() is None
 
 
+def test_two_processes_share_the_blocks_as_they_come():
+    """_shared: the blocks of references go to whichever process is free. This process stalls in
+    its first block until the forked one has done every other block (halves split beforehand:
+    the forked one would stop at its half, this one give up waiting after ~20 s and do the
+    rest): the forked process did all but one block, and the constraints come in the order of
+    one run."""
+    import multiprocessing as mp
+    import os
+    import time
+
+    pairs = np.column_stack((np.repeat(np.arange(100), 2), np.arange(200) + 200))
+    me = os.getpid()
+    done = mp.get_context("fork").Value("i", 0)
+    stalled = [False]
+
+    def run(part: np.ndarray) -> list[fa.AlignmentConstraint]:
+        if os.getpid() == me and not stalled[0]:
+            stalled[0] = True
+            for _ in range(2000):  # until the other has done the rest (at most ~20 s)
+                if done.value >= fa.SHARED_BLOCKS - 1:
+                    break
+                time.sleep(0.01)
+        elif os.getpid() != me:
+            with done.get_lock():
+                done.value += 1
+        return [
+            fa.AlignmentConstraint(int(c), int(k), np.zeros(3), np.eye(3), float(os.getpid()))
+            for c, k in part
+        ]
+
+    out = fa._shared(pairs, run, processes=2)
+    assert [(c.reference, c.query) for c in out] == [tuple(p) for p in pairs.tolist()]
+    assert done.value == fa.SHARED_BLOCKS - 1
+    mine = {c.reference for c in out if c.inlier_fraction == me}
+    assert 0 < len(mine) <= 100 // fa.SHARED_BLOCKS + 1
+
+
 def test_pairs_of_a_place_passed_many_times_need_memory_for_a_chunk_only():
     """Keyframes of 60 passes of one 1 m circle all lie within the radius of each other: the pairs
     are gathered ``PAIRS_CHUNK`` keyframes at a time (all pairs at once: 4.5 million, ~300 MB of
