@@ -289,6 +289,38 @@ def test_search_ties_a_stretch_the_icp_cannot_reach():
     assert np.degrees(np.abs(err[:, 2])).max() < 0.5
 
 
+def test_search_skips_the_pairs_the_icp_reached(monkeypatch):
+    """Six keyframes of the second lap carry clutter (1 × 0.5 m of points ahead, not in the first
+    lap): their ICP converges within its gates but with too few inliers, so they are untied.
+    The estimate is within the ICP's reach there: the search, which would start at the same
+    place, is not given their pairs (only those the ICP could not judge)."""
+    truth, estimate, points, second = _two_laps()
+    k2 = np.flatnonzero(second)
+    stretch = k2[len(k2) // 3 : len(k2) // 3 + 6]
+    g = np.arange(0.0, 1.0, 0.05) + 0.025
+    clutter = (np.stack(np.meshgrid(g + 1.0, g - 0.5), -1).reshape(-1, 2) * [1.0, 0.5]).astype(np.float32)
+    points = [np.concatenate((p, clutter)) if k in stretch else p for k, p in enumerate(points)]
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    low = {
+        (c.reference, c.query)
+        for c in fa.reached_pairs(estimate, points, pairs, 15.0)
+        if c.inlier_fraction < 0.7
+    }
+    assert len({k for _, k in low} & set(stretch.tolist())) >= 4
+    given = []
+
+    def searched(poses, points_, origins, pairs_, config, processes=1):
+        given.extend(map(tuple, pairs_.tolist()))
+        return []
+
+    monkeypatch.setattr(fa, "searched_constraints", searched)
+    cons = dense_constraints(estimate, truth, points, 2.0, 15.0, origins=[np.zeros(2)] * len(points))
+    tied = {c.reference for c in cons} | {c.query for c in cons}
+    assert not {k for _, k in low} & tied  # untied: the old rule searched all their pairs
+    assert not low & set(given)
+
+
 def test_search_in_two_processes_gives_the_same_constraints():
     """searched_constraints with processes=2 matches the pairs of the second half of the
     references in a forked process: the same constraints, bit for bit, in the same order."""

@@ -383,11 +383,25 @@ def align_pairs(
     once): the start-overlap gate, the ICP (:func:`_icp_many`) and the final gates. The
     constraints come in the order of ``pairs`` sorted (stably) by reference. ``processes`` 2:
     the pairs are shared with a forked process (:func:`_shared`: the same constraints)."""
+    return _inliers_held(reached_pairs(poses, points, pairs, max_range, processes))
+
+
+def reached_pairs(
+    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float, processes: int = 1
+) -> list[AlignmentConstraint]:
+    """:func:`align_pairs` before its inlier gate: every pair whose ICP converged from the
+    estimate within ``MAX_CORRECTION_XY`` / ``_THETA`` (the estimate is within the ICP's reach),
+    with its inlier fraction (the constraints: those of at least ``MIN_INLIER_FRACTION``)."""
     if len(pairs) == 0:
         return []
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     local = _in_range(points, max_range)
     return _shared(pairs, lambda part: _align_refs(poses, local, part), processes)
+
+
+def _inliers_held(reached: list[AlignmentConstraint]) -> list[AlignmentConstraint]:
+    """The constraints of :func:`reached_pairs`: inlier fraction at least ``MIN_INLIER_FRACTION``."""
+    return [c for c in reached if c.inlier_fraction >= MIN_INLIER_FRACTION]
 
 
 #: blocks of references the pairs are cut into for :func:`_shared`: the two processes take them one
@@ -550,7 +564,7 @@ def _align_chunk(
     ok &= np.hypot(*(x[:, :2] - start[:, :2]).T) <= MAX_CORRECTION_XY
     ok &= np.abs(wrap(x[:, 2] - start[:, 2])) <= MAX_CORRECTION_THETA
     inliers = stack.inlier_fractions(qpts, owner, ref, x, INLIER_DISTANCE)
-    ok &= (inliers >= MIN_INLIER_FRACTION) & np.all(np.isfinite(cov), axis=(1, 2))
+    ok &= np.all(np.isfinite(cov), axis=(1, 2))  # the inlier gate: _inliers_held
     return [
         AlignmentConstraint(int(cs[p]), int(ks[p]), x[p].copy(), cov[p].copy(), float(inliers[p]))
         for p in np.flatnonzero(ok)
@@ -675,12 +689,18 @@ def dense_constraints(
     travel = np.concatenate(([0.0], np.cumsum(steps)))
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
-    cons = align_pairs(poses, points, pairs, max_range, processes)
+    reached = reached_pairs(poses, points, pairs, max_range, processes)
+    cons = _inliers_held(reached)
     if origins is None or not len(pairs):
         return cons
     tied = np.zeros(len(poses), bool)
     tied[[c.reference for c in cons] + [c.query for c in cons]] = True
-    untied = pairs[~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]]
+    # a pair the ICP reached from the estimate (converged within its gates, too few inliers) is
+    # not searched: the search, started there too, finds the same basin (real logs: its matches
+    # of such pairs within 5 cm / 0.8° of the ICP's) and only judges the inliers again
+    code = pairs[:, 0] * len(poses) + pairs[:, 1]
+    near = np.isin(code, [c.reference * len(poses) + c.query for c in reached])
+    untied = pairs[(~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]) & ~near]
     cfg = (config or LoopClosureConfig()).model_copy(update={"max_point_range": max_range})
     return cons + searched_constraints(poses, points, origins, untied, cfg, processes)
 
