@@ -183,6 +183,43 @@ def test_child_work_runs_in_another_process_and_a_failed_child_gives_none():
     assert fa._in_child(fail)() is None
 
 
+def test_two_processes_share_the_blocks_as_they_come():
+    """_shared: the blocks of references go to whichever process is free. This process stalls in
+    its first block until the forked one has done every other block (halves split beforehand:
+    the forked one would stop at its half, this one give up waiting after ~20 s and do the
+    rest): the forked process did all but one block, and the constraints come in the order of
+    one run."""
+    import multiprocessing as mp
+    import os
+    import time
+
+    pairs = np.column_stack((np.repeat(np.arange(100), 2), np.arange(200) + 200))
+    me = os.getpid()
+    done = mp.get_context("fork").Value("i", 0)
+    stalled = [False]
+
+    def run(part: np.ndarray) -> list[fa.AlignmentConstraint]:
+        if os.getpid() == me and not stalled[0]:
+            stalled[0] = True
+            for _ in range(2000):  # until the other has done the rest (at most ~20 s)
+                if done.value >= fa.SHARED_BLOCKS - 1:
+                    break
+                time.sleep(0.01)
+        elif os.getpid() != me:
+            with done.get_lock():
+                done.value += 1
+        return [
+            fa.AlignmentConstraint(int(c), int(k), np.zeros(3), np.eye(3), float(os.getpid()))
+            for c, k in part
+        ]
+
+    out = fa._shared(pairs, run, processes=2)
+    assert [(c.reference, c.query) for c in out] == [tuple(p) for p in pairs.tolist()]
+    assert done.value == fa.SHARED_BLOCKS - 1
+    mine = {c.reference for c in out if c.inlier_fraction == me}
+    assert 0 < len(mine) <= 100 // fa.SHARED_BLOCKS + 1
+
+
 def test_pairs_of_a_place_passed_many_times_need_memory_for_a_chunk_only():
     """Keyframes of 60 passes of one 1 m circle all lie within the radius of each other: the pairs
     are gathered ``PAIRS_CHUNK`` keyframes at a time (all pairs at once: 4.5 million, ~300 MB of
@@ -250,6 +287,38 @@ def test_search_ties_a_stretch_the_icp_cannot_reach():
     err = np.array([c.relative - between(truth[c.reference], truth[c.query]) for c in found])
     assert np.hypot(err[:, 0], err[:, 1]).max() < 0.03
     assert np.degrees(np.abs(err[:, 2])).max() < 0.5
+
+
+def test_search_skips_the_pairs_the_icp_reached(monkeypatch):
+    """Six keyframes of the second lap carry clutter (1 × 0.5 m of points ahead, not in the first
+    lap): their ICP converges within its gates but with too few inliers, so they are untied.
+    The estimate is within the ICP's reach there: the search, which would start at the same
+    place, is not given their pairs (only those the ICP could not judge)."""
+    truth, estimate, points, second = _two_laps()
+    k2 = np.flatnonzero(second)
+    stretch = k2[len(k2) // 3 : len(k2) // 3 + 6]
+    g = np.arange(0.0, 1.0, 0.05) + 0.025
+    clutter = (np.stack(np.meshgrid(g + 1.0, g - 0.5), -1).reshape(-1, 2) * [1.0, 0.5]).astype(np.float32)
+    points = [np.concatenate((p, clutter)) if k in stretch else p for k, p in enumerate(points)]
+    travel = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))))
+    pairs = candidate_pairs(estimate, travel, 2.0, np.pi, 3)
+    low = {
+        (c.reference, c.query)
+        for c in fa.reached_pairs(estimate, points, pairs, 15.0)
+        if c.inlier_fraction < 0.7
+    }
+    assert len({k for _, k in low} & set(stretch.tolist())) >= 4
+    given = []
+
+    def searched(poses, points_, origins, pairs_, config, processes=1):
+        given.extend(map(tuple, pairs_.tolist()))
+        return []
+
+    monkeypatch.setattr(fa, "searched_constraints", searched)
+    cons = dense_constraints(estimate, truth, points, 2.0, 15.0, origins=[np.zeros(2)] * len(points))
+    tied = {c.reference for c in cons} | {c.query for c in cons}
+    assert not {k for _, k in low} & tied  # untied: the old rule searched all their pairs
+    assert not low & set(given)
 
 
 def test_search_in_two_processes_gives_the_same_constraints():

@@ -20,7 +20,10 @@ keyframe each of its pairs is searched as the closer searches (:func:`~frslam_gr
 submap_matching.match_scan`: correlative search of ± ``SEARCH_WINDOW_XY`` / ``SEARCH_WINDOW_THETA``
 around the estimate, ICP, inliers, ambiguity, free space: :func:`searched_constraints`); a found
 constraint counts only when one of another keyframe agrees with it (the closer's pairwise
-consistency): one aliased match is not enough.
+consistency): one aliased match is not enough. Pairs whose ICP converged within its gates from
+the estimate (too few inliers only) are not searched: the estimate is within reach there, and
+the search, started at it too, finds the same basin (session 23: every constraint the search had
+found on the real logs was such a pair, within 5 cm / 0.8°).
 
 This is the dense constraint set offline mappers end with (Cartographer's final optimisation,
 Karto's and GraphMapping's scan matching against all near poses). It runs only with loop
@@ -38,7 +41,7 @@ import pickle
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import gtsam
 import numpy as np
@@ -57,6 +60,8 @@ from frslam_graph.se2 import between, between_many, compose, wrap
 
 if TYPE_CHECKING:  # pragma: no cover
     from frslam_graph.backend.context import BackendContext
+
+T = TypeVar("T")
 
 QUERY_SPAN = 1  # keyframes each side of the query keyframe in its submap
 REFERENCE_SPAN = 4  # ... and of the reference keyframe in its submap
@@ -380,40 +385,77 @@ def align_pairs(
     Vectorised over pairs, in chunks of reference submaps (each built once; each query submap
     once): the start-overlap gate, the ICP (:func:`_icp_many`) and the final gates. The
     constraints come in the order of ``pairs`` sorted (stably) by reference. ``processes`` 2:
-    the pairs of the second half of the references are matched in a forked process
-    (:func:`_by_halves`: the same constraints)."""
+    the pairs are shared with a forked process (:func:`_shared`: the same constraints)."""
+    return _inliers_held(reached_pairs(poses, points, pairs, max_range, processes))
+
+
+def reached_pairs(
+    poses: np.ndarray, points: list[np.ndarray], pairs: np.ndarray, max_range: float, processes: int = 1
+) -> list[AlignmentConstraint]:
+    """:func:`align_pairs` before its inlier gate: every pair whose ICP converged from the
+    estimate within ``MAX_CORRECTION_XY`` / ``_THETA`` (the estimate is within the ICP's reach),
+    with its inlier fraction (the constraints: those of at least ``MIN_INLIER_FRACTION``)."""
     if len(pairs) == 0:
         return []
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     local = _in_range(points, max_range)
-    return _by_halves(pairs, lambda part: _align_refs(poses, local, part), processes)
+    return _shared(pairs, lambda part: _align_refs(poses, local, part), processes)
 
 
-def _by_halves(
+def _inliers_held(reached: list[AlignmentConstraint]) -> list[AlignmentConstraint]:
+    """The constraints of :func:`reached_pairs`: inlier fraction at least ``MIN_INLIER_FRACTION``."""
+    return [c for c in reached if c.inlier_fraction >= MIN_INLIER_FRACTION]
+
+
+#: blocks of references the pairs are cut into for :func:`_shared`: the two processes take them one
+#: at a time, so neither waits longer than one block (~3 % of the work) for the other
+SHARED_BLOCKS = 32
+
+
+def _shared(
     pairs: np.ndarray,
     run: Callable[[np.ndarray], list[AlignmentConstraint]],
     processes: int,
 ) -> list[AlignmentConstraint]:
-    """``run(pairs)`` (``pairs`` sorted by reference), with ``processes`` 2 the pairs of the
-    second half of the references in a forked process (Linux ``fork``) while this one runs the
-    first half: each pair's numbers do not depend on the others', so the constraints and their
-    order are those of one ``run`` (a failed child: its half here)."""
+    """``run(pairs)`` (``pairs`` sorted by reference), with ``processes`` 2 in this process and a
+    forked one (Linux ``fork``): the pairs are cut into :data:`SHARED_BLOCKS` blocks of whole
+    references (equal pair counts) and each process takes the next block not yet taken until
+    none is left. The work of a block is not known beforehand (Intel's halves by pair count:
+    2.2 / 2.8 s of ICP; the searched pairs' halves 1.65 / 1.2 s; a forked process is slowed by
+    its copy-on-write faults and the machine's other load), so it is shared as it comes. Each
+    pair's numbers do not depend on the others', so the constraints and their order are those
+    of one ``run`` (a failed child: the blocks this process did not do, here)."""
     if processes < 2 or len(pairs) < 2 or "fork" not in mp.get_all_start_methods():
         return run(pairs)
-    half = int(np.searchsorted(pairs[:, 0], pairs[len(pairs) // 2, 0]))  # whole references each
-    if half == 0:
+    refs = pairs[:, 0]
+    cuts = np.unique(np.searchsorted(refs, refs[np.arange(1, SHARED_BLOCKS) * len(pairs) // SHARED_BLOCKS]))
+    blocks = np.split(pairs, cuts[(cuts > 0) & (cuts < len(pairs))])
+    if len(blocks) < 2:
         return run(pairs)
-    second = _in_child(lambda: _constraint_rows(run(pairs[half:])))
-    out = run(pairs[:half])
-    rows = second()
-    if rows is None:  # the child failed: its half here
-        return out + run(pairs[half:])
-    return out + [
-        AlignmentConstraint(
-            int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]), bool(r[15])
-        )
-        for r in rows
-    ]
+    taken = mp.get_context("fork").Value("i", 0)
+
+    def take() -> dict[int, list[AlignmentConstraint]]:
+        done: dict[int, list[AlignmentConstraint]] = {}
+        while True:
+            with taken.get_lock():
+                b = taken.value
+                taken.value = b + 1
+            if b >= len(blocks):
+                return done
+            done[b] = run(blocks[b])
+
+    child = _in_child(lambda: {b: _constraint_rows(c) for b, c in take().items()})
+    here = take()
+    rows = child()
+    out: list[AlignmentConstraint] = []
+    for b, block in enumerate(blocks):
+        if b in here:
+            out.extend(here[b])
+        elif rows is not None and b in rows:
+            out.extend(_constraints_of_rows(rows[b]))
+        else:  # the child failed: its blocks here
+            out.extend(run(block))
+    return out
 
 
 def _constraint_rows(cons: list[AlignmentConstraint]) -> np.ndarray:
@@ -426,9 +468,19 @@ def _constraint_rows(cons: list[AlignmentConstraint]) -> np.ndarray:
     ).reshape(-1, 16)
 
 
-def _in_child(fn: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
-    """Start ``fn()`` in a forked process; returns a function that waits for its array (None
-    when the child failed)."""
+def _constraints_of_rows(rows: np.ndarray) -> list[AlignmentConstraint]:
+    """The constraints of :func:`_constraint_rows`' rows."""
+    return [
+        AlignmentConstraint(
+            int(r[0]), int(r[1]), r[2:5].copy(), r[5:14].reshape(3, 3).copy(), float(r[14]), bool(r[15])
+        )
+        for r in rows
+    ]
+
+
+def _in_child(fn: Callable[[], T]) -> Callable[[], T | None]:
+    """Start ``fn()`` in a forked process; returns a function that waits for its result (pickled;
+    None when the child failed)."""
     ctx = mp.get_context("fork")
     receive, send = ctx.Pipe(duplex=False)
 
@@ -442,7 +494,7 @@ def _in_child(fn: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
     proc.start()
     send.close()
 
-    def result() -> np.ndarray | None:
+    def result() -> T | None:
         try:
             return pickle.loads(receive.recv_bytes())
         except (EOFError, OSError, pickle.UnpicklingError):
@@ -515,7 +567,7 @@ def _align_chunk(
     ok &= np.hypot(*(x[:, :2] - start[:, :2]).T) <= MAX_CORRECTION_XY
     ok &= np.abs(wrap(x[:, 2] - start[:, 2])) <= MAX_CORRECTION_THETA
     inliers = stack.inlier_fractions(qpts, owner, ref, x, INLIER_DISTANCE)
-    ok &= (inliers >= MIN_INLIER_FRACTION) & np.all(np.isfinite(cov), axis=(1, 2))
+    ok &= np.all(np.isfinite(cov), axis=(1, 2))  # the inlier gate: _inliers_held
     return [
         AlignmentConstraint(int(cs[p]), int(ks[p]), x[p].copy(), cov[p].copy(), float(inliers[p]))
         for p in np.flatnonzero(ok)
@@ -548,12 +600,12 @@ def searched_constraints(
     likelihood field, ambiguity and free-space tests (``config``), this module's inlier fraction;
     then only those that another one agrees with (:func:`agreeing`). ``origins``: per keyframe
     the sensor origin in base_link. One reference submap at a time (pairs sorted by reference);
-    ``processes`` 2: half of the references in a forked process (:func:`_by_halves`, the same
+    ``processes`` 2: shared with a forked process (:func:`_shared`, the same
     constraints)."""
     cfg = config
     local = _in_range(points, cfg.max_point_range)
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
-    found = _by_halves(pairs, lambda part: _searched(poses, local, origins, part, cfg), processes)
+    found = _shared(pairs, lambda part: _searched(poses, local, origins, part, cfg), processes)
     return agreeing(poses, found)
 
 
@@ -635,17 +687,24 @@ def dense_constraints(
     """All constraints at the estimate ``poses`` (K, 3, map); ``odom_poses`` (K, 3) give the travel;
     ``processes``: see :func:`align_pairs`. With ``origins`` (per keyframe the sensor origin in
     base_link) the pairs of the keyframes no ICP constraint ties are searched too
-    (:func:`searched_constraints`, the closer's matcher settings from ``config``)."""
+    (:func:`searched_constraints`, the closer's matcher settings from ``config``), but for those
+    the ICP reached (:func:`reached_pairs`)."""
     steps = np.hypot(*np.diff(odom_poses[:, :2], axis=0).T)
     travel = np.concatenate(([0.0], np.cumsum(steps)))
     window = float(np.clip(field_of_view(points) - np.deg2rad(MIN_OVERLAP_DEG), np.deg2rad(30.0), np.pi))
     pairs = candidate_pairs(poses, travel, radius, window, per_keyframe)
-    cons = align_pairs(poses, points, pairs, max_range, processes)
+    reached = reached_pairs(poses, points, pairs, max_range, processes)
+    cons = _inliers_held(reached)
     if origins is None or not len(pairs):
         return cons
     tied = np.zeros(len(poses), bool)
     tied[[c.reference for c in cons] + [c.query for c in cons]] = True
-    untied = pairs[~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]]
+    # a pair the ICP reached from the estimate (converged within its gates, too few inliers) is
+    # not searched: the search, started there too, finds the same basin (real logs: its matches
+    # of such pairs within 5 cm / 0.8° of the ICP's) and only judges the inliers again
+    code = pairs[:, 0] * len(poses) + pairs[:, 1]
+    near = np.isin(code, [c.reference * len(poses) + c.query for c in reached])
+    untied = pairs[(~tied[pairs[:, 0]] | ~tied[pairs[:, 1]]) & ~near]
     cfg = (config or LoopClosureConfig()).model_copy(update={"max_point_range": max_range})
     return cons + searched_constraints(poses, points, origins, untied, cfg, processes)
 
