@@ -195,7 +195,11 @@ def _identity(x: np.ndarray) -> np.ndarray:
 
 
 def _identity_jacobian(x: np.ndarray) -> np.ndarray:
-    return np.eye(3)
+    return _EYE3
+
+
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False  # shared by every update (filterpy only multiplies by it)
 
 
 def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -39,6 +39,7 @@ time offset estimated from the heading steps, where it is significant and negati
 
 from __future__ import annotations
 
+import math
 import os
 from collections import deque
 from dataclasses import dataclass
@@ -325,7 +326,7 @@ class ScanOdometry:
         """One scan: (M, 2) points in base_link (or their :meth:`prepare`), wheel pose or None."""
         cfg = self.config
         stamp = float(stamp)
-        if not np.isfinite(stamp):
+        if not math.isfinite(stamp):
             raise RecordingError(f"scan stamp must be a finite number, got {stamp!r}", where="stamp")
         scan = points if isinstance(points, PreparedScan) else self.prepare(points)
         pts = scan.points
@@ -334,7 +335,7 @@ class ScanOdometry:
             wheel = np.asarray(odom, dtype=np.float64).reshape(-1)
             if wheel.shape != (3,):
                 raise RecordingError(f"odom must be (x, y, theta), got shape {wheel.shape}", where="odom")
-            if not np.all(np.isfinite(wheel)):
+            if not np.isfinite(wheel).all():
                 wheel = None
         self.stats.scans += 1
         if not self._t_hist:
@@ -370,7 +371,7 @@ class ScanOdometry:
                 corr = cfg.wheel_correlation_length if alone else 0.0
                 u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args, correlation_length=corr), True
         # wheels that report no motion at all (a fault when the scan moves the robot: below)
-        wheels_still = uw_raw is not None and not np.any(uw_raw)
+        wheels_still = uw_raw is not None and not uw_raw.any()
         if uw_raw is not None:
             self._stalled = self._stalled and wheels_still
             if self._stalled:  # still stalled: the step is the scan's, as without wheel odometry
@@ -425,7 +426,7 @@ class ScanOdometry:
                 # random walk that nothing bounds): what the scan still sees along it (doors,
                 # wall ends, the corridor's end) is kept, at its own point-to-line information
                 R_body = self._scan_covariance(scan.geometry)
-            if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
+            if not np.isfinite(new_pose).all():  # numerical failure: treat like a wrong minimum
                 icp_rejected = True
             if icp_rejected:
                 z = np.zeros(3)
@@ -633,7 +634,7 @@ class ScanOdometry:
         turn rate (``max_speed``, ``max_turn_rate_deg``), with the wheel test's margins; a non-finite
         step is not."""
         cfg = self.config
-        if not np.all(np.isfinite(step)):
+        if not np.isfinite(step).all():
             return False
         return bool(
             np.hypot(step[0], step[1]) <= cfg.max_speed * dt + 0.05
@@ -763,7 +764,7 @@ class ScanOdometry:
         res = icp_point_to_line(
             self._local_ref, points, start, _REFINE_ITERATIONS, _REFINE_MAX_DISTANCE, 0.05, 0.05
         )
-        if res is None or not np.all(np.isfinite(res[0])) or not np.all(np.isfinite(res[1])):
+        if res is None or not np.isfinite(res[0]).all() or not np.isfinite(res[1]).all():
             return pose
         d = between(start, res[0])
         if np.hypot(d[0], d[1]) > _REFINE_MAX_STEP or abs(d[2]) > _REFINE_MAX_TURN:
@@ -853,7 +854,7 @@ def _cv_alternatives(cv_u: np.ndarray, cv_cov: np.ndarray) -> list[np.ndarray]:
     constant-velocity one unless another fits the local map clearly better."""
     turn = np.array([0.0, 0.0, float(np.sqrt(cv_cov[2, 2]))])
     out = [compose(cv_u, turn), compose(cv_u, -turn)]
-    if np.any(cv_u):
+    if cv_u.any():
         out.append(np.zeros(3))
     return out
 
