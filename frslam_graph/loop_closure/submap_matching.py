@@ -217,7 +217,8 @@ def stable_order(key: np.ndarray) -> np.ndarray:
     bits = max(int(n - 1).bit_length(), 1)
     if int(key.max()) - lo >= 1 << (62 - bits):
         return np.argsort(key, kind="stable")
-    packed = np.sort(((key - lo) << bits) | np.arange(n, dtype=np.int64))
+    packed = ((key - lo) << bits) | np.arange(n, dtype=np.int64)
+    packed.sort()  # in place: np.sort's copy of a temporary
     return (packed & ((1 << bits) - 1)).astype(np.intp)
 
 
@@ -261,8 +262,9 @@ def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
     first[0] = True
     np.not_equal(ks[1:], ks[:-1], out=first[1:])
     inv = np.empty(len(ks), np.intp)
-    inv[order] = np.cumsum(first) - 1
-    count = np.diff(np.concatenate((first.nonzero()[0], [len(ks)])))
+    inv[order] = first.cumsum() - 1
+    bounds = np.concatenate((first.nonzero()[0], [len(ks)]))
+    count = bounds[1:] - bounds[:-1]  # np.diff
     n = len(count)  # bincount adds in point order, as np.add.at did (same sums, 3x faster)
     out = np.empty((n, 2))  # as np.column_stack of the two means, without its copies
     out[:, 0], out[:, 1] = np.bincount(inv, x, n) / count, np.bincount(inv, y, n) / count
@@ -765,6 +767,13 @@ class LineMap:
         refinement's test of its result against its start)."""
         if len(self.points) == 0 or len(query) == 0:
             return np.zeros(len(poses))
+        return fractions_within(self.lookup_distances(query, poses), distance)
+
+    def lookup_distances(self, query: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
+        """(len(poses), N) distances (m) of the ``query`` points (N, 2; N >= 1) at each pose to
+        the point their cell look-up answers with (:meth:`inlier_fraction`), inf where it
+        answers none: :func:`fractions_within` of them at any distance is
+        :meth:`inlier_fractions` (the odometry tests one pose at two distances). A non-empty map."""
         lo, w, h, cells, owners = self._occupied()
         p = np.concatenate([transform_points(pose, query) for pose in poses])
         ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
@@ -787,8 +796,14 @@ class LineMap:
             grid[cells] = -1
         found = inside & (who >= 0)
         off = p - self.points.take(np.maximum(who, 0), axis=0)
-        hit = found & (np.hypot(off[:, 0], off[:, 1]) <= distance)
-        return np.count_nonzero(hit.reshape(len(poses), len(query)), axis=1) / len(query)
+        dist = np.hypot(off[:, 0], off[:, 1])
+        np.copyto(dist, np.inf, where=~found)
+        return dist.reshape(len(poses), len(query))
+
+
+def fractions_within(distances: np.ndarray, distance: float) -> np.ndarray:
+    """Share of each row of ``distances`` (P, N; N >= 1, m) at most ``distance`` (m): (P,)."""
+    return np.count_nonzero(distances <= distance, axis=1) / distances.shape[1]
 
 
 # icp_point_to_line's nearest neighbours (_NearestCandidates): candidates per query point, and
