@@ -74,7 +74,8 @@ def constant_velocity(last_increment: Pose, dt_last: float, dt: float) -> np.nda
     """Predicted increment for a step of dt seconds when the previous one took dt_last seconds."""
     if dt_last <= 0.0 or not np.isfinite(dt_last):
         return np.zeros(3)
-    k = float(np.clip(dt / dt_last, 0.0, 20.0))
+    k = dt / dt_last  # clipped to [0, 20] as np.clip (a NaN stays NaN), without its array round trip
+    k = float(0.0 if k < 0.0 else 20.0 if k > 20.0 else k)
     # exact for constant twist: scale the twist, not the pose components
     v = log(last_increment) * k
     return exp(v)

@@ -585,7 +585,7 @@ class ScanOdometry:
             # out within a span, a stamp gap spoils only the spans across it
             a = np.fromiter(t, dtype=np.float64)
             self._period = _median(a[_PERIOD_SPAN:] - a[:-_PERIOD_SPAN]) / _PERIOD_SPAN
-            steps = np.diff(a)
+            steps = a[1:] - a[:-1]  # np.diff
             self._steady = _median(np.abs(steps - self._period)) < 0.25 * self._period
         elif len(t) > 1:
             self._period = (t[-1] - t[0]) / (len(t) - 1)
