@@ -133,23 +133,20 @@ def from_matrix(m: np.ndarray) -> np.ndarray:
 def to_matrix4(p: Pose) -> np.ndarray:
     """4×4 SE(3) matrix of a planar pose (z = 0, rotation about z)."""
     c, s = np.cos(p[2]), np.sin(p[2])
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[0, 3], m[1, 3] = p[0], p[1]
-    return m
+    return np.array([[c, -s, 0.0, p[0]], [s, c, 0.0, p[1]], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 def tangent_cov(pose: Pose, cov_vec: np.ndarray) -> np.ndarray:
     """Covariance of additive (x, y, theta) errors -> GTSAM Pose2 tangent (body-frame) covariance."""
-    a = np.eye(3)
-    a[:2, :2] = rot(pose[2]).T
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    a = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # rot(theta)ᵀ in an identity
     return a @ cov_vec @ a.T
 
 
 def vector_cov(pose: Pose, cov_tangent: np.ndarray) -> np.ndarray:
     """Inverse of :func:`tangent_cov`: body-frame covariance -> additive (x, y, theta) covariance."""
-    a = np.eye(3)
-    a[:2, :2] = rot(pose[2])
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # rot(theta) in an identity
     return a @ cov_tangent @ a.T
 
 

@@ -150,6 +150,17 @@ def test_line_map_answers_as_the_reference_submap_without_a_grid():
         want = [grid.inlier_fraction(scan, pose, dist) for pose in poses]
         assert [line.inlier_fraction(scan, pose, dist) for pose in poses] == want
         assert line.inlier_fractions(scan, poses, dist).tolist() == want  # all poses at once
+    # the look-up's distances (one look-up, tested at any distance: the odometry's _turned and
+    # _refine share the one at KISS-ICP's pose): the same fractions at each distance
+    at = line.lookup_distances(scan, poses)
+    assert at.shape == (len(poses), len(scan)) and np.all(np.isinf(at[2]))  # off the grid: none
+    for dist in (0.05, 0.03):
+        want = [grid.inlier_fraction(scan, pose, dist) for pose in poses]
+        assert submap_matching.fractions_within(at, dist).tolist() == want
+    # beyond the resolution (_turned's voxel) the grid's distance transform reaches farther
+    # cells: the look-up's own fractions, pose by pose
+    want = [line.inlier_fraction(scan, pose, 0.1) for pose in poses]
+    assert submap_matching.fractions_within(at, 0.1).tolist() == want
     # the look-up's grid, kept between calls (and maps), is left blank
     assert np.all(submap_matching._blank_grid(1) == -1)
 

@@ -217,7 +217,8 @@ def stable_order(key: np.ndarray) -> np.ndarray:
     bits = max(int(n - 1).bit_length(), 1)
     if int(key.max()) - lo >= 1 << (62 - bits):
         return np.argsort(key, kind="stable")
-    packed = np.sort(((key - lo) << bits) | np.arange(n, dtype=np.int64))
+    packed = ((key - lo) << bits) | np.arange(n, dtype=np.int64)
+    packed.sort()  # in place: np.sort's copy of a temporary
     return (packed & ((1 << bits) - 1)).astype(np.intp)
 
 
@@ -238,7 +239,7 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
         return np.zeros((0, 2))
     cells = np.floor(points / voxel).astype(np.int64)
     h = cells[:, 0] * 73856093 ^ cells[:, 1] * 19349663
-    return np.take(points, np.sort(first_of_each(h)), axis=0)
+    return points.take(np.sort(first_of_each(h)), axis=0)
 
 
 def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
@@ -261,10 +262,13 @@ def cell_means(points: np.ndarray, cell: float) -> np.ndarray:
     first[0] = True
     np.not_equal(ks[1:], ks[:-1], out=first[1:])
     inv = np.empty(len(ks), np.intp)
-    inv[order] = np.cumsum(first) - 1
-    count = np.diff(np.append(np.flatnonzero(first), len(ks)))
+    inv[order] = first.cumsum() - 1
+    bounds = np.concatenate((first.nonzero()[0], [len(ks)]))
+    count = bounds[1:] - bounds[:-1]  # np.diff
     n = len(count)  # bincount adds in point order, as np.add.at did (same sums, 3x faster)
-    return np.column_stack((np.bincount(inv, x, n) / count, np.bincount(inv, y, n) / count))
+    out = np.empty((n, 2))  # as np.column_stack of the two means, without its copies
+    out[:, 0], out[:, 1] = np.bincount(inv, x, n) / count, np.bincount(inv, y, n) / count
+    return out
 
 
 def _normals(
@@ -274,9 +278,9 @@ def _normals(
     ``at``: indices of the points to compute them for (default all; each point's are the same
     either way)."""
     k = min(k, len(points))
-    q = points if at is None else points[at]
+    q = points if at is None else points.take(at, axis=0)
     _, nn = tree.query(q, k=k)
-    nb = np.take(points, nn.reshape(len(q), k), axis=0)  # (N, k, 2); rows by np.take: ~10x faster
+    nb = points.take(nn.reshape(len(q), k), axis=0)  # (N, k, 2); rows by take: ~10x faster
     m = nb[:, 0].copy()
     for i in range(1, k):  # the neighbours' mean, summed in order as nb.mean(axis=1) (3x faster)
         m += nb[:, i]
@@ -288,10 +292,11 @@ def _normals(
     tr, det = sxx + syy, sxx * syy - sxy**2
     disc = np.sqrt(np.maximum(tr**2 / 4.0 - det, 0.0))
     lmin, lmax = tr / 2.0 - disc, tr / 2.0 + disc
-    n = np.column_stack((sxy, lmin - sxx))
-    alt = np.column_stack((lmin - syy, sxy))
+    n, alt = np.empty((len(q), 2)), np.empty((len(q), 2))  # as np.column_stack, without its copies
+    n[:, 0], n[:, 1] = sxy, lmin - sxx
+    alt[:, 0], alt[:, 1] = lmin - syy, sxy
     use_alt = np.hypot(*n.T) < np.hypot(*alt.T)
-    n[use_alt] = alt[use_alt]
+    np.copyto(n, alt, where=use_alt[:, None])  # n[use_alt] = alt[use_alt]
     norm = np.hypot(*n.T)
     degenerate = norm < 1e-12
     n[degenerate] = (1.0, 0.0)
@@ -604,10 +609,10 @@ def _exact_nearest_offsets(
         e = np.zeros(0, np.int64)
         return e, e, np.zeros((0, 2)), np.zeros((0, 2))
     d, j = tree.query(points, distance_upper_bound=max_distance)
-    sel = np.flatnonzero(np.isfinite(d))
+    sel = np.isfinite(d).nonzero()[0]
     j = j[sel]
-    ps = np.take(points, sel, axis=0)  # rows by np.take, not points[sel]: the same copy, ~4x faster
-    return sel, j, ps, ps - np.take(ref_points, j, axis=0)
+    ps = points.take(sel, axis=0)  # rows by take, not points[sel]: the same copy, ~4x faster
+    return sel, j, ps, ps - ref_points.take(j, axis=0)
 
 
 class _NearestCandidates:
@@ -636,7 +641,7 @@ class _NearestCandidates:
         self.idx, self.cx, self.cy = (np.ascontiguousarray(a.T) for a in (idx, cx, cy))
         given = np.zeros(len(ref_points), bool)
         given[idx[found]] = True
-        self.indices = np.flatnonzero(given)  # every reference point a query may be given
+        self.indices = given.nonzero()[0]  # every reference point a query may be given
 
     def exact_nearest_offsets(
         self, points: np.ndarray, max_distance: float
@@ -664,15 +669,15 @@ class _NearestCandidates:
         for r in range(len(d2) - 2, -1, -1):
             np.copyto(j, self.idx[r], where=d2[r] == m1)
         if not sure.all():
-            ask = np.flatnonzero(~sure)
+            ask = (~sure).nonzero()[0]
             d, jj = self.tree.query(points[ask], distance_upper_bound=max_distance)
             ok = np.isfinite(d)
             hit[ask] = ok
             j[ask[ok]] = jj[ok]
-        sel = np.flatnonzero(hit)
+        sel = hit.nonzero()[0]
         j = j[sel]
-        ps = np.take(points, sel, axis=0)
-        return sel, j, ps, ps - np.take(self.ref_points, j, axis=0)
+        ps = points.take(sel, axis=0)
+        return sel, j, ps, ps - self.ref_points.take(j, axis=0)
 
 
 class LineMap:
@@ -721,10 +726,10 @@ class LineMap:
         if len(new):
             ask = np.zeros(len(self.points), bool)
             ask[new] = True
-            new = np.flatnonzero(ask)  # np.unique(new)
+            new = ask.nonzero()[0]  # np.unique(new)
             self._normals[new], self._quality[new] = _normals(self.points, self.tree, at=new)
             self._known[new] = True
-        return np.take(self._normals, j, axis=0), self._quality[j]
+        return self._normals.take(j, axis=0), self._quality[j]
 
     def _occupied(self) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
         """ReferenceSubmap's grid, occupied cells only: origin (2,), width, height, the occupied
@@ -741,7 +746,9 @@ class LineMap:
             flat = ij[:, 1] * w + ij[:, 0]
             order = stable_order(flat)
             fs = flat[order]
-            last = np.append(fs[1:] != fs[:-1], True)  # the last point of each cell, as owner[cells] = arange
+            last = np.concatenate(
+                (fs[1:] != fs[:-1], [True])
+            )  # the last point of each cell, as owner[cells] = arange
             kept = order[last]
             bordered = (ij[kept, 1] + 1) * (w + 2) + ij[kept, 0] + 1
             self._grid_cells = (lo, w, h, bordered, kept.astype(np.int32))
@@ -760,6 +767,13 @@ class LineMap:
         refinement's test of its result against its start)."""
         if len(self.points) == 0 or len(query) == 0:
             return np.zeros(len(poses))
+        return fractions_within(self.lookup_distances(query, poses), distance)
+
+    def lookup_distances(self, query: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
+        """(len(poses), N) distances (m) of the ``query`` points (N, 2; N >= 1) at each pose to
+        the point their cell look-up answers with (:meth:`inlier_fraction`), inf where it
+        answers none: :func:`fractions_within` of them at any distance is
+        :meth:`inlier_fractions` (the odometry tests one pose at two distances). A non-empty map."""
         lo, w, h, cells, owners = self._occupied()
         p = np.concatenate([transform_points(pose, query) for pose in poses])
         ix = np.floor((p[:, 0] - lo[0]) / self.resolution).astype(np.int64)
@@ -781,9 +795,15 @@ class LineMap:
         finally:
             grid[cells] = -1
         found = inside & (who >= 0)
-        off = p - np.take(self.points, np.maximum(who, 0), axis=0)
-        hit = found & (np.hypot(off[:, 0], off[:, 1]) <= distance)
-        return np.count_nonzero(hit.reshape(len(poses), len(query)), axis=1) / len(query)
+        off = p - self.points.take(np.maximum(who, 0), axis=0)
+        dist = np.hypot(off[:, 0], off[:, 1])
+        np.copyto(dist, np.inf, where=~found)
+        return dist.reshape(len(poses), len(query))
+
+
+def fractions_within(distances: np.ndarray, distance: float) -> np.ndarray:
+    """Share of each row of ``distances`` (P, N; N >= 1, m) at most ``distance`` (m): (P,)."""
+    return np.count_nonzero(distances <= distance, axis=1) / distances.shape[1]
 
 
 # icp_point_to_line's nearest neighbours (_NearestCandidates): candidates per query point, and

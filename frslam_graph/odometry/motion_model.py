@@ -74,7 +74,8 @@ def constant_velocity(last_increment: Pose, dt_last: float, dt: float) -> np.nda
     """Predicted increment for a step of dt seconds when the previous one took dt_last seconds."""
     if dt_last <= 0.0 or not np.isfinite(dt_last):
         return np.zeros(3)
-    k = float(np.clip(dt / dt_last, 0.0, 20.0))
+    k = dt / dt_last  # clipped to [0, 20] as np.clip (a NaN stays NaN), without its array round trip
+    k = float(0.0 if k < 0.0 else 20.0 if k > 20.0 else k)
     # exact for constant twist: scale the twist, not the pose components
     v = log(last_increment) * k
     return exp(v)
@@ -195,7 +196,11 @@ def _identity(x: np.ndarray) -> np.ndarray:
 
 
 def _identity_jacobian(x: np.ndarray) -> np.ndarray:
-    return np.eye(3)
+    return _EYE3
+
+
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False  # shared by every update (filterpy only multiplies by it)
 
 
 def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -39,6 +39,7 @@ time offset estimated from the heading steps, where it is significant and negati
 
 from __future__ import annotations
 
+import math
 import os
 from collections import deque
 from dataclasses import dataclass
@@ -51,6 +52,7 @@ from frslam_graph.loop_closure.submap_matching import (
     LineMap,
     cell_means,
     first_of_each,
+    fractions_within,
     icp_point_to_line,
     transform_points,
 )
@@ -325,7 +327,7 @@ class ScanOdometry:
         """One scan: (M, 2) points in base_link (or their :meth:`prepare`), wheel pose or None."""
         cfg = self.config
         stamp = float(stamp)
-        if not np.isfinite(stamp):
+        if not math.isfinite(stamp):
             raise RecordingError(f"scan stamp must be a finite number, got {stamp!r}", where="stamp")
         scan = points if isinstance(points, PreparedScan) else self.prepare(points)
         pts = scan.points
@@ -334,7 +336,7 @@ class ScanOdometry:
             wheel = np.asarray(odom, dtype=np.float64).reshape(-1)
             if wheel.shape != (3,):
                 raise RecordingError(f"odom must be (x, y, theta), got shape {wheel.shape}", where="odom")
-            if not np.all(np.isfinite(wheel)):
+            if not np.isfinite(wheel).all():
                 wheel = None
         self.stats.scans += 1
         if not self._t_hist:
@@ -370,7 +372,7 @@ class ScanOdometry:
                 corr = cfg.wheel_correlation_length if alone else 0.0
                 u, cov_u, used_wheel = uw, wheel_noise(uw, **self._wheel_args, correlation_length=corr), True
         # wheels that report no motion at all (a fault when the scan moves the robot: below)
-        wheels_still = uw_raw is not None and not np.any(uw_raw)
+        wheels_still = uw_raw is not None and not uw_raw.any()
         if uw_raw is not None:
             self._stalled = self._stalled and wheels_still
             if self._stalled:  # still stalled: the step is the scan's, as without wheel odometry
@@ -425,7 +427,7 @@ class ScanOdometry:
                 # random walk that nothing bounds): what the scan still sees along it (doors,
                 # wall ends, the corridor's end) is kept, at its own point-to-line information
                 R_body = self._scan_covariance(scan.geometry)
-            if not np.all(np.isfinite(new_pose)):  # numerical failure: treat like a wrong minimum
+            if not np.isfinite(new_pose).all():  # numerical failure: treat like a wrong minimum
                 icp_rejected = True
             if icp_rejected:
                 z = np.zeros(3)
@@ -583,7 +585,7 @@ class ScanOdometry:
             # out within a span, a stamp gap spoils only the spans across it
             a = np.fromiter(t, dtype=np.float64)
             self._period = _median(a[_PERIOD_SPAN:] - a[:-_PERIOD_SPAN]) / _PERIOD_SPAN
-            steps = np.diff(a)
+            steps = a[1:] - a[:-1]  # np.diff
             self._steady = _median(np.abs(steps - self._period)) < 0.25 * self._period
         elif len(t) > 1:
             self._period = (t[-1] - t[0]) / (len(t) - 1)
@@ -633,7 +635,7 @@ class ScanOdometry:
         turn rate (``max_speed``, ``max_turn_rate_deg``), with the wheel test's margins; a non-finite
         step is not."""
         cfg = self.config
-        if not np.all(np.isfinite(step)):
+        if not np.isfinite(step).all():
             return False
         return bool(
             np.hypot(step[0], step[1]) <= cfg.max_speed * dt + 0.05
@@ -696,10 +698,11 @@ class ScanOdometry:
         if self.config.local_map_scans:  # the refinement (off: nothing more on this hot path)
             self._aligned_points = _local_points(scan.points)
             if not scan.icp_covariance[1] and self._local_map() is not None:  # not along a corridor
-                turned = self._turned(source, seeds[best], pose)
+                turned, at_pose = self._turned(source, seeds[best], pose)
                 if turned is not None:
                     chosen, pose, guess = turned
-                pose = self._refine(self._aligned_points, pose)
+                    at_pose = None  # the look-up was at KISS-ICP's pose from the seed that lost
+                pose = self._refine(self._aligned_points, pose, at_pose)
         return chosen, pose, guess, frame_ds
 
     def _kiss_align(self, source: np.ndarray, guesses: list[np.ndarray]) -> list[np.ndarray]:
@@ -719,11 +722,13 @@ class ScanOdometry:
 
     def _turned(
         self, source: np.ndarray, seed: np.ndarray, pose: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, np.ndarray | None]:
         """The seed increment turned by one of ``_TURN_SEEDS_DEG`` when KISS-ICP's pose (4×4) from
         it fits the recent scans' walls worse than the recent scans fitted (their median share of
         points within a voxel, less ``_TURN_MARGIN``) and a turned seed's pose does not, putting
         ``_TURN_MARGIN`` more of the scan on them: (turned seed, its pose, its guess); else None.
+        Returned with the look-up distances of the scan's points at ``pose`` (``LineMap.lookup_distances``;
+        None without points), which :meth:`_refine`'s fit test of that pose reuses.
         (Where the scan sees little of what the recent scans saw, a pose turned the wrong way can
         fit a little better than the right one: FR079 at 1,471 s, 0.65 against 0.55, where the
         recent scans fitted at 0.93.)
@@ -736,7 +741,10 @@ class ScanOdometry:
         right one where the scan sees new ground (FR079 at 2,050 s).
         """
         ref, points, within = self._local_ref, self._aligned_points, self.config.voxel_size
-        fit = float(ref.inlier_fractions(points, [from_matrix(pose)], within)[0])
+        at_pose = (
+            ref.lookup_distances(points, [from_matrix(pose)]) if len(points) and len(ref.points) else None
+        )
+        fit = float(fractions_within(at_pose, within)[0]) if at_pose is not None else 0.0
         bar = (_median(np.array(self._fits)) if self._fits else 1.0) - _TURN_MARGIN
         out = None
         if fit < bar:
@@ -748,22 +756,23 @@ class ScanOdometry:
             if fits[j] >= bar and fits[j] > fit + _TURN_MARGIN:
                 out, fit = (seeds[j], poses[j], guesses[j]), float(fits[j])
         self._fits.append(fit)
-        return out
+        return out, at_pose
 
-    def _refine(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def _refine(self, points: np.ndarray, pose: np.ndarray, at_pose: np.ndarray | None = None) -> np.ndarray:
         """KISS-ICP's pose (4×4, its frame) refined by point-to-line ICP on the recent scans.
 
         KISS-ICP matches points to the sparse points of its voxel map, so a scan can slide a few
         centimetres along a wall (ACES / FR079 relations under 2 s: 0.041 / 0.040 m, 0.54 / 1.16
         deg; with the refinement 0.038 / 0.026 m, 0.36 / 0.42 deg). A refinement that moves the
         pose by more than _REFINE_MAX_STEP / _REFINE_MAX_TURN, or that fits fewer points, is not
-        trusted: KISS-ICP's pose stays.
+        trusted: KISS-ICP's pose stays. ``at_pose``: the points' look-up distances at ``pose``
+        (:meth:`_turned`), if known.
         """
         start = from_matrix(pose)
         res = icp_point_to_line(
             self._local_ref, points, start, _REFINE_ITERATIONS, _REFINE_MAX_DISTANCE, 0.05, 0.05
         )
-        if res is None or not np.all(np.isfinite(res[0])) or not np.all(np.isfinite(res[1])):
+        if res is None or not np.isfinite(res[0]).all() or not np.isfinite(res[1]).all():
             return pose
         d = between(start, res[0])
         if np.hypot(d[0], d[1]) > _REFINE_MAX_STEP or abs(d[2]) > _REFINE_MAX_TURN:
@@ -779,7 +788,13 @@ class ScanOdometry:
         refined = compose(start, d)
         # a refinement that fits fewer points to the map than KISS-ICP's pose converged wrongly
         # (seen while rotating in place at 10-20 deg per scan: a few degrees off)
-        fit_refined, fit_start = self._local_ref.inlier_fractions(points, [refined, start], _REFINE_INLIER)
+        if at_pose is None:
+            fit_refined, fit_start = self._local_ref.inlier_fractions(
+                points, [refined, start], _REFINE_INLIER
+            )
+        else:  # the start's look-up is _turned's (the same pose, the same points)
+            fit_refined = self._local_ref.inlier_fractions(points, [refined], _REFINE_INLIER)[0]
+            fit_start = fractions_within(at_pose, _REFINE_INLIER)[0]
         if fit_refined < fit_start:
             return pose
         return to_matrix4(refined)
@@ -853,7 +868,7 @@ def _cv_alternatives(cv_u: np.ndarray, cv_cov: np.ndarray) -> list[np.ndarray]:
     constant-velocity one unless another fits the local map clearly better."""
     turn = np.array([0.0, 0.0, float(np.sqrt(cv_cov[2, 2]))])
     out = [compose(cv_u, turn), compose(cv_u, -turn)]
-    if np.any(cv_u):
+    if cv_u.any():
         out.append(np.zeros(3))
     return out
 
