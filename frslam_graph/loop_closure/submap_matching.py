@@ -746,9 +746,8 @@ class LineMap:
             flat = ij[:, 1] * w + ij[:, 0]
             order = stable_order(flat)
             fs = flat[order]
-            last = np.concatenate(
-                (fs[1:] != fs[:-1], [True])
-            )  # the last point of each cell, as owner[cells] = arange
+            # the last point of each cell, as owner[cells] = arange
+            last = np.concatenate((fs[1:] != fs[:-1], [True]))
             kept = order[last]
             bordered = (ij[kept, 1] + 1) * (w + 2) + ij[kept, 0] + 1
             self._grid_cells = (lo, w, h, bordered, kept.astype(np.int32))
