@@ -476,7 +476,7 @@ class ScanOdometry:
                 self._resync_icp(u)  # the scan is not added to the local map
             else:
                 self._ekf.update(z, R)
-                self._commit(frame_ds, new_pose, guess)
+                self._commit(frame_ds, new_pose, guess, not (degenerate or fallback))
                 if degenerate or fallback:
                     # keep KISS-ICP on the fused estimate along the unobservable axis
                     self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
@@ -803,8 +803,12 @@ class ScanOdometry:
             return pose
         return to_matrix4(refined)
 
-    def _commit(self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray) -> None:
-        """The rest of ``register_frame``: threshold model, local map, delta and pose."""
+    def _commit(
+        self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray, held: bool = True
+    ) -> None:
+        """The rest of ``register_frame``: threshold model, local map, delta and pose. ``held``: the
+        scan's own match fixes its pose (neither degenerate nor a fallback), so it may be left out of
+        the refinement's window when it stands (:meth:`_near_added`)."""
         icp = self._icp
         icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ new_pose)
         icp.local_map.update(frame_ds, new_pose)
@@ -813,7 +817,7 @@ class ScanOdometry:
         n = self.config.local_map_scans
         if n:
             pose = from_matrix(new_pose)
-            if self._near_added(pose):
+            if held and self._near_added(pose):
                 return  # a standing robot: the window keeps its scans, the local map its normals
             self._added_pose = pose
             self._recent.append(transform_points(pose, self._aligned_points))
