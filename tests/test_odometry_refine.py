@@ -46,21 +46,28 @@ def test_refinement_sharpens_the_real_fr079_odometry(test_data):
 def _room_scans(n: int, noise: float, seed: int = 0) -> list[tuple[float, np.ndarray, tuple]]:
     """``n`` scans of a robot standing still in a 6 × 4 m room with a doorway gap (240 deg,
     720 beams, 5.6 m, Gaussian range noise ``noise`` m), 10 Hz, wheel odometry standing still."""
+    return _room_scans_at(np.tile([2.3, 1.7, 0.4], (n, 1)), noise, seed, wheels=False)
+
+
+def _room_scans_at(
+    poses: np.ndarray, noise: float, seed: int = 0, wheels: bool = True
+) -> list[tuple[float, np.ndarray, tuple]]:
+    """Scans of the room of :func:`_room_scans` from the true poses (N, 3) (m, rad; 10 Hz), with
+    wheel odometry reporting each true pose (``wheels``) or standing still at the origin."""
     from frslam_graph.datasets.simulator.lidar import Lidar
 
     walls = np.array(
         [[0, 0, 6, 0], [6, 0, 6, 4], [6, 4, 3.5, 4], [2.5, 4, 0, 4], [0, 4, 0, 0], [4, 1.5, 4.8, 1.5]], float
     )
     lidar = Lidar(beams=720, fov=np.deg2rad(240.0), max_range=5.6, range_noise=noise)
-    pose = np.array([[2.3, 1.7, 0.4]])
     rng = np.random.default_rng(seed)
     angles = lidar.angles
     out = []
-    for k in range(n):
-        _, r = lidar.measure(walls, pose, rng)
+    for k, pose in enumerate(poses):
+        _, r = lidar.measure(walls, pose[None, :], rng)
         ok = np.isfinite(r[0])
         pts = np.column_stack((r[0][ok] * np.cos(angles[ok]), r[0][ok] * np.sin(angles[ok])))
-        out.append((0.1 * k, pts, (0.0, 0.0, 0.0)))
+        out.append((0.1 * k, pts, tuple(pose) if wheels else (0.0, 0.0, 0.0)))
     return out
 
 
@@ -74,6 +81,32 @@ def test_refinement_does_not_creep_while_standing_still():
     traj = _frontend(_room_scans(300, 0.03), 20)
     assert np.hypot(*traj[-1, 1:3]) < 0.02
     assert abs(traj[-1, 3]) < np.deg2rad(0.5)
+
+
+def test_a_standing_robot_keeps_the_local_map_and_a_slow_creep_still_adds():
+    """The robot drives 1 m (5 cm a scan), stands for 40 scans, then creeps 2 mm a scan. Standing,
+    each scan commits within 1 cm and 0.06 deg of the last scan added to the refinement's window:
+    it is not added, so the window keeps the 20 scans from before the stop and the local map is not
+    rebuilt (its normals stay computed). Creeping, every scan is within 1 cm of the previous one,
+    but the window takes a scan once the robot is 1 cm from the last scan added: every 5 scans."""
+    drive = np.column_stack((np.linspace(1.8, 2.8, 21), np.full(21, 1.7), np.full(21, 0.4)))
+    stand = np.tile(drive[-1], (40, 1))
+    creep = drive[-1] + np.outer(np.arange(1, 31) * 0.002, [1.0, 0.0, 0.0])
+    scans = _room_scans_at(np.vstack((drive, stand, creep)), 0.002, seed=3)
+    odo = ScanOdometry(OdometryConfig(local_map_scans=20))
+    for st, p, o in scans[:21]:
+        odo.process(st, p, o)
+    window, ref = [id(a) for a in odo._recent], odo._local_map()
+    assert len(window) == 20 and ref is not None
+    for st, p, o in scans[21:61]:
+        odo.process(st, p, o)
+        assert [id(a) for a in odo._recent] == window  # nothing added, nothing pushed out
+        assert odo._local_ref is ref  # not rebuilt
+    for st, p, o in scans[61:]:
+        odo.process(st, p, o)
+    added = len([a for a in odo._recent if id(a) not in window])
+    assert 4 <= added <= 7, added  # 6 cm of creep, one scan a centimetre
+    assert odo._local_ref is not ref
 
 
 def test_cell_means_keep_the_normals_of_a_noisy_wall_across_it():

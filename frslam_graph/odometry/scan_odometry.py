@@ -277,11 +277,14 @@ class ScanOdometry:
         self._kf_pose = np.zeros(3)  # keyframe pose in odom (fused chain)
         self._kf_icp = np.zeros(3)  # keyframe pose in KISS-ICP's frame
         # local map of the point-to-line refinement: the points of the recent committed scans in
-        # KISS-ICP's frame (each transformed once, at its commit), rebuilt every _LOCAL_MAP_REBUILD commits
+        # KISS-ICP's frame (each transformed once, at its commit; not one near the last added:
+        # _near_added), rebuilt every _LOCAL_MAP_REBUILD commits
         self._recent: deque[np.ndarray] = deque(maxlen=max(cfg.local_map_scans, 1))
         self._local_ref: LineMap | None = None
         self._local_stale = False  # _recent changed since _local_ref was built (see _local_map)
         self._since_rebuild = 0
+        # KISS-ICP-frame pose (x, y, theta) of the last scan added to _recent (see _commit)
+        self._added_pose: np.ndarray | None = None
         self._aligned_points = np.zeros((0, 2))
         # share of each recent refined scan within a voxel of the local map (see _turned)
         self._fits: deque[float] = deque(maxlen=max(cfg.local_map_scans, 1))
@@ -473,7 +476,7 @@ class ScanOdometry:
                 self._resync_icp(u)  # the scan is not added to the local map
             else:
                 self._ekf.update(z, R)
-                self._commit(frame_ds, new_pose, guess)
+                self._commit(frame_ds, new_pose, guess, not (degenerate or fallback))
                 if degenerate or fallback:
                     # keep KISS-ICP on the fused estimate along the unobservable axis
                     self._icp.last_pose = to_matrix4(compose(self._kf_icp, self._ekf.x))
@@ -527,7 +530,8 @@ class ScanOdometry:
         else:
             self._icp.register_frame(np.column_stack((pts, np.zeros(len(pts)))), self._empty_ts)
             if self.config.local_map_scans:
-                self._recent.append(transform_points(from_matrix(self._icp.last_pose), _local_points(pts)))
+                self._added_pose = from_matrix(self._icp.last_pose)
+                self._recent.append(transform_points(self._added_pose, _local_points(pts)))
         self._kf_icp = from_matrix(self._icp.last_pose)
         self._kf_index = 0
         self._kf_stamp = stamp
@@ -799,8 +803,12 @@ class ScanOdometry:
             return pose
         return to_matrix4(refined)
 
-    def _commit(self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray) -> None:
-        """The rest of ``register_frame``: threshold model, local map, delta and pose."""
+    def _commit(
+        self, frame_ds: np.ndarray, new_pose: np.ndarray, guess: np.ndarray, held: bool = True
+    ) -> None:
+        """The rest of ``register_frame``: threshold model, local map, delta and pose. ``held``: the
+        scan's own match fixes its pose (neither degenerate nor a fallback), so it may be left out of
+        the refinement's window when it stands (:meth:`_near_added`)."""
         icp = self._icp
         icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ new_pose)
         icp.local_map.update(frame_ds, new_pose)
@@ -808,11 +816,26 @@ class ScanOdometry:
         icp.last_pose = new_pose
         n = self.config.local_map_scans
         if n:
-            self._recent.append(transform_points(from_matrix(new_pose), self._aligned_points))
+            pose = from_matrix(new_pose)
+            if held and self._near_added(pose):
+                return  # a standing robot: the window keeps its scans, the local map its normals
+            self._added_pose = pose
+            self._recent.append(transform_points(pose, self._aligned_points))
             self._since_rebuild += 1
             if self._since_rebuild >= _LOCAL_MAP_REBUILD and len(self._recent) >= min(n, 3):
                 self._local_stale = True
                 self._since_rebuild = 0
+
+    def _near_added(self, pose: np.ndarray) -> bool:
+        """Whether ``pose`` (KISS-ICP's frame; m, rad) is within _STILL_STEP and _STILL_TURN of the
+        last scan added to the refinement's window: its scan would add near-duplicates of the same
+        walls and push older (more informative) scans out. Taken against the last scan added, not the
+        previous scan, so that a slow creep still adds a scan once it has moved that far."""
+        last = self._added_pose
+        if last is None:
+            return False
+        d = between(last, pose)
+        return math.hypot(d[0], d[1]) < _STILL_STEP and abs(d[2]) < _STILL_TURN
 
     def _local_map(self) -> LineMap | None:
         """The refinement's local map of the recent scans (KISS-ICP's frame), None before there
@@ -952,6 +975,11 @@ _FIRST_SPEED_STEP = 0.1  # s: least step of the speed test before the period is 
 _LOCAL_MAP_REBUILD = 1  # commits between rebuilds of its local map (3 let ACES's heading drift more)
 _LOCAL_MAP_RANGE = 15.0  # m; farther points stay out of it and of the refinement (grid size)
 _LOCAL_MAP_RESOLUTION = 0.05  # m
+# a committed scan within both of the last scan added to the local map's window is not added (a
+# standing robot, ScanOdometry._near_added): m, a fifth of the map's cell; rad, the turn that moves
+# a point 10 m away by as much
+_STILL_STEP = 0.2 * _LOCAL_MAP_RESOLUTION
+_STILL_TURN = _STILL_STEP / 10.0
 _REFINE_ITERATIONS = 6
 _REFINE_MAX_DISTANCE = 0.3  # m, association distance (the second half of the iterations: half)
 _REFINE_MAX_STEP = 0.3  # m (the association distance), a larger move from KISS-ICP's pose is not trusted
