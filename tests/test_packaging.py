@@ -10,10 +10,8 @@ wheel: ``frslam`` then fails on import (it did: ``backend``, ``localisation``, `
 from __future__ import annotations
 
 import tomllib
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-ROOT = "frslam_graph"
+from tests.test_imports import REPO, ROOT, package_dirs
 
 
 def _setuptools() -> dict:
@@ -22,11 +20,9 @@ def _setuptools() -> dict:
 
 def source_packages() -> set[str]:
     """Dotted names of every folder holding an ``__init__.py``: ``frslam_graph/`` and the folders
-    pyproject maps into it."""
-    mapped = _setuptools().get("package-dir", {})
-    roots = {ROOT: REPO / ROOT, **{name: REPO / folder for name, folder in mapped.items()}}
+    pyproject maps into it (:func:`tests.test_imports.package_dirs`)."""
     found = set()
-    for package, folder in roots.items():
+    for package, folder in package_dirs().items():
         for init in folder.rglob("__init__.py"):
             rel = init.parent.relative_to(folder).parts
             if not any(p in (".venv", "__pycache__") for p in rel):
