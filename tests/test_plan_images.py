@@ -260,3 +260,15 @@ def test_real_ipa_plans_at_half_and_twice_their_pixel_density(shared_data, tmp_p
         plan = FloorPlan.load(write(tmp_path, f"{stem}_{scale}.png", img))
         assert abs(len(plan.rooms) - len(base.rooms)) <= 2, scale
         assert plan.area / scale**2 == pytest.approx(base.area, rel=0.05)
+
+
+def test_a_plan_at_a_finer_density_has_no_more_wall_segments(tmp_path):
+    # walls are outlines simplified within half the wall thickness: an anti-aliased diagonal
+    # upscaled 4x was traced pixel step by pixel step (IPA office_e at 3x: 5,239 segments, over
+    # MAX_PLAN_WALLS, so the plan was refused)
+    img = two_rooms()
+    cv2.line(img, (30, 30), (120, 170), BLACK, 3, cv2.LINE_AA)
+    base = FloorPlan.from_image(write(tmp_path, "one.png", img))
+    fine = cv2.resize(img, None, fx=4, fy=4, interpolation=cv2.INTER_LINEAR)
+    plan = FloorPlan.from_image(write(tmp_path, "fine.png", fine))
+    assert len(plan.walls) <= 1.5 * len(base.walls)

@@ -154,7 +154,7 @@ def load_image_plan_detailed(
     plan = FloorPlan(
         rooms=rooms,
         doors=doors,
-        walls=_wall_segments(dark),
+        walls=_wall_segments(dark, max(1.0, thickness / 2.0)),
         units="px",
         metres_per_unit=None,
         name=name if name is not None else path.stem,
@@ -328,13 +328,16 @@ def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) 
     return _renumber(grown.astype(np.int64))
 
 
-def _wall_segments(dark: np.ndarray) -> np.ndarray:
-    """Outlines of the dark pixels as (K, 4) segments x1 y1 x2 y2 in the plan frame (px)."""
+def _wall_segments(dark: np.ndarray, tolerance: float = 1.0) -> np.ndarray:
+    """Outlines of the dark pixels as (K, 4) segments x1 y1 x2 y2 in the plan frame (px),
+    simplified within ``tolerance`` px (half the wall thickness, at least a pixel: a plan
+    scanned or exported at a finer density has as many segments as at a coarse one, not the
+    staircase of its anti-aliased strokes)."""
     h = dark.shape[0]
     contours, _ = cv2.findContours(dark.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     segs = []
     for c in contours:
-        pts = cv2.approxPolyDP(c, 1.0, True).reshape(-1, 2).astype(np.float64)
+        pts = cv2.approxPolyDP(c, tolerance, True).reshape(-1, 2).astype(np.float64)
         if len(pts) < 2:
             continue
         pts = np.column_stack([pts[:, 0] + 0.5, h - pts[:, 1] - 0.5])  # pixel centres, y up
