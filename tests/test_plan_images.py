@@ -5,6 +5,7 @@ image, the axis convention, bad images, ``frslam plan show/convert``, and real I
 from __future__ import annotations
 
 import json
+import re
 import struct
 import zlib
 
@@ -88,13 +89,25 @@ def layout_row_of_rooms(gap: int = 34) -> np.ndarray:
     return img
 
 
-def test_door_gaps_wider_than_the_default_still_split_rooms(tmp_path):
-    # without the widening the default 30 px closes no gap and the whole layout is one room
+def test_door_gaps_wider_than_thirty_pixels_split_rooms(tmp_path):
+    # a fixed 30 px default closed no gap of this layout: it was one room
     result = load_image_plan_detailed(write(tmp_path, "layout.png", layout_row_of_rooms()))
     assert len(result.plan.rooms) == 5 and len(result.plan.doors) == 4
     assert 34 <= result.door_width <= 60
-    # a plan the default splits keeps the default
-    assert load_image_plan_detailed(write(tmp_path, "two.png", two_rooms())).door_width == 30.0
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 3.0])
+def test_the_same_plan_at_another_pixel_density_gives_the_same_rooms(tmp_path, scale):
+    # the door width comes from the drawing (the sweep), not from a pixel count: a fixed 30 px
+    # closes no door at 2-3x (one room)
+    img = layout_row_of_rooms()
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    base = load_image_plan_detailed(write(tmp_path, "one.png", img))
+    scaled = cv2.resize(img, None, fx=scale, fy=scale, interpolation=interp)
+    res = load_image_plan_detailed(write(tmp_path, "scaled.png", scaled))
+    assert len(res.plan.rooms) == len(base.plan.rooms) == 5 and len(res.plan.doors) == 4
+    assert res.plan.area / scale**2 == pytest.approx(base.plan.area, rel=0.03)
+    assert res.door_width / scale == pytest.approx(base.door_width, rel=0.25)
 
 
 def test_furniture_blobs_are_not_rooms_nor_walls(tmp_path):
@@ -189,7 +202,9 @@ def test_cli_show_and_convert_a_plan_image(tmp_path, capsys):
     path = write(tmp_path, "two.png", two_rooms())
     assert main(["plan", "show", str(path), "-o", str(tmp_path / "shown.png")]) == 0
     out = capsys.readouterr().out
-    assert "2 rooms" in out and "1 doors" in out and "door width 30 px" in out
+    assert "2 rooms" in out and "1 doors" in out
+    width = float(re.search(r"door width (\d+) px", out).group(1))
+    assert 20 < width < 120  # wider than the gap, narrower than the rooms
     assert main(["plan", "convert", str(path), str(tmp_path / "two.json"), "--door-width", "10"]) == 0
     data = json.loads((tmp_path / "two.json").read_text())
     assert data["units"] == "px" and len(data["rooms"]) == 1  # a 20 px gap stays open at 10 px
@@ -226,3 +241,34 @@ def test_real_ipa_plans_free_space_furniture_and_ground_truth(shared_data, stem)
     # open-plan rooms (a whole wall missing) cannot be split by closing door gaps: fewer rooms
     assert 0.5 * len(truth.rooms) <= len(plain.rooms) <= len(truth.rooms) + 2
     assert len(plain.doors) >= len(plain.rooms) - 1  # rooms reached through doors
+
+
+@pytest.mark.parametrize("stem", ["lab_intel", "office_d"])
+def test_real_ipa_plans_at_half_and_twice_their_pixel_density(shared_data, tmp_path, stem):
+    """A real plan image resampled to 0.5x and 2x gives the rooms it gives at 1x, and they match
+    its ground-truth rooms as well (a fixed 30 px door width read lab_intel at 2x as 3 rooms,
+    office_d at 2x as 2, and at 0.5x 11 and 12 rooms instead of 15 and 22)."""
+    path = shared_data / IPA / f"{stem}.png"
+    if not path.is_file():
+        pytest.skip(f"{path} not in the shared data")
+    grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    base = FloorPlan.load(path)
+    truth = len(FloorPlan.from_image(path, segmentation="auto").rooms)
+    assert len(base.rooms) >= 0.65 * truth
+    for scale, interp in ((0.5, cv2.INTER_AREA), (2.0, cv2.INTER_LINEAR)):
+        img = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=interp)
+        plan = FloorPlan.load(write(tmp_path, f"{stem}_{scale}.png", img))
+        assert abs(len(plan.rooms) - len(base.rooms)) <= 2, scale
+        assert plan.area / scale**2 == pytest.approx(base.area, rel=0.05)
+
+
+def test_a_plan_at_a_finer_density_has_no_more_wall_segments(tmp_path):
+    # walls are outlines simplified within half the wall thickness: an anti-aliased diagonal
+    # upscaled 4x was traced pixel step by pixel step (IPA office_e at 3x: 5,239 segments, over
+    # MAX_PLAN_WALLS, so the plan was refused)
+    img = two_rooms()
+    cv2.line(img, (30, 30), (120, 170), BLACK, 3, cv2.LINE_AA)
+    base = FloorPlan.from_image(write(tmp_path, "one.png", img))
+    fine = cv2.resize(img, None, fx=4, fy=4, interpolation=cv2.INTER_LINEAR)
+    plan = FloorPlan.from_image(write(tmp_path, "fine.png", fine))
+    assert len(plan.walls) <= 1.5 * len(base.walls)

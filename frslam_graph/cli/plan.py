@@ -17,7 +17,7 @@ from frslam_graph.cli.app import console, plan_app
 
 _YAML_HELP = "map_server YAML of a room-segmentation PNG (default: beside it, X.yaml for XRoomSeg.png)."
 _SEG_HELP = "Plan image: rooms from this segmentation image (one colour a room), or 'auto': <stem>_gt_segmentation.png."
-_DOOR_HELP = "Plan image: widest door gap in pixels (default: max(30, 4 x wall thickness))."
+_DOOR_HELP = "Plan image: widest door gap in pixels (default: the width that splits the most rooms)."
 
 
 def _load(path: Path, yaml: Path | None, segmentation: str | None = None, door_width: float | None = None):

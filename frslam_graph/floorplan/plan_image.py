@@ -25,11 +25,17 @@ anti-aliased fringe of dark lines stays free. Then:
 3. Doors: where two rooms meet over at least ``door_width / 4`` px.
 4. Walls: outlines of the dark pixels, as segments.
 
-Default ``door_width``: max(30 px, 4 × the wall thickness), the thickness being the median
-width of the dark strokes; 30 px is about 1.5 m at the 5 cm per pixel of room-segmentation plans
-and ROS maps, at least as wide as the door gaps of the IPA plans. When that width leaves the free
-space as one room (door gaps drawn wider, as on the Halmstad layouts, about 33 px), the smallest
-width up to 3 × the default that splits it into the most rooms (:func:`widest_split`).
+Default ``door_width``: the erosion width that splits the free space into the most room cores
+(:func:`door_width_sweep`: widths from twice the wall thickness up, 10 % apart; the middle of
+those that reach the most). The door gaps of a plan are the narrowest free passages between its
+rooms: below their width the rooms stay joined, well above it rooms vanish, and in between
+(a plateau) every room is a core of its own. The sweep is in the drawing's own units, so the
+same plan drawn at any pixel density gives the same rooms: the former fixed default (max(30 px,
+4 × wall thickness); wall strokes of line drawings stay 1-3 px at any density) matched 80 % of
+the IPA plans' ground-truth rooms at their 5 cm per pixel but 41 % at half that density and
+69-76 % at 1.5-2x; the sweep matches 85 % at every density from 0.5x to 4x
+(``tools/bench_plan_images.py``). When furniture blobs were removed, the sweep runs again on the
+space without them (furniture splits rooms into pockets at narrow widths).
 """
 
 from __future__ import annotations
@@ -49,8 +55,8 @@ from frslam_graph.floorplan.roomseg import rooms_from_labels
 from frslam_graph.image_files import grey_levels, read_image
 from frslam_graph.occupancy import FREE, OCCUPIED, check_reading, image_to_occupancy
 
-MIN_DOOR_WIDTH_PX = 30.0
-DOOR_PER_WALL = 4.0  # default door width / wall thickness
+DOOR_SWEEP_STEP = 1.1  # ratio of successive door widths tried by door_width_sweep
+MIN_DOOR_SWEEP_PX = 4.0  # px; narrowest door width tried (wall thickness permitting)
 SEGMENTATION_SUFFIX = "_gt_segmentation"
 FILL_P = 0.1  # light grey below 230: a fill (wall, hatching) when 3 px wide, not a room
 _SATURATED = 30  # max - min channel above this: a colour, not a grey
@@ -88,7 +94,7 @@ def load_image_plan_detailed(
 
     ``segmentation``: None (rooms from the free space), a path, or "auto" (``<stem>_gt_segmentation``
     beside the image, also for a ``<stem>_furnitures`` image). ``door_width`` (px; default
-    max(30, 4 × wall thickness)), ``furniture_size`` (px, default 0.6 × door width),
+    :func:`door_width_sweep`), ``furniture_size`` (px, default 0.6 × door width),
     ``min_room_area`` (px², default door_width²), ``simplify`` (Douglas-Peucker, px).
     """
     path = Path(path)
@@ -110,7 +116,7 @@ def load_image_plan_detailed(
     if not free.any():
         raise FloorPlanError("no free space (light pixels): expected white rooms and dark walls", src)
     thickness = wall_thickness(dark)
-    dw = float(door_width) if door_width is not None else max(MIN_DOOR_WIDTH_PX, DOOR_PER_WALL * thickness)
+    dw = float(door_width) if door_width is not None else door_width_sweep(free, thickness)
     if dw > max(occ.shape):  # the erosion disc would be larger than the image (and its memory)
         raise FloorPlanError(
             f"door width {dw:g} px is wider than the {occ.shape[1]}x{occ.shape[0]} px image",
@@ -118,8 +124,8 @@ def load_image_plan_detailed(
             "door_width",
         )
     free, dark, n_furniture = _remove_furniture(free, dark, furniture_size or 0.6 * dw)
-    if door_width is None and segmentation is None:
-        dw = widest_split(free, dw)
+    if door_width is None and n_furniture:  # furniture split rooms into pockets: sweep again
+        dw = door_width_sweep(free, thickness)
     min_area = float(min_room_area) if min_room_area is not None else dw * dw
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
@@ -148,7 +154,7 @@ def load_image_plan_detailed(
     plan = FloorPlan(
         rooms=rooms,
         doors=doors,
-        walls=_wall_segments(dark),
+        walls=_wall_segments(dark, max(1.0, thickness / 2.0)),
         units="px",
         metres_per_unit=None,
         name=name if name is not None else path.stem,
@@ -168,30 +174,34 @@ def grey_fills(grey: np.ndarray, free: np.ndarray, negate: bool = False) -> np.n
     return cv2.morphologyEx(light, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
 
 
-def _core_count(dt: np.ndarray, door_width: float) -> int:
-    """Room cores (at least (door_width / 2)² px, the outside not counted) left in free space
-    whose distance transform (padded with free space) is ``dt`` after a door-wide erosion."""
-    r = int(math.ceil(door_width / 2.0))
-    n, cores, stats, _ = cv2.connectedComponentsWithStats((dt > r).astype(np.uint8), connectivity=4)
-    big = stats[:, cv2.CC_STAT_AREA] >= r * r
-    big[0] = False
-    big[int(cores[0, 0])] = False  # the outside (the padding ring)
-    return int(big.sum())
-
-
-def widest_split(free: np.ndarray, door_width: float, steps: int = 8, factor: float = 1.15) -> float:
-    """The door width to split rooms with: ``door_width`` when it leaves at least two rooms,
-    else (door gaps drawn wider than the default, as on layouts at a finer scale) the smallest
-    of ``door_width`` × ``factor``^k (k <= ``steps``) that splits the free space into the most
-    rooms; ``door_width`` when none splits it."""
-    pad = np.pad(free, 2, constant_values=True).astype(np.uint8)
-    dt = cv2.distanceTransform(pad, cv2.DIST_L2, 5)
-    if _core_count(dt, door_width) >= 2:
-        return door_width
-    widths = door_width * factor ** np.arange(1, steps + 1)
-    counts = [_core_count(dt, w) for w in widths]
-    best = int(np.argmax(counts))
-    return float(widths[best]) if counts[best] >= 2 else door_width
+def door_width_sweep(free: np.ndarray, wall_thickness: float = 0.0) -> float:
+    """The door width (px) that splits ``free`` into the most room cores (module doc): widths
+    from max(:data:`MIN_DOOR_SWEEP_PX`, 2 × ``wall_thickness``) up, :data:`DOOR_SWEEP_STEP`
+    apart, until the cores are gone; the middle of the widths that reach the most. A core is a
+    4-connected component of the free space eroded by the width (at least (width / 2)² px; the
+    outside, joined to the image border, not counted). At the narrowest widths the rooms may
+    all be joined to the outside through open doors (no core yet). Without any core at any
+    width, the narrowest width."""
+    lo = max(MIN_DOOR_SWEEP_PX, 2.0 * wall_thickness)
+    dt = cv2.distanceTransform(np.pad(free, 2, constant_values=True).astype(np.uint8), cv2.DIST_L2, 5)
+    widths, counts = [], []
+    width = lo
+    while width <= max(free.shape):
+        r = int(math.ceil(width / 2.0))
+        n, cores = cv2.connectedComponents((dt > r).astype(np.uint8), connectivity=4)
+        big = np.bincount(cores.ravel(), minlength=n) >= r * r
+        big[0] = False
+        big[int(cores[0, 0])] = False  # the outside (the padding ring)
+        count = int(big.sum())
+        if count == 0 and any(counts):
+            break  # past the last core
+        widths.append(width)
+        counts.append(count)
+        width *= DOOR_SWEEP_STEP
+    if not any(counts):
+        return lo
+    best = np.flatnonzero(np.asarray(counts) == max(counts))
+    return float(widths[best[len(best) // 2]])
 
 
 def wall_thickness(dark: np.ndarray) -> float:
@@ -318,13 +328,16 @@ def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) 
     return _renumber(grown.astype(np.int64))
 
 
-def _wall_segments(dark: np.ndarray) -> np.ndarray:
-    """Outlines of the dark pixels as (K, 4) segments x1 y1 x2 y2 in the plan frame (px)."""
+def _wall_segments(dark: np.ndarray, tolerance: float = 1.0) -> np.ndarray:
+    """Outlines of the dark pixels as (K, 4) segments x1 y1 x2 y2 in the plan frame (px),
+    simplified within ``tolerance`` px (half the wall thickness, at least a pixel: a plan
+    scanned or exported at a finer density has as many segments as at a coarse one, not the
+    staircase of its anti-aliased strokes)."""
     h = dark.shape[0]
     contours, _ = cv2.findContours(dark.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     segs = []
     for c in contours:
-        pts = cv2.approxPolyDP(c, 1.0, True).reshape(-1, 2).astype(np.float64)
+        pts = cv2.approxPolyDP(c, tolerance, True).reshape(-1, 2).astype(np.float64)
         if len(pts) < 2:
             continue
         pts = np.column_stack([pts[:, 0] + 0.5, h - pts[:, 1] - 0.5])  # pixel centres, y up
