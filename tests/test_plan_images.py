@@ -272,3 +272,24 @@ def test_a_plan_at_a_finer_density_has_no_more_wall_segments(tmp_path):
     fine = cv2.resize(img, None, fx=4, fy=4, interpolation=cv2.INTER_LINEAR)
     plan = FloorPlan.from_image(write(tmp_path, "fine.png", fine))
     assert len(plan.walls) <= 1.5 * len(base.walls)
+
+
+@pytest.mark.parametrize("fill", [(200, 230, 250), (120, 200, 160), (230, 180, 240)])
+def test_rooms_filled_with_a_light_colour_are_rooms(tmp_path, fill):
+    # listing plans colour their rooms: averaged to grey (150-230) they were neither free nor
+    # walls, and the plan had no room
+    img = cv2.cvtColor(two_rooms(), cv2.COLOR_GRAY2BGR)
+    white = (img == WHITE).all(axis=2)
+    n, labels = cv2.connectedComponents(white.astype(np.uint8), connectivity=4)
+    img[white & (labels == labels[100, 80])] = fill  # the left room
+    img[white & (labels == labels[100, 220])] = fill[::-1]  # the right one, another colour
+    plan = FloorPlan.from_image(write(tmp_path, "coloured.png", img))
+    plain = FloorPlan.from_image(write(tmp_path, "plain.png", two_rooms()))
+    assert len(plan.rooms) == 2 and len(plan.doors) == 1
+    assert plan.area == pytest.approx(plain.area, rel=0.01)
+
+
+def test_dark_colours_stay_walls(tmp_path):
+    img = cv2.cvtColor(two_rooms(door=0), cv2.COLOR_GRAY2BGR)
+    img[(img == BLACK).all(axis=2)] = (0, 0, 110)  # walls drawn in dark red
+    assert len(FloorPlan.from_image(write(tmp_path, "red.png", img)).rooms) == 2

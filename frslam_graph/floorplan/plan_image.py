@@ -5,7 +5,8 @@ the highest y and a plan image and an :meth:`OccupancyGrid.from_image` map of th
 differ by a similarity without a flip (registration handles flips anyway). ``units`` "px",
 ``metres_per_unit`` None.
 
-Grey levels are read as ROS map_server reads a map (colour averaged, alpha ignored; p = (255 -
+Pixels of a light colour (rooms filled with a colour, as listing plans draw them) are free;
+the rest is read as ROS map_server reads a map (colour averaged, alpha ignored; p = (255 -
 v) / 255): p < ``free_thresh`` is free space, p > ``occupied_thresh`` a wall (dark), anything
 between (grey outside, hatched or filled areas) is neither. Light-grey fills that map_server's
 ``free_thresh`` still counts as free (p >= 0.1, lighter than grey 205 but darker than 230, at
@@ -60,6 +61,7 @@ MIN_DOOR_SWEEP_PX = 4.0  # px; narrowest door width tried (wall thickness permit
 SEGMENTATION_SUFFIX = "_gt_segmentation"
 FILL_P = 0.1  # light grey below 230: a fill (wall, hatching) when 3 px wide, not a room
 _SATURATED = 30  # max - min channel above this: a colour, not a grey
+COLOUR_FILL_MIN = 128  # brightest channel of a colour fill at least this (darker colours: walls)
 
 
 @dataclass(frozen=True)
@@ -109,7 +111,10 @@ def load_image_plan_detailed(
         ):
             raise FloorPlanError(f"expected a positive number of pixels, got {value!r}", src, field)
     check_reading(occupied_thresh, free_thresh, "trinary", src, FloorPlanError)
-    grey = grey_levels(read_image(path, FloorPlanError, "a floor-plan image"))
+    img = read_image(path, FloorPlanError, "a floor-plan image")
+    grey = grey_levels(img)
+    if not negate:
+        grey[colour_fills(img)] = 255.0  # rooms filled with a light colour are free space
     occ = image_to_occupancy(grey, int(bool(negate)), occupied_thresh, free_thresh, "trinary")
     free, dark = occ == FREE, occ == OCCUPIED
     free &= ~grey_fills(grey, free, negate)
@@ -161,6 +166,20 @@ def load_image_plan_detailed(
         source=src,
     )
     return ImagePlanResult(plan, dw, thickness, n_furniture, seg_path)
+
+
+def colour_fills(img: np.ndarray) -> np.ndarray:
+    """Pixels of a light colour (channels more than :data:`_SATURATED` apart in 8-bit levels,
+    the brightest at least :data:`COLOUR_FILL_MIN`): rooms filled with a colour, as listing plans
+    draw them (averaged to grey, a pastel fill of 150-230 was neither free nor a wall, and the
+    plan had no room). All False for a grey image."""
+    if img.ndim != 3 or img.shape[2] < 3:
+        return np.zeros(img.shape[:2], bool)
+    rgb = img[:, :, :3]
+    if img.dtype == np.uint16:
+        rgb = rgb // 257
+    hi, lo = rgb.max(axis=2).astype(np.int16), rgb.min(axis=2).astype(np.int16)
+    return (hi - lo > _SATURATED) & (hi >= COLOUR_FILL_MIN)
 
 
 def grey_fills(grey: np.ndarray, free: np.ndarray, negate: bool = False) -> np.ndarray:
