@@ -28,22 +28,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _paths import SHARED_DATA  # noqa: E402
 
 from frslam_graph.floorplan import FloorPlan  # noqa: E402
+from frslam_graph.raster import RasterFrame, rasterise_plan  # noqa: E402
 
 MATCH_IOU = 0.5
 
 
-def labels_of(plan: FloorPlan, shape: tuple[int, int], scale: float) -> np.ndarray:
-    """The plan's rooms (pixels of an image ``scale`` times ``shape``) drawn at ``shape``: label
-    k + 1 for room k, 0 elsewhere."""
-    h = shape[0] * scale
-    out = np.zeros(shape, np.int32)
-    for k, room in enumerate(plan.rooms):
-        polys = getattr(room.polygon, "geoms", [room.polygon])
-        for poly in polys:
-            xy = np.asarray(poly.exterior.coords)
-            pts = np.column_stack([xy[:, 0], h - xy[:, 1]]) / scale  # x = column, y = height - row
-            cv2.fillPoly(out, [np.round(pts - 0.5).astype(np.int32)], k + 1)
-    return out
+def labels_of(plan: FloorPlan, shape: tuple[int, int], scale: float, height: float) -> np.ndarray:
+    """The plan's rooms, read from an image ``height`` px high (``scale`` times ``shape``), drawn
+    at ``shape``: label k + 1 for room k, 0 elsewhere (a pixel is a room's when its centre is)."""
+    # the plan frame: x = column, y = height - row; a raster frame's row 0 is its lowest y
+    frame = RasterFrame(scale, (0.0, height - shape[0] * scale), shape)
+    return np.flipud(rasterise_plan(plan, frame, labels=True))
 
 
 def matched_share(truth: np.ndarray, found: np.ndarray) -> float:
@@ -72,7 +67,7 @@ def rows(folder: Path, scales: list[float], door_width: float | None, tmp: Path)
         path = folder / seg.name.replace("_gt_segmentation", "")
         truth_plan = FloorPlan.from_image(path, segmentation="auto")
         grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        truth = labels_of(truth_plan, grey.shape, 1.0)
+        truth = labels_of(truth_plan, grey.shape, 1.0, grey.shape[0])
         row = {"plan": path.name, "truth": len(truth_plan.rooms), "rooms": [], "matched": []}
         for s in scales:
             img = (
@@ -93,7 +88,7 @@ def rows(folder: Path, scales: list[float], door_width: float | None, tmp: Path)
                 row["matched"].append(0.0)
                 continue
             row["rooms"].append(len(plan.rooms))
-            row["matched"].append(matched_share(truth, labels_of(plan, grey.shape, s)))
+            row["matched"].append(matched_share(truth, labels_of(plan, grey.shape, s, img.shape[0])))
         out.append(row)
     return out
 

@@ -39,7 +39,7 @@ def main() -> int:
         for name in PLANS:
             grey = cv2.imread(str(folder / f"{name}.png"), cv2.IMREAD_GRAYSCALE)
             base = plan_image.load_image_plan_detailed(folder / f"{name}.png").plan
-            rooms = labels_of(base, grey.shape, 1.0)
+            rooms = labels_of(base, grey.shape, 1.0, grey.shape[0])
             rng = np.random.default_rng(1)
             for fill in ("light", "beige", "mid-tone"):
                 img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)

@@ -34,7 +34,7 @@ rooms: below their width the rooms stay joined, well above it rooms vanish, and 
 same plan drawn at any pixel density gives the same rooms: the former fixed default (max(30 px,
 4 × wall thickness); wall strokes of line drawings stay 1-3 px at any density) matched 80 % of
 the IPA plans' ground-truth rooms at their 5 cm per pixel but 41 % at half that density and
-69-76 % at 1.5-2x; the sweep matches 85 % at every density from 0.5x to 4x
+70-76 % at 1.5-2x; the sweep matches 85 % at every density from 0.5x to 4x
 (``tools/bench_plan_images.py``). When furniture blobs were removed, the sweep runs again on the
 space without them (furniture splits rooms into pockets at narrow widths).
 """
@@ -175,11 +175,15 @@ def colour_fills(img: np.ndarray) -> np.ndarray:
     plan had no room). All False for a grey image."""
     if img.ndim != 3 or img.shape[2] < 3:
         return np.zeros(img.shape[:2], bool)
-    rgb = img[:, :, :3]
-    if img.dtype == np.uint16:
-        rgb = rgb // 257
-    hi, lo = rgb.max(axis=2).astype(np.int16), rgb.min(axis=2).astype(np.int16)
-    return (hi - lo > _SATURATED) & (hi >= COLOUR_FILL_MIN)
+    bgr = _bgr8(img)
+    hi = bgr.max(axis=2)
+    return (hi - bgr.min(axis=2) > _SATURATED) & (hi >= COLOUR_FILL_MIN)
+
+
+def _bgr8(img: np.ndarray) -> np.ndarray:
+    """An image's first three channels (a grey image's level thrice) in 8-bit levels, int16."""
+    bgr = img[:, :, :3] if img.ndim == 3 else np.repeat(img[:, :, None], 3, 2)
+    return (bgr // 257 if img.dtype == np.uint16 else bgr).astype(np.int16)
 
 
 def grey_fills(grey: np.ndarray, free: np.ndarray, negate: bool = False) -> np.ndarray:
@@ -326,11 +330,7 @@ def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) 
             f"{free.shape[1]}x{free.shape[0]} px",
             str(seg_path),
         )
-    bgr = (
-        img[:, :, :3].astype(np.int64) if img.ndim == 3 else np.repeat(img[:, :, None], 3, 2).astype(np.int64)
-    )
-    if img.dtype == np.uint16:
-        bgr //= 257
+    bgr = _bgr8(img).astype(np.int64)
     key = (bgr[:, :, 0] << 16) | (bgr[:, :, 1] << 8) | bgr[:, :, 2]
     saturated = (bgr.max(axis=2) - bgr.min(axis=2)) > _SATURATED
     white = image_to_occupancy(grey_levels(img), 0, 0.65, 0.196, "trinary") == FREE
