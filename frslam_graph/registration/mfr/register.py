@@ -47,7 +47,9 @@ Steps
    too low, unless the placement passes at the drawing tolerance (:data:`DRAWN_TOL_PER_RMS`:
    a tolerance that grows with the fit's residual, and a margin over the determined runner-ups);
    failure too when the placement is under-determined: one room stretched over a map whose walls
-   it does not explain, or fitted on a handful of points (:func:`_determined`), unless a screened
+   it does not explain, or fitted on a handful of points (:func:`_determined`), unless the room's
+   own shape fixes flip and rotation (its seven other turns, screened alike, score at most
+   :data:`DRAWN_MARGIN` of it: a corridor network drawn as one room), or a screened
    placement of several rooms scores within :data:`DRAWN_MARGIN` of it: that one is the answer,
    flagged ambiguous. The matrix returned is the one-sided fit's, unless that fit put the plan's
    walls inside the map's free space (wall offset below minus half a cell: free space beyond the
@@ -69,7 +71,7 @@ import numpy as np
 
 from frslam_graph.registration.mfr import coarse, fine
 from frslam_graph.registration.mfr.coarse import Hypothesis
-from frslam_graph.registration.mfr.map_side import observe_map
+from frslam_graph.registration.mfr.map_side import MapObservation, observe_map
 from frslam_graph.registration.mfr.plan_side import PlanModel, prepare_plan
 from frslam_graph.registration.refine import RefineResult
 from frslam_graph.registration.result import Registration, params_from_matrix
@@ -326,7 +328,13 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
     r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
-    if not _determined(len(best.rooms), r.n_points, rec):
+    # one room that does not explain the map's walls, fitted on enough points: its own shape, as
+    # the map shows it, can still fix flip and rotation (a corridor network, an L or T hall):
+    # then each of its other seven turns, screened alike, scores clearly below it
+    turned = math.nan
+    if len(best.rooms) == 1 and r.n_points >= ONE_ROOM_MIN_POINTS and not _determined(1, r.n_points, rec):
+        turned = _turned_ratio(pm, obs, best, opts, tol_f)
+    if not _determined(len(best.rooms), r.n_points, rec) and not turned <= DRAWN_MARGIN:
         # one room stretched over the map (refused as under-determined) outscored the screened
         # placements of several rooms: answer with the best of those when it is within MFR's
         # margin of a clear best (DRAWN_MARGIN), flagged ambiguous (the one-room placement stays
@@ -338,12 +346,14 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
             best.refined = r0
             chosen.remove(several)
             chosen.insert(0, several)
-            best = several
+            best, turned = several, math.nan
             r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
     if not fine.plausible(r, opts):
         return fail("degenerate fit (scales collapsed or exploded)")
     quality = best.score * prec * rec
     ambiguity = max(_ambiguity(chosen, hyps, covered, r0.matrix, obs), ambiguity_screened, ambiguity_first)
+    if turned <= DRAWN_MARGIN:  # its turns are runner-up placements (NaN: not checked)
+        ambiguity = max(ambiguity, turned)
     alternatives = _alternatives(chosen, r0.matrix, obs, opts["alternatives"])
     t_fine = time.perf_counter()
     fixed_ok = quality >= opts["min_score"] and rec >= opts["min_recall"]
@@ -411,7 +421,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         candidates=candidates,
         details=details,
     )
-    if not _determined(len(best.rooms), r.n_points, rec):
+    if not _determined(len(best.rooms), r.n_points, rec) and not turned <= DRAWN_MARGIN:
         # a room stretched over the map fits it whatever the building: flip and rotation of one
         # room are undetermined (as for a one-room plan), and its scale only by its doors
         what = f"one room ({reg.rooms[0]})" if reg.rooms else "no room"
@@ -419,6 +429,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         reg.reason = (
             f"under-determined: the placement puts {what} on the map ({r.n_points} boundary points fitted, "
             f"{rec:.0%} of the map's walls explained); flip and rotation of one room are undetermined"
+            + (f" (a turn of it scores {turned:.2f} of it)" if np.isfinite(turned) else "")
         )
     elif not fixed_ok and not gate["drawn_ok"]:
         reg.ok = False
@@ -492,6 +503,18 @@ def _determined(n_rooms: int, n_points: int, recall: float) -> bool:
     return n_rooms >= 2 or (
         n_rooms == 1 and n_points >= ONE_ROOM_MIN_POINTS and recall >= ONE_ROOM_MIN_RECALL
     )
+
+
+def _turned_ratio(pm: PlanModel, obs: MapObservation, best: Hypothesis, opts: dict, tol_f: float) -> float:
+    """The best of ``best``'s seven other dihedral turns (:func:`coarse.turned_seeds` of its
+    screened placement), screened as every placement is (:func:`fine.screen`), over ``best``'s
+    screened measure: near 1 for a room whose shape (as far as the map shows it) is symmetric
+    under a turn, a rectangle's 180 degrees or mirror image; low for an asymmetric one."""
+    if best.quick <= 0.0:
+        return 1.0
+    turns = coarse.turned_seeds(_seed_at_screened(best), obs)
+    fine.screen(pm, obs, turns, opts, tol_f)
+    return float(min(1.0, turns[0].quick / best.quick))
 
 
 def _drawing_tol(final: RefineResult, tol_f: float) -> float:
