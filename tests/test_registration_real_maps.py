@@ -416,21 +416,29 @@ def test_halmstad_office_maps_reached_from_the_best_placement_turned(shared_data
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0 and row["err_ratio"] < 2.0
 
 
+def _halmstad_row(shared_data, building: str, name: str) -> dict:
+    """``tools/bench_real.py``'s row of one Halmstad sensor map registered on its layout."""
+    from conftest import load_tool
+
+    from frslam_graph.floorplan import FloorPlan
+
+    folder = shared_data / "halmstad" / building
+    plan = FloorPlan.load(folder / "layout" / f"{building}_layout.png")
+    return _registered_against_points(
+        load_tool("bench_real"),
+        plan,
+        folder / "sensor_maps" / f"{name}.png",
+        folder / "annotations" / f"{name}_to_layout.csv",
+        1,
+    )
+
+
 def test_halmstad_corridor_network_fixes_flip_and_rotation_alone(shared_data):
     # E5_04: the Tango map is the office's corridor network, which the layout draws as one room
     # (r7, an asymmetric hall with a foot and a stub); its placement explains 52 % of the map's
     # walls (the rest: furniture and glimpses into offices) and was refused as under-determined.
     # Its seven other turns score at most 0.43 of it: flip and rotation are right, accepted
-    from conftest import load_tool
-
-    from frslam_graph.floorplan import FloorPlan
-
-    bench = load_tool("bench_real")
-    folder = shared_data / "halmstad" / "E5"
-    plan = FloorPlan.load(folder / "layout" / "E5_layout.png")
-    row = _registered_against_points(
-        bench, plan, folder / "sensor_maps" / "E5_04.png", folder / "annotations" / "E5_04_to_layout.csv", 1
-    )
+    row = _halmstad_row(shared_data, "E5", "E5_04")
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0 and row["err_ratio"] < 2.0
 
 
@@ -438,16 +446,7 @@ def test_halmstad_apartment_placement_polished_past_its_mirror_image(shared_data
     # HIH_02: the apartment's layout is nearly mirror-symmetric, and the screened placement of
     # the mirror image scored 0.27 against 0.24 for the right one (both a few per cent off in
     # scale); polished alike from restarts, the right one scores best and is accepted
-    from conftest import load_tool
-
-    from frslam_graph.floorplan import FloorPlan
-
-    bench = load_tool("bench_real")
-    folder = shared_data / "halmstad" / "HIH"
-    plan = FloorPlan.load(folder / "layout" / "HIH_layout.png")
-    row = _registered_against_points(
-        bench, plan, folder / "sensor_maps" / "HIH_02.png", folder / "annotations" / "HIH_02_to_layout.csv", 1
-    )
+    row = _halmstad_row(shared_data, "HIH", "HIH_02")
     assert row["flip_ok"] and row["rot_err_deg"] < 2.0
 
 
