@@ -509,12 +509,15 @@ def _turned_ratio(pm: PlanModel, obs: MapObservation, best: Hypothesis, opts: di
     """The best of ``best``'s seven other dihedral turns (:func:`coarse.turned_seeds` of its
     screened placement), screened as every placement is (:func:`fine.screen`), over ``best``'s
     screened measure: near 1 for a room whose shape (as far as the map shows it) is symmetric
-    under a turn, a rectangle's 180 degrees or mirror image; low for an asymmetric one."""
+    under a turn, a rectangle's 180 degrees or mirror image; low for an asymmetric one. The best
+    turn is scale-polished too (:func:`fine.polish_scales`), as ``best`` may have been: a turn
+    is never judged worse for having been refined less."""
     if best.quick <= 0.0:
         return 1.0
     turns = coarse.turned_seeds(_seed_at_screened(best), obs)
     fine.screen(pm, obs, turns, opts, tol_f)
-    return float(min(1.0, turns[0].quick / best.quick))
+    fine.polish_scales(pm, obs, turns[0], opts, tol_f)
+    return float(min(1.0, max(h.quick for h in turns) / best.quick))
 
 
 def _drawing_tol(final: RefineResult, tol_f: float) -> float:
