@@ -442,15 +442,16 @@ def search(
     return hyps, seeds
 
 
-def turned_seeds(seed: Hypothesis, obs: MapObservation) -> list[Hypothesis]:
-    """The other 7 dihedral turns of ``seed``'s placement about the footprint's centroid, in the
-    wall-aligned map frame of its wall direction: the same plan scales (metres per plan unit
-    along the plan's axes), another flip and rotation. The moment fit of a (dihedral case, wall
-    direction) assumes the footprint is a union of whole plan rooms; on a map seeing corridors
-    and parts of rooms its scales are 20-40 % off, or the case has no hypothesis at all, and the
-    wide search does not reach the truth from it: the best placement's scales are closer."""
+def turned_seeds(seed: Hypothesis, obs: MapObservation, about: np.ndarray | None = None) -> list[Hypothesis]:
+    """The other 7 dihedral turns of ``seed``'s placement about the footprint's centroid (or the
+    grid-frame point ``about``, metres), in the wall-aligned map frame of its wall direction: the
+    same plan scales (metres per plan unit along the plan's axes), another flip and rotation. The
+    moment fit of a (dihedral case, wall direction) assumes the footprint is a union of whole plan
+    rooms; on a map seeing corridors and parts of rooms its scales are 20-40 % off, or the case
+    has no hypothesis at all, and the wide search does not reach the truth from it: the best
+    placement's scales are closer."""
     rm = rot(obs.angles[seed.angle_index])
-    c = obs.centroid
+    c = obs.centroid if about is None else np.asarray(about, dtype=np.float64)
     out = []
     for k, flipped in DIHEDRAL[1:]:
         d = np.eye(3)
