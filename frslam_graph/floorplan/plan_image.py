@@ -20,9 +20,14 @@ anti-aliased fringe of dark lines stays free. Then:
    that width closes) splits into room cores; the core connected to the image border is the
    outside; cores smaller than (door_width / 2)² are dropped; the cores grow back over the free
    space (geodesic), so neighbouring rooms meet in their door gap. Free regions no core reaches
-   are rooms of their own when at least ``min_room_area`` px² and half a door wide. With a
-   ``segmentation`` image instead (same size; each room one colour, or white regions separated
-   by dark lines as the IPA ``*_gt_segmentation.png``), its regions are the cores.
+   are rooms of their own when at least ``min_room_area`` px² and half a door wide. With the
+   default (swept) door width, a room then splits at a neck: where its free space narrows to
+   at most 1.5 door widths (:data:`MAX_NECK`, a double door) between two parts each at least
+   twice as wide as the neck (:data:`NECK_RATIO`): two rooms joined through an opening wider
+   than the one door width the sweep takes for the whole plan (IPA NLB: 36 px doors against a
+   30 px sweep). With a ``segmentation`` image instead (same size; each room one colour, or
+   white regions separated by dark lines as the IPA ``*_gt_segmentation.png``; its light-grey
+   fills, walls as in the plan, are no room), its regions are the cores.
 3. Doors: where two rooms meet over at least ``door_width / 4`` px.
 4. Walls: outlines of the dark pixels, as segments.
 
@@ -62,6 +67,8 @@ SEGMENTATION_SUFFIX = "_gt_segmentation"
 FILL_P = 0.1  # light grey below 230: a fill (wall, hatching) when 3 px wide, not a room
 _SATURATED = 30  # max - min channel above this: a colour, not a grey
 COLOUR_FILL_MIN = 128  # brightest channel of a colour fill at least this (darker colours: walls)
+NECK_RATIO = 2.0  # a room splits where its free space narrows below 1/this of both sides' widths
+MAX_NECK = 1.5  # necks up to this many door widths (a double door); wider: open plan
 
 
 @dataclass(frozen=True)
@@ -135,6 +142,8 @@ def load_image_plan_detailed(
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
         labels = _rooms_from_free_space(free, dw, min_area)
+        if door_width is None:  # rooms joined through a gap wider than the swept door width
+            labels = _split_at_necks(labels, free, dw)
     else:
         labels = _rooms_from_segmentation(seg_path, free, min_area)
     ids = np.unique(labels)
@@ -272,6 +281,54 @@ def _rooms_from_free_space(free: np.ndarray, door_width: float, min_area: float)
     return _renumber(np.where(rest > 0, rest + grown.max(), grown))
 
 
+def _split_at_necks(labels: np.ndarray, free: np.ndarray, door_width: float) -> np.ndarray:
+    """Rooms split where their free space narrows (a neck) to at most 1/:data:`NECK_RATIO` of the
+    widest disc on both sides: two rooms joined through a gap wider than the door width (the
+    sweep takes one width for the whole plan; a plan's wide openings stay open). Each room is
+    eroded at widths from ``door_width`` up (:data:`DOOR_SWEEP_STEP` apart); at the first width
+    where two or more of its cores are each at least :data:`NECK_RATIO` times that width wide,
+    those cores are grown back over the room (geodesic), and each part is examined again.
+    Labels (int, 0 = none), renumbered."""
+    dt = cv2.distanceTransform(np.pad(free, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    out = labels.astype(np.int64).copy()
+    # (label, its bounding box): a part of a split room lies within the room's box
+    todo = [(k + 1, box) for k, box in enumerate(ndimage.find_objects(out)) if box is not None]
+    nxt = int(out.max()) + 1
+    while todo:
+        k, box = todo.pop()
+        view = out[box]
+        room = view == k
+        parts = _neck_split(room, np.where(room, dt[box], 0.0), door_width)
+        if parts is None:
+            continue
+        for j in range(2, int(parts.max()) + 1):
+            view[parts == j] = nxt
+            todo.append((nxt, box))
+            nxt += 1
+        todo.append((k, box))
+    return _renumber(out)
+
+
+def _neck_split(room: np.ndarray, dt: np.ndarray, door_width: float) -> np.ndarray | None:
+    """Parts (1..K, 0 outside ``room``) of one room split at its narrowest neck (see
+    :func:`_split_at_necks`; ``dt``: distance to the nearest non-free pixel, px, 0 outside the
+    room), or None without a neck."""
+    top = 2.0 * float(dt.max())
+    width = door_width
+    while NECK_RATIO * width <= top and width <= MAX_NECK * door_width:
+        n, cores = cv2.connectedComponents((dt > width / 2.0).astype(np.uint8), connectivity=4)
+        if n <= 1:
+            return None
+        if n > 2:
+            wide = 2.0 * np.asarray(ndimage.maximum(dt, cores, np.arange(1, n))) >= NECK_RATIO * width
+            if wide.sum() >= 2:
+                lut = np.zeros(n, np.uint16)
+                lut[1:][wide] = np.arange(1, int(wide.sum()) + 1)
+                return geodesic_split(room, lut[cores]).astype(np.int64)
+        width *= DOOR_SWEEP_STEP
+    return None
+
+
 def _big_regions(mask: np.ndarray, min_area: float, min_width: float) -> np.ndarray:
     """4-connected regions of ``mask`` not touching the border, at least ``min_area`` px² and
     ``min_width`` px wide (twice the largest distance to their edge); labels (int, 0 = none)."""
@@ -333,7 +390,9 @@ def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) 
     bgr = _bgr8(img).astype(np.int64)
     key = (bgr[:, :, 0] << 16) | (bgr[:, :, 1] << 8) | bgr[:, :, 2]
     saturated = (bgr.max(axis=2) - bgr.min(axis=2)) > _SATURATED
-    white = image_to_occupancy(grey_levels(img), 0, 0.65, 0.196, "trinary") == FREE
+    seg_grey = grey_levels(img)
+    white = image_to_occupancy(seg_grey, 0, 0.65, 0.196, "trinary") == FREE
+    white &= ~grey_fills(seg_grey, white)  # walls drawn as light-grey fills are no room
     key = np.where(saturated, key + 1, np.where(white, 1, 0))  # white regions: one class
     # cut every pixel whose right or lower neighbour has another class: same-class regions
     # become 4-connected components of their own
