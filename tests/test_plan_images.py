@@ -210,6 +210,57 @@ def test_an_opening_wider_than_a_double_door_stays_open(tmp_path):
     assert len(res.plan.rooms) == 4
 
 
+def cubicles(opening: int) -> np.ndarray:
+    """A 100 px deep hall above four cubicles 60 px wide and 44 px deep, each open to the hall
+    beside a stub of its front wall (the gap between the stub and the next partition about
+    ``opening`` - 2 px), as the IPA lab_a plan; walls 2 px, black."""
+    img = np.full((184, 280), GREY, np.uint8)
+    cv2.rectangle(img, (20, 20), (260, 164), WHITE, -1)
+    cv2.rectangle(img, (20, 20), (260, 164), BLACK, 2)
+    for a in range(20, 260, 60):
+        cv2.line(img, (a, 120), (a, 164), BLACK, 2)
+        cv2.line(img, (a, 120), (a + 60 - opening, 120), BLACK, 2)  # the stub
+    return img
+
+
+def test_rooms_open_on_a_side_are_closed_along_their_wall(tmp_path):
+    # an open side wider than the rooms are deep has no door gap to close (IPA lab_a: 26 of its
+    # 46 cubicles were one room with the corridor): the gap from the stub's tip to the next
+    # partition, in line with the wall, is closed up to 1.5 door widths
+    res = load_image_plan_detailed(write(tmp_path, "cub.png", cubicles(40)))
+    assert len(res.plan.rooms) == 5 and len(res.plan.doors) == 4
+    areas = sorted(r.area for r in res.plan.rooms)
+    assert areas[0] == pytest.approx(58 * 43, rel=0.1) and areas[3] == pytest.approx(areas[0], rel=0.02)
+    # a wider open side (50 px, twice the swept door width) stays open: an open plan
+    assert len(FloorPlan.from_image(write(tmp_path, "open.png", cubicles(50))).rooms) == 1
+
+
+def corridor(width: int) -> np.ndarray:
+    """A ``width`` px corridor between two rows of four rooms 80 x 70 px, each behind a 16 px
+    door beside one of its side walls; walls 2 px, black."""
+    img = np.full((180 + width, 360), GREY, np.uint8)
+    cv2.rectangle(img, (20, 20), (340, 160 + width), WHITE, -1)
+    cv2.rectangle(img, (20, 20), (340, 160 + width), BLACK, 2)
+    for y in (90, 90 + width):
+        cv2.line(img, (20, y), (340, y), BLACK, 2)
+    for a in range(20, 340, 80):
+        cv2.line(img, (a, 20), (a, 90), BLACK, 2)
+        cv2.line(img, (a, 90 + width), (a, 160 + width), BLACK, 2)
+        img[89:92, a + 3 : a + 19] = WHITE
+        img[89 + width : 92 + width, a + 61 : a + 77] = WHITE
+    return img
+
+
+def test_a_corridor_narrower_than_the_closing_length_stays_one_room(tmp_path):
+    # its two walls are 24 px apart, under 1.5 door widths: closing gaps along walls must not
+    # fill the space between two parallel walls (only strips about a wall thick)
+    res = load_image_plan_detailed(write(tmp_path, "cor.png", corridor(24)))
+    assert 1.5 * res.door_width > 24
+    assert len(res.plan.rooms) == 9 and len(res.plan.doors) == 8
+    hall = max(res.plan.rooms, key=lambda r: r.area)
+    assert hall.area == pytest.approx(318 * 23, rel=0.1)
+
+
 def test_top_of_the_image_is_the_highest_y(tmp_path):
     img = np.full((200, 100), GREY, np.uint8)
     cv2.rectangle(img, (10, 10), (90, 60), WHITE, -1)  # a small room at the top of the image

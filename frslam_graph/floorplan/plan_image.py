@@ -141,7 +141,8 @@ def load_image_plan_detailed(
     min_area = float(min_room_area) if min_room_area is not None else dw * dw
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
-        labels = _rooms_from_free_space(free, dw, min_area)
+        cuts = _wall_gaps(free, MAX_NECK * dw, thickness) if door_width is None else None
+        labels = _rooms_from_free_space(free, dw, min_area, cuts)
         if door_width is None:  # rooms joined through a gap wider than the swept door width
             labels = _split_at_necks(labels, free, dw)
     else:
@@ -259,26 +260,75 @@ def _remove_furniture(free: np.ndarray, dark: np.ndarray, size: float) -> tuple[
     return free | blob, dark & ~blob, int(small.sum())
 
 
-def _rooms_from_free_space(free: np.ndarray, door_width: float, min_area: float) -> np.ndarray:
-    """Room labels (uint16, 0 = none): cores of the free space eroded by a door-wide disc, grown
-    back over it; the outside (the core at the border) dropped; unreached regions added."""
+def _rooms_from_free_space(
+    free: np.ndarray, door_width: float, min_area: float, cuts: np.ndarray | None = None
+) -> np.ndarray:
+    """Room labels (uint16, 0 = none): cores of the free space (less ``cuts``) eroded by a
+    door-wide disc, grown back over it; the outside (the core at the border) dropped;
+    unreached regions added."""
     r = int(math.ceil(door_width / 2.0))
     pad = r + 2
     # pad with free space: free space at the border joins the pad ring, which is the outside
     padded = np.pad(free, pad, constant_values=True).astype(np.uint8)
+    eroded = padded if cuts is None else padded & ~np.pad(cuts, pad).astype(np.uint8)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    n, cores, stats, _ = cv2.connectedComponentsWithStats(cv2.erode(padded, disc), connectivity=4)
+    n, cores, stats, _ = cv2.connectedComponentsWithStats(cv2.erode(eroded, disc), connectivity=4)
     outside = int(cores[0, 0])
     keep = stats[:, cv2.CC_STAT_AREA] >= r * r
     keep[0] = False
     keep[outside] = True
     lut = np.zeros(n, np.uint16)
     lut[keep] = np.arange(1, int(keep.sum()) + 1)
-    grown = geodesic_split(padded.astype(bool), lut[cores])[pad:-pad, pad:-pad].astype(np.int64)
+    grown = geodesic_split(eroded.astype(bool), lut[cores])[pad:-pad, pad:-pad].astype(np.int64)
     grown[grown == lut[outside]] = 0
     # free regions no core reached (closets narrower than a door): rooms when large enough
-    rest = _big_regions(free & (grown == 0), min_area, door_width / 4.0)
-    return _renumber(np.where(rest > 0, rest + grown.max(), grown))
+    space = free if cuts is None else free & ~cuts
+    rest = _big_regions(space & (grown == 0), min_area, door_width / 4.0)
+    labels = _renumber(np.where(rest > 0, rest + grown.max(), grown))
+    if cuts is None:
+        return labels
+    # the cuts shared by the rooms on their two sides
+    return geodesic_split((labels > 0) | (cuts & free), labels.astype(np.uint16)).astype(np.int64)
+
+
+def _wall_gaps(free: np.ndarray, length: float, thickness: float) -> np.ndarray:
+    """Free pixels closing straight gaps up to ``length`` px in axis-aligned walls (a door, a
+    room's open side): a run of free pixels between two non-free ones on one row (column), in
+    a strip at most 2 x ``thickness`` + 2 px across and half as wide as long, that starts at the tip of a wall of its
+    direction (a wall piece with no piece across it there). Not the space between two parallel
+    walls (a wide strip), nor a wall's junction extended across a corridor: the tips are taken
+    again with the gaps closed across them (a partition between two doors ends in a junction
+    once its doors are closed, and is not extended across the corridor it faces)."""
+    wall = ~free
+    first = [_gaps_along(free, wall, length, thickness, h) for h in (True, False)]
+    along_rows = _gaps_along(free, wall | first[1], length, thickness, True)
+    return along_rows | _gaps_along(free, wall | first[0], length, thickness, False)
+
+
+def _gaps_along(
+    free: np.ndarray, wall: np.ndarray, length: float, thickness: float, rows: bool
+) -> np.ndarray:
+    """The gaps of :func:`_wall_gaps` along rows (``rows``) or columns, their tips in ``wall``."""
+    k = 2 * int(round(length / 2.0)) + 1  # odd: a centred kernel
+    m = 2 * int(round(1.5 * thickness)) + 1  # a wall piece: at least this long (odd)
+    w8 = wall.astype(np.uint8)
+    along, across = (
+        cv2.morphologyEx(w8, cv2.MORPH_OPEN, np.ones(sh, np.uint8)) > 0 for sh in ((1, m), (m, 1))
+    )
+    if not rows:
+        along, across = across, along
+    tips = cv2.dilate((along & ~across).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    line = np.ones((1, k) if rows else (k, 1), np.uint8)
+    fill = (cv2.morphologyEx((~free).astype(np.uint8), cv2.MORPH_CLOSE, line) > 0) & free
+    n, comp, stats, _ = cv2.connectedComponentsWithStats(fill.astype(np.uint8), connectivity=8)
+    run = stats[:, cv2.CC_STAT_WIDTH if rows else cv2.CC_STAT_HEIGHT]
+    across = stats[:, cv2.CC_STAT_HEIGHT if rows else cv2.CC_STAT_WIDTH]
+    keep = (across <= 2.0 * thickness + 2.0) & (run >= 2 * across)  # a strip, not a block
+    at_tip = np.zeros(n, bool)
+    at_tip[np.unique(comp[fill & tips])] = True
+    keep &= at_tip
+    keep[0] = False
+    return keep[comp]
 
 
 def _split_at_necks(labels: np.ndarray, free: np.ndarray, door_width: float) -> np.ndarray:
