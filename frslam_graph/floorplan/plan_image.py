@@ -141,9 +141,11 @@ def load_image_plan_detailed(
     min_area = float(min_room_area) if min_room_area is not None else dw * dw
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
-        cuts = _wall_gaps(free, MAX_NECK * dw, thickness) if door_width is None else None
-        labels = _rooms_from_free_space(free, dw, min_area, cuts)
+        labels = _rooms_from_free_space(free, dw, min_area)
         if door_width is None:  # rooms joined through a gap wider than the swept door width
+            cuts = _wall_gaps(free, MAX_NECK * dw, thickness)
+            if cuts.any():
+                labels = _split_rooms(labels, _rooms_from_free_space(free, dw, min_area, cuts), min_area)
             labels = _split_at_necks(labels, free, dw)
     else:
         labels = _rooms_from_segmentation(seg_path, free, min_area)
@@ -289,6 +291,32 @@ def _rooms_from_free_space(
         return labels
     # the cuts shared by the rooms on their two sides
     return geodesic_split((labels > 0) | (cuts & free), labels.astype(np.uint16)).astype(np.int64)
+
+
+def _split_rooms(labels: np.ndarray, finer: np.ndarray, min_area: float) -> np.ndarray:
+    """``labels`` with each room that two or more rooms of ``finer`` share (each at least
+    ``min_area`` px² of it and mostly within it) split as ``finer`` splits it (the rest of the room shared by those
+    parts, geodesic); a room ``finer`` does not split keeps its outline. Labels, renumbered."""
+    out = labels.astype(np.int64).copy()
+    nxt = int(out.max()) + 1
+    sizes = np.bincount(finer.ravel())
+    for k, box in enumerate(ndimage.find_objects(out), start=1):
+        if box is None:
+            continue
+        room = out[box] == k
+        vals, counts = np.unique(finer[box][room], return_counts=True)
+        # rooms of finer mostly within this one (not a neighbour whose outline moved)
+        parts = vals[(vals > 0) & (counts >= min_area) & (2 * counts >= sizes[vals])]
+        if len(parts) < 2:
+            continue
+        lut = np.zeros(int(finer.max()) + 1, np.uint16)
+        lut[parts] = np.arange(1, len(parts) + 1)
+        split = geodesic_split(room, np.where(room, lut[finer[box]], 0).astype(np.uint16))
+        view = out[box]
+        for j in range(2, len(parts) + 1):
+            view[split == j] = nxt
+            nxt += 1
+    return _renumber(out)
 
 
 def _wall_gaps(free: np.ndarray, length: float, thickness: float) -> np.ndarray:
