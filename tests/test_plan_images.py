@@ -261,6 +261,17 @@ def test_a_corridor_narrower_than_the_closing_length_stays_one_room(tmp_path):
     assert hall.area == pytest.approx(318 * 23, rel=0.1)
 
 
+@pytest.mark.parametrize("width", [24, 30])
+def test_rooms_the_door_width_separates_keep_their_outlines(tmp_path, width):
+    # closed wall gaps only split rooms the erosion joined: cut everywhere, they moved the
+    # outlines in door gaps (the Halmstad E5 layout: the same 26 rooms, other outlines, and its
+    # registration accepted 15 of 17 maps instead of 16)
+    path = write(tmp_path, "cor.png", corridor(width))
+    res = load_image_plan_detailed(path)
+    given = FloorPlan.from_image(path, door_width=res.door_width)
+    assert res.plan.rooms == given.rooms and res.plan.doors == given.doors
+
+
 def test_top_of_the_image_is_the_highest_y(tmp_path):
     img = np.full((200, 100), GREY, np.uint8)
     cv2.rectangle(img, (10, 10), (90, 60), WHITE, -1)  # a small room at the top of the image
