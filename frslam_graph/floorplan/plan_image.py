@@ -21,11 +21,13 @@ anti-aliased fringe of dark lines stays free. Then:
    outside; cores smaller than (door_width / 2)² are dropped; the cores grow back over the free
    space (geodesic), so neighbouring rooms meet in their door gap. Free regions no core reaches
    are rooms of their own when at least ``min_room_area`` px² and half a door wide. With the
-   default (swept) door width, a room then splits at a neck: where its free space narrows to
-   at most 1.5 door widths (:data:`MAX_NECK`, a double door) between two parts each at least
-   twice as wide as the neck (:data:`NECK_RATIO`): two rooms joined through an opening wider
-   than the one door width the sweep takes for the whole plan (IPA NLB: 36 px doors against a
-   30 px sweep). With a ``segmentation`` image instead (same size; each room one colour, or
+   default (swept) door width, rooms joined through an opening wider than the one door width
+   the sweep takes for the whole plan split: (a) at straight gaps in axis-aligned walls up to
+   1.5 door widths (:data:`MAX_NECK`), from a wall's tip to the next wall in line (a room open
+   on one side, IPA lab_a's cubicles), when the rooms read with those gaps closed split it;
+   (b) at a neck: where its free space narrows to at most 1.5 door widths (a double door)
+   between two parts each at least twice as wide (:data:`NECK_RATIO`; IPA NLB: 36 px doors
+   against a 30 px sweep). With a ``segmentation`` image instead (same size; each room one colour, or
    white regions separated by dark lines as the IPA ``*_gt_segmentation.png``; its light-grey
    fills, walls as in the plan, are no room), its regions are the cores.
 3. Doors: where two rooms meet over at least ``door_width / 4`` px.
