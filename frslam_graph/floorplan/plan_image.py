@@ -20,9 +20,16 @@ anti-aliased fringe of dark lines stays free. Then:
    that width closes) splits into room cores; the core connected to the image border is the
    outside; cores smaller than (door_width / 2)² are dropped; the cores grow back over the free
    space (geodesic), so neighbouring rooms meet in their door gap. Free regions no core reaches
-   are rooms of their own when at least ``min_room_area`` px² and half a door wide. With a
-   ``segmentation`` image instead (same size; each room one colour, or white regions separated
-   by dark lines as the IPA ``*_gt_segmentation.png``), its regions are the cores.
+   are rooms of their own when at least ``min_room_area`` px² and half a door wide. With the
+   default (swept) door width, rooms joined through an opening wider than the one door width
+   the sweep takes for the whole plan split: (a) at straight gaps in axis-aligned walls up to
+   1.5 door widths (:data:`MAX_NECK`), from a wall's tip to the next wall in line (a room open
+   on one side, IPA lab_a's cubicles), when the rooms read with those gaps closed split it;
+   (b) at a neck: where its free space narrows to at most 1.5 door widths (a double door)
+   between two parts each at least twice as wide (:data:`NECK_RATIO`; IPA NLB: 36 px doors
+   against a 30 px sweep). With a ``segmentation`` image instead (same size; each room one colour, or
+   white regions separated by dark lines as the IPA ``*_gt_segmentation.png``; its light-grey
+   fills, walls as in the plan, are no room), its regions are the cores.
 3. Doors: where two rooms meet over at least ``door_width / 4`` px.
 4. Walls: outlines of the dark pixels, as segments.
 
@@ -62,6 +69,8 @@ SEGMENTATION_SUFFIX = "_gt_segmentation"
 FILL_P = 0.1  # light grey below 230: a fill (wall, hatching) when 3 px wide, not a room
 _SATURATED = 30  # max - min channel above this: a colour, not a grey
 COLOUR_FILL_MIN = 128  # brightest channel of a colour fill at least this (darker colours: walls)
+NECK_RATIO = 2.0  # a room splits where its free space narrows below 1/this of both sides' widths
+MAX_NECK = 1.5  # necks up to this many door widths (a double door); wider: open plan
 
 
 @dataclass(frozen=True)
@@ -135,6 +144,11 @@ def load_image_plan_detailed(
     seg_path = _segmentation_path(path, segmentation)
     if seg_path is None:
         labels = _rooms_from_free_space(free, dw, min_area)
+        if door_width is None:  # rooms joined through a gap wider than the swept door width
+            cuts = _wall_gaps(free, MAX_NECK * dw, thickness)
+            if cuts.any():
+                labels = _split_rooms(labels, _rooms_from_free_space(free, dw, min_area, cuts), min_area)
+            labels = _split_at_necks(labels, free, dw)
     else:
         labels = _rooms_from_segmentation(seg_path, free, min_area)
     ids = np.unique(labels)
@@ -250,26 +264,149 @@ def _remove_furniture(free: np.ndarray, dark: np.ndarray, size: float) -> tuple[
     return free | blob, dark & ~blob, int(small.sum())
 
 
-def _rooms_from_free_space(free: np.ndarray, door_width: float, min_area: float) -> np.ndarray:
-    """Room labels (uint16, 0 = none): cores of the free space eroded by a door-wide disc, grown
-    back over it; the outside (the core at the border) dropped; unreached regions added."""
+def _rooms_from_free_space(
+    free: np.ndarray, door_width: float, min_area: float, cuts: np.ndarray | None = None
+) -> np.ndarray:
+    """Room labels (uint16, 0 = none): cores of the free space (less ``cuts``) eroded by a
+    door-wide disc, grown back over it; the outside (the core at the border) dropped;
+    unreached regions added."""
     r = int(math.ceil(door_width / 2.0))
     pad = r + 2
     # pad with free space: free space at the border joins the pad ring, which is the outside
     padded = np.pad(free, pad, constant_values=True).astype(np.uint8)
+    eroded = padded if cuts is None else padded & ~np.pad(cuts, pad).astype(np.uint8)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    n, cores, stats, _ = cv2.connectedComponentsWithStats(cv2.erode(padded, disc), connectivity=4)
+    n, cores, stats, _ = cv2.connectedComponentsWithStats(cv2.erode(eroded, disc), connectivity=4)
     outside = int(cores[0, 0])
     keep = stats[:, cv2.CC_STAT_AREA] >= r * r
     keep[0] = False
     keep[outside] = True
     lut = np.zeros(n, np.uint16)
     lut[keep] = np.arange(1, int(keep.sum()) + 1)
-    grown = geodesic_split(padded.astype(bool), lut[cores])[pad:-pad, pad:-pad].astype(np.int64)
+    grown = geodesic_split(eroded.astype(bool), lut[cores])[pad:-pad, pad:-pad].astype(np.int64)
     grown[grown == lut[outside]] = 0
     # free regions no core reached (closets narrower than a door): rooms when large enough
-    rest = _big_regions(free & (grown == 0), min_area, door_width / 4.0)
-    return _renumber(np.where(rest > 0, rest + grown.max(), grown))
+    space = free if cuts is None else free & ~cuts
+    rest = _big_regions(space & (grown == 0), min_area, door_width / 4.0)
+    labels = _renumber(np.where(rest > 0, rest + grown.max(), grown))
+    if cuts is None:
+        return labels
+    # the cuts shared by the rooms on their two sides
+    return geodesic_split((labels > 0) | (cuts & free), labels.astype(np.uint16)).astype(np.int64)
+
+
+def _split_rooms(labels: np.ndarray, finer: np.ndarray, min_area: float) -> np.ndarray:
+    """``labels`` with each room that two or more rooms of ``finer`` share (each at least
+    ``min_area`` px² of it and mostly within it) split as ``finer`` splits it (the rest of the room shared by those
+    parts, geodesic); a room ``finer`` does not split keeps its outline. Labels, renumbered."""
+    out = labels.astype(np.int64).copy()
+    nxt = int(out.max()) + 1
+    sizes = np.bincount(finer.ravel())
+    for k, box in enumerate(ndimage.find_objects(out), start=1):
+        if box is None:
+            continue
+        room = out[box] == k
+        vals, counts = np.unique(finer[box][room], return_counts=True)
+        # rooms of finer mostly within this one (not a neighbour whose outline moved)
+        parts = vals[(vals > 0) & (counts >= min_area) & (2 * counts >= sizes[vals])]
+        if len(parts) < 2:
+            continue
+        lut = np.zeros(int(finer.max()) + 1, np.uint16)
+        lut[parts] = np.arange(1, len(parts) + 1)
+        split = geodesic_split(room, np.where(room, lut[finer[box]], 0).astype(np.uint16))
+        view = out[box]
+        for j in range(2, len(parts) + 1):
+            view[split == j] = nxt
+            nxt += 1
+    return _renumber(out)
+
+
+def _wall_gaps(free: np.ndarray, length: float, thickness: float) -> np.ndarray:
+    """Free pixels closing straight gaps up to ``length`` px in axis-aligned walls (a door, a
+    room's open side): a run of free pixels between two non-free ones on one row (column), in
+    a strip at most 2 x ``thickness`` + 2 px across and half as wide as long, that starts at the tip of a wall of its
+    direction (a wall piece with no piece across it there). Not the space between two parallel
+    walls (a wide strip), nor a wall's junction extended across a corridor: the tips are taken
+    again with the gaps closed across them (a partition between two doors ends in a junction
+    once its doors are closed, and is not extended across the corridor it faces)."""
+    wall = ~free
+    first = [_gaps_along(free, wall, length, thickness, h) for h in (True, False)]
+    along_rows = _gaps_along(free, wall | first[1], length, thickness, True)
+    return along_rows | _gaps_along(free, wall | first[0], length, thickness, False)
+
+
+def _gaps_along(
+    free: np.ndarray, wall: np.ndarray, length: float, thickness: float, rows: bool
+) -> np.ndarray:
+    """The gaps of :func:`_wall_gaps` along rows (``rows``) or columns, their tips in ``wall``."""
+    k = 2 * int(round(length / 2.0)) + 1  # odd: a centred kernel
+    m = 2 * int(round(1.5 * thickness)) + 1  # a wall piece: at least this long (odd)
+    w8 = wall.astype(np.uint8)
+    along, across = (
+        cv2.morphologyEx(w8, cv2.MORPH_OPEN, np.ones(sh, np.uint8)) > 0 for sh in ((1, m), (m, 1))
+    )
+    if not rows:
+        along, across = across, along
+    tips = cv2.dilate((along & ~across).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    line = np.ones((1, k) if rows else (k, 1), np.uint8)
+    fill = (cv2.morphologyEx((~free).astype(np.uint8), cv2.MORPH_CLOSE, line) > 0) & free
+    n, comp, stats, _ = cv2.connectedComponentsWithStats(fill.astype(np.uint8), connectivity=8)
+    run = stats[:, cv2.CC_STAT_WIDTH if rows else cv2.CC_STAT_HEIGHT]
+    across = stats[:, cv2.CC_STAT_HEIGHT if rows else cv2.CC_STAT_WIDTH]
+    keep = (across <= 2.0 * thickness + 2.0) & (run >= 2 * across)  # a strip, not a block
+    at_tip = np.zeros(n, bool)
+    at_tip[np.unique(comp[fill & tips])] = True
+    keep &= at_tip
+    keep[0] = False
+    return keep[comp]
+
+
+def _split_at_necks(labels: np.ndarray, free: np.ndarray, door_width: float) -> np.ndarray:
+    """Rooms split where their free space narrows (a neck) to at most 1/:data:`NECK_RATIO` of the
+    widest disc on both sides: two rooms joined through a gap wider than the door width (the
+    sweep takes one width for the whole plan; a plan's wide openings stay open). Each room is
+    eroded at widths from ``door_width`` up (:data:`DOOR_SWEEP_STEP` apart); at the first width
+    where two or more of its cores are each at least :data:`NECK_RATIO` times that width wide,
+    those cores are grown back over the room (geodesic), and each part is examined again.
+    Labels (int, 0 = none), renumbered."""
+    dt = cv2.distanceTransform(np.pad(free, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    out = labels.astype(np.int64).copy()
+    # (label, its bounding box): a part of a split room lies within the room's box
+    todo = [(k + 1, box) for k, box in enumerate(ndimage.find_objects(out)) if box is not None]
+    nxt = int(out.max()) + 1
+    while todo:
+        k, box = todo.pop()
+        view = out[box]
+        room = view == k
+        parts = _neck_split(room, np.where(room, dt[box], 0.0), door_width)
+        if parts is None:
+            continue
+        for j in range(2, int(parts.max()) + 1):
+            view[parts == j] = nxt
+            todo.append((nxt, box))
+            nxt += 1
+        todo.append((k, box))
+    return _renumber(out)
+
+
+def _neck_split(room: np.ndarray, dt: np.ndarray, door_width: float) -> np.ndarray | None:
+    """Parts (1..K, 0 outside ``room``) of one room split at its narrowest neck (see
+    :func:`_split_at_necks`; ``dt``: distance to the nearest non-free pixel, px, 0 outside the
+    room), or None without a neck."""
+    top = 2.0 * float(dt.max())
+    width = door_width
+    while NECK_RATIO * width <= top and width <= MAX_NECK * door_width:
+        n, cores = cv2.connectedComponents((dt > width / 2.0).astype(np.uint8), connectivity=4)
+        if n <= 1:
+            return None
+        if n > 2:
+            wide = 2.0 * np.asarray(ndimage.maximum(dt, cores, np.arange(1, n))) >= NECK_RATIO * width
+            if wide.sum() >= 2:
+                lut = np.zeros(n, np.uint16)
+                lut[1:][wide] = np.arange(1, int(wide.sum()) + 1)
+                return geodesic_split(room, lut[cores]).astype(np.int64)
+        width *= DOOR_SWEEP_STEP
+    return None
 
 
 def _big_regions(mask: np.ndarray, min_area: float, min_width: float) -> np.ndarray:
@@ -333,7 +470,9 @@ def _rooms_from_segmentation(seg_path: Path, free: np.ndarray, min_area: float) 
     bgr = _bgr8(img).astype(np.int64)
     key = (bgr[:, :, 0] << 16) | (bgr[:, :, 1] << 8) | bgr[:, :, 2]
     saturated = (bgr.max(axis=2) - bgr.min(axis=2)) > _SATURATED
-    white = image_to_occupancy(grey_levels(img), 0, 0.65, 0.196, "trinary") == FREE
+    seg_grey = grey_levels(img)
+    white = image_to_occupancy(seg_grey, 0, 0.65, 0.196, "trinary") == FREE
+    white &= ~grey_fills(seg_grey, white)  # walls drawn as light-grey fills are no room
     key = np.where(saturated, key + 1, np.where(white, 1, 0))  # white regions: one class
     # cut every pixel whose right or lower neighbour has another class: same-class regions
     # become 4-connected components of their own
