@@ -41,9 +41,10 @@ rooms: below their width the rooms stay joined, well above it rooms vanish, and 
 same plan drawn at any pixel density gives the same rooms: the former fixed default (max(30 px,
 4 × wall thickness); wall strokes of line drawings stay 1-3 px at any density) matched 80 % of
 the IPA plans' ground-truth rooms at their 5 cm per pixel but 41 % at half that density and
-70-76 % at 1.5-2x; the sweep matches 85 % at every density from 0.5x to 4x
-(``tools/bench_plan_images.py``). When furniture blobs were removed, the sweep runs again on the
-space without them (furniture splits rooms into pockets at narrow widths).
+70-76 % at 1.5-2x; the sweep alone matched 84-86 % at every density from 0.5x to 4x, and with
+the splits of step 2 90-92 % from 0.5x to 2x, 86-88 % at 3-4x (``tools/bench_plan_images.py``).
+When furniture blobs were removed, the sweep runs again on the space without them (furniture
+splits rooms into pockets at narrow widths).
 """
 
 from __future__ import annotations
@@ -352,8 +353,8 @@ def _gaps_along(
     fill = (cv2.morphologyEx((~free).astype(np.uint8), cv2.MORPH_CLOSE, line) > 0) & free
     n, comp, stats, _ = cv2.connectedComponentsWithStats(fill.astype(np.uint8), connectivity=8)
     run = stats[:, cv2.CC_STAT_WIDTH if rows else cv2.CC_STAT_HEIGHT]
-    across = stats[:, cv2.CC_STAT_HEIGHT if rows else cv2.CC_STAT_WIDTH]
-    keep = (across <= 2.0 * thickness + 2.0) & (run >= 2 * across)  # a strip, not a block
+    breadth = stats[:, cv2.CC_STAT_HEIGHT if rows else cv2.CC_STAT_WIDTH]
+    keep = (breadth <= 2.0 * thickness + 2.0) & (run >= 2 * breadth)  # a strip, not a block
     at_tip = np.zeros(n, bool)
     at_tip[np.unique(comp[fill & tips])] = True
     keep &= at_tip

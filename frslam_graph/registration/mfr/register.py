@@ -334,7 +334,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
     turned = math.nan
     if len(best.rooms) == 1 and r.n_points >= ONE_ROOM_MIN_POINTS and not _determined(1, r.n_points, rec):
         turned = _turned_ratio(pm, obs, best, opts, tol_f)
-    if not _determined(len(best.rooms), r.n_points, rec) and not turned <= DRAWN_MARGIN:
+    if not _determined(len(best.rooms), r.n_points, rec, turned):
         # one room stretched over the map (refused as under-determined) outscored the screened
         # placements of several rooms: answer with the best of those when it is within MFR's
         # margin of a clear best (DRAWN_MARGIN), flagged ambiguous (the one-room placement stays
@@ -421,7 +421,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         candidates=candidates,
         details=details,
     )
-    if not _determined(len(best.rooms), r.n_points, rec) and not turned <= DRAWN_MARGIN:
+    if not _determined(len(best.rooms), r.n_points, rec, turned):
         # a room stretched over the map fits it whatever the building: flip and rotation of one
         # room are undetermined (as for a one-room plan), and its scale only by its doors
         what = f"one room ({reg.rooms[0]})" if reg.rooms else "no room"
@@ -497,18 +497,22 @@ def _final(
     return r0, r, prec, rec
 
 
-def _determined(n_rooms: int, n_points: int, recall: float) -> bool:
+def _determined(n_rooms: int, n_points: int, recall: float, turned: float = math.nan) -> bool:
     """Whether a placement of ``n_rooms`` plan rooms, fitted on ``n_points`` boundary points and
-    explaining ``recall`` of the map's walls, determines flip and rotation."""
+    explaining ``recall`` of the map's walls, determines flip and rotation; ``turned``: the best
+    of its room's other turns over it (:func:`_turned_ratio`, NaN: not measured): one room whose
+    turns score at most :data:`DRAWN_MARGIN` of it is determined by its shape."""
     return n_rooms >= 2 or (
-        n_rooms == 1 and n_points >= ONE_ROOM_MIN_POINTS and recall >= ONE_ROOM_MIN_RECALL
+        n_rooms == 1
+        and n_points >= ONE_ROOM_MIN_POINTS
+        and (recall >= ONE_ROOM_MIN_RECALL or turned <= DRAWN_MARGIN)
     )
 
 
 def _turned_ratio(pm: PlanModel, obs: MapObservation, best: Hypothesis, opts: dict, tol_f: float) -> float:
     """The best of ``best``'s seven other dihedral turns about its room's centre
-    (:func:`coarse.turned_seeds` of its screened placement), screened as every placement is (:func:`fine.screen`), over ``best``'s
-    screened measure: near 1 for a room whose shape (as far as the map shows it) is symmetric
+    (:func:`coarse.turned_seeds` of its screened placement), screened as every placement is
+    (:func:`fine.screen`), over ``best``'s screened measure: near 1 for a room whose shape (as far as the map shows it) is symmetric
     under a turn, a rectangle's 180 degrees or mirror image; low for an asymmetric one. The best
     turn is scale-polished too (:func:`fine.polish_scales`), as ``best`` may have been: a turn
     is never judged worse for having been refined less."""
