@@ -237,3 +237,46 @@ def test_competitors_are_greedy_separated_candidates():
     assert rel._spread(poses, 3) == [2, 4, 6]
     assert rel._spread(poses, 1) == [2]
     assert rel._spread(poses[:2], 3) == []
+
+
+def test_a_plan_drawn_off_the_building_widens_the_covariance_to_its_errors():
+    """A plan drawn 4 % too long moves every relocalisation on it by up to 0.4 m whatever the
+    number of scan points: the plain covariance is 10-20 sigmas off, the one with the plan's
+    drawing error (``drawn_off``) covers it; the pose, score and ambiguity stay the same."""
+    from shapely import affinity
+
+    plan, world = two_rooms()
+    s = 1.04
+    drawn = FloorPlan(
+        rooms=[Room(r.id, r.type, affinity.scale(r.polygon, s, 1.0, origin=(0, 0))) for r in plan.rooms],
+        doors=[Door(d.id, (d.a[0] * s, d.a[1]), (d.b[0] * s, d.b[1]), d.rooms) for d in plan.doors],
+        units="m",
+    )
+    rng = np.random.default_rng(3)
+    exact = Relocaliser(drawn)
+    off = exact.drawn_off(0.12)
+    assert exact.drawn_off(0.0) is exact and off.field is exact.field
+    worst_exact, worst_off = 0.0, 0.0
+    for _ in range(8):
+        truth = np.array([rng.uniform(1, 9), rng.uniform(1, 3), rng.uniform(-3, 3)])
+        pts = scan_points(world, truth, rng)
+        a, b = exact.relocalise(pts, truth), off.relocalise(pts, truth)
+        assert a.ok and b.ok
+        np.testing.assert_array_equal(a.pose, b.pose)
+        assert (a.score, a.ambiguity) == (b.score, b.ambiguity)
+        err = np.abs(a.pose[:2] - truth[:2])
+        worst_exact = max(worst_exact, float(np.max(err / a.std[:2])))
+        worst_off = max(worst_off, float(np.max(err / b.std[:2])))
+        assert np.all(b.std >= a.std)
+    assert worst_exact > 8.0
+    assert worst_off < 3.0
+
+
+def test_an_accepted_plan_drawn_off_relocalises_with_its_drawing_error():
+    from frslam_graph.plan_updates.accepted import AcceptedPlan
+
+    plan, _ = two_rooms()
+    rel = Relocaliser(plan)
+    assert AcceptedPlan(0, None, plan, rel, map_fit=0.5).relocaliser is rel
+    acc = AcceptedPlan(0, None, plan, rel, map_fit=0.5, drawing_tol=0.3)
+    assert acc.relocaliser.drawing_sigma == pytest.approx(0.15) and acc.relocaliser.field is rel.field

@@ -244,6 +244,19 @@ class Relocaliser:
         self._padded: tuple[float, np.ndarray] | None = None
         #: (points (K, 2) in map metres, radius m) whose surroundings the field ignores, or None
         self.ignored: tuple[np.ndarray, float] | None = None
+        #: m; RMS of how far the plan is drawn off the building (:meth:`drawn_off`), 0 if exact
+        self.drawing_sigma = 0.0
+
+    def drawn_off(self, sigma: float) -> Relocaliser:
+        """A copy (the same field) whose reported covariances include a plan drawn off the building
+        by an RMS of ``sigma`` metres: an error every scan point shares, so it does not shrink
+        with their number. ``self`` when ``sigma`` is already its own."""
+        sigma = max(float(sigma), 0.0)
+        if sigma == self.drawing_sigma:
+            return self
+        out = copy.copy(self)
+        out.drawing_sigma = sigma
+        return out
 
     def ignoring(self, points: np.ndarray, radius: float) -> Relocaliser:
         """A copy whose field holds no information within ``radius`` metres of ``points`` ((K, 2)
@@ -301,7 +314,7 @@ class Relocaliser:
             (best_pose, best_soft), comp[0] = comp[0], (best_pose, best_soft)
         res = self.field.lookup(self._transform(pts, best_pose), outside=-p.truncation)[:, 0]
         informed, score, best_soft_seen = self._reported(res, best_soft)
-        cov = self._covariance(pts, best_pose)
+        cov, reported = self._covariance(pts, best_pose)
         info = np.linalg.inv(cov)
         ambiguity, runner = 0.0, None
         for pose_c, soft_c in sorted(comp, key=lambda t: -t[1]):
@@ -318,7 +331,7 @@ class Relocaliser:
         return Relocalisation(
             ok=ok,
             pose=best_pose,
-            covariance=cov,
+            covariance=reported,
             score=score,
             ambiguity=ambiguity,
             reason=reason,
@@ -552,23 +565,30 @@ class Relocaliser:
             pose[2] = wrap(pose[2])
         return pose, _soft(r, p.truncation)
 
-    def _covariance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """σ² H⁻¹ from the inliers at ``pose``, inflated, floored and capped per direction."""
+    def _covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """σ² H⁻¹ from the inliers at ``pose``, inflated, floored and capped per direction; and the
+        covariance reported, which adds the plan's drawing error (:meth:`drawn_off`): σ_d² W H⁻¹,
+        W the inliers' total weight (an offset every point shares, the geometry's H)."""
         p = self.params
         r, jac = self._residuals(pts, pose)
         w = tukey_weights(r, 0.5 * p.truncation)
         h = (jac * w[:, None]).T @ jac
-        dof = max(float(w.sum()) - 3.0, 1.0)
+        wsum = float(w.sum())
+        dof = max(wsum - 3.0, 1.0)
         sigma2 = max(float(np.sum(w * r * r)) / dof, p.sensor_sigma**2)
         evals, evecs = np.linalg.eigh(h)
         cap = np.array([p.max_sigma_xy**2, p.max_sigma_xy**2, p.max_sigma_theta**2])
         inv = np.where(evals > 1e-12, 1.0 / np.maximum(evals, 1e-12), 1e12)
-        cov = (evecs * (sigma2 * p.cov_inflation * inv)) @ evecs.T
-        cov = _cap_covariance(cov, cap)
-        cov[0, 0] += p.sigma_floor_xy**2
-        cov[1, 1] += p.sigma_floor_xy**2
-        cov[2, 2] += p.sigma_floor_theta**2
-        return 0.5 * (cov + cov.T)
+        floor = np.diag([p.sigma_floor_xy**2, p.sigma_floor_xy**2, p.sigma_floor_theta**2])
+
+        def covariance(scale: np.ndarray) -> np.ndarray:
+            cov = _cap_covariance((evecs * (scale * inv)) @ evecs.T, cap) + floor
+            return 0.5 * (cov + cov.T)
+
+        cov = covariance(sigma2 * p.cov_inflation)
+        if self.drawing_sigma <= 0.0:
+            return cov, cov
+        return cov, covariance(sigma2 * p.cov_inflation + self.drawing_sigma**2 * max(wsum, 1.0))
 
 
 # --------------------------------------------------------------------------- helpers

@@ -25,6 +25,11 @@ class AcceptedPlan:
     map_fit: float
     drawing_tol: float = 0.0
 
+    def __post_init__(self) -> None:
+        # the relocaliser's covariances carry the plan's drawing error (RMS: half the tolerance,
+        # which is twice the registration fit's RMS), so its priors are weighted by it
+        self.relocaliser = self.relocaliser.drawn_off(0.5 * self.drawing_tol)
+
     def relocaliser_on(self, registration: Any, plan: Any, params: RelocaliserParams) -> Relocaliser:
         """The relocaliser of ``registration`` (a refinement of this one: plan -> map) of
         ``plan`` (plan units) with the rooms it trusts, ignoring the same wall pieces, moved
