@@ -75,8 +75,22 @@ class DistanceField:
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
-        w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
+        return (*self._bilinear(k, fx, fy), inside)
+
+    def sample_free(
+        self, x: np.ndarray, y: np.ndarray, fx: np.ndarray, fy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`sample` at (x, y) and :meth:`free_at` at (fx, fy) (arrays of one length), the
+        cells of both found in one pass: the same values, element by element."""
+        n = len(x)
+        k, cx, cy, inside = self._cells(np.concatenate([x, fx]), np.concatenate([y, fy]))
+        val, gx, gy = self._bilinear(k[:n], cx[:n], cy[:n])
+        return val, gx, gy, inside[:n], self._free(k[n:], cx[n:], cy[n:], inside[n:])
+
+    def _bilinear(self, k: np.ndarray, fx: np.ndarray, fy: np.ndarray):
+        """sdf value and gradient at cells ``k`` with fractions (fx, fy) (:meth:`_cells`)."""
+        w = self.sdf.shape[1]
         # the four corner values, each gathered contiguous (a (N, 4) gather left them strided)
         flat = self.sdf.ravel()
         v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
@@ -88,18 +102,20 @@ class DistanceField:
         val = top + fy * d
         gx = (a + fy * (b - a)) * (1.0 / self.resolution)
         gy = d * (1.0 / self.resolution)
-        return val, gx, gy, inside
+        return val, gx, gy
 
-    def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear free indicator at points (x, y) (0 outside the grid)."""
+    def _free(self, k: np.ndarray, fx: np.ndarray, fy: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        """Bilinear free indicator at cells ``k`` with fractions (fx, fy) (:meth:`_cells`)."""
         w = self.sdf.shape[1]
-        k, fx, fy, inside = self._cells(x, y)
-        # the four corner values, each gathered contiguous
         flat = self.known.ravel()
         v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         top = v00 + fx * (v10 - v00)
         bot = v01 + fx * (v11 - v01)
         return (top + fy * (bot - top)) * inside
+
+    def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear free indicator at points (x, y) (0 outside the grid)."""
+        return self._free(*self._cells(x, y))
 
 
 @dataclass
@@ -208,8 +224,9 @@ def refine(
             qy = by + x[2] + x[5] * ny
             if kn is None or it % 3 == 0:  # which points see free space on their room side
                 d = x[5] + probe
-                kn = field.free_at(bx + x[1] + d * nx, by + x[2] + d * ny)
-            r, gx, gy, inside = field.sample(qx, qy)
+                r, gx, gy, inside, kn = field.sample_free(qx, qy, bx + x[1] + d * nx, by + x[2] + d * ny)
+            else:
+                r, gx, gy, inside = field.sample(qx, qy)
             w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
             jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])

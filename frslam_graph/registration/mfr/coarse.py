@@ -206,9 +206,15 @@ def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: flo
         return np.ones(len(ainv))
     x, y = apply_affine(ainv, tinv, exits)
     pf = pm.plan_frame
-    d = lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9)
-    near = d < (np.maximum(tol, 0.3) / scale + pf.resolution)[:, None]
-    return 0.5 + 0.5 * near.mean(axis=1)
+    return exit_share(lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9), scale, tol, pf.resolution)
+
+
+def exit_share(d: np.ndarray, scale: np.ndarray, tol: float, plan_res: float) -> np.ndarray:
+    """(H,) :func:`_exit_factor` from the (H, J) plan distances (plan units) of the exits each
+    placement (``scale`` metres per plan unit) puts in the plan: 0.5 + 0.5 x the share within
+    ``max(tol, 0.3)`` metres plus one plan cell (``plan_res``) of an opening."""
+    near = d < (np.maximum(tol, 0.3) / scale + plan_res)[:, None]
+    return 0.5 + 0.5 * (np.count_nonzero(near, axis=1) / near.shape[1])  # near.mean(axis=1)'s values
 
 
 # OpenBLAS runs a matrix product of more multiply-adds than about twice this on every core, and
@@ -231,6 +237,15 @@ def room_counts(on: np.ndarray, onehot: np.ndarray) -> np.ndarray:
     return out
 
 
+def rows_dot(m: np.ndarray, v: np.ndarray, block: int | None = None) -> np.ndarray:
+    """``m @ v`` of an (H, n) matrix and an (n,) vector, as one product per consecutive group
+    of ``block`` rows when given (each group's bits as its own product's: OpenBLAS's matrix-vector
+    product sums a row differently depending on how many rows the product has)."""
+    if block is None or len(m) <= block:
+        return m @ v
+    return np.concatenate([m[i : i + block] @ v for i in range(0, len(m), block)])
+
+
 def coarse_scores(
     pm: PlanModel,
     obs: MapObservation,
@@ -241,6 +256,7 @@ def coarse_scores(
     tol: float | None = None,
     matched_cover: float | None = None,
     delta: np.ndarray | None = None,
+    block: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
@@ -253,6 +269,8 @@ def coarse_scores(
     wall half-thickness (plan room boundary to the map's free-space edge): precision then tests
     the wall faces (boundary samples moved that far into their room) and recall tests map walls
     at that distance from a plan boundary, as :func:`fine.wall_precision_recall` does.
+    ``block``: the hypotheses are consecutive groups of this many, each scored as if alone (the
+    rooms' area sums as one product per group: a BLAS product's bits depend on its shape).
     """
     n = len(pm.ids)
 
@@ -261,7 +279,6 @@ def coarse_scores(
 
     a, t = mats[:, :2, :2], mats[:, :2, 2]
     det = np.abs(np.linalg.det(a))
-    member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
     cf = obs.coarse_frame
     tol = 1.5 * cf.resolution if tol is None else tol
     # IoU
@@ -271,8 +288,10 @@ def coarse_scores(
     frac = room_counts(on, inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
     if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
         member = (frac >= matched_cover).astype(np.float64)
-    inter = (frac * member) @ pm.room_areas * det
-    area_s = member @ pm.room_areas * det
+    else:
+        member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
+    inter = rows_dot(frac * member, pm.room_areas, block) * det
+    area_s = rows_dot(member, pm.room_areas, block) * det
     iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
     # precision: plan walls that land on the observed area must be walls of the map
     samples = sub(pm.coarse_samples)
@@ -287,17 +306,26 @@ def coarse_scores(
     inside = on_fp > 0
     near = (d_edge < tol) & inside
     precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
-    # recall
+    # recall; the map's exits go into the plan frame with its wall cells (one transform and one
+    # set of cell coordinates: the same element operations, point by point)
     tinv = -np.einsum("hij,hj->hi", ainv, t)
-    edges = sub(obs.edge_points)
-    x, y = apply_affine(ainv, tinv, edges)
+    edges, exit_pts = sub(obs.edge_points), sub(obs.exit_points)
     pf = pm.plan_frame
-    dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
+    with_exits = pm.open_dt is not None and len(exit_pts) > 0
+    x, y = apply_affine(ainv, tinv, np.concatenate([edges, exit_pts]) if with_exits else edges)
+    if with_exits:
+        dp, d_exit = lookups(((pm.plan_dt, 1e9), (pm.open_dt, 1e9)), x, y, pf.resolution, pf.origin)
+        dp, d_exit = dp[:, : len(edges)], d_exit[:, len(edges) :]
+    else:
+        dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
     tol_plan = tol / np.sqrt(det) + pf.resolution
     if delta is not None:  # map walls at the wall faces, |delta| from the plan's boundaries
         dp = np.abs(dp - (np.abs(np.asarray(delta, dtype=np.float64)) / np.sqrt(det))[:, None])
-    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
-    exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
+    # np.mean's value: the count of a bool row is exact in float64, then divided by the length
+    recall = (
+        np.count_nonzero(dp < tol_plan[:, None], axis=1) / dp.shape[1] if len(edges) else np.zeros(len(mats))
+    )
+    exits = exit_share(d_exit, np.sqrt(det), tol, pf.resolution) if with_exits else np.ones(len(mats))
     key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)
     return iou, key
 
@@ -340,27 +368,36 @@ def _score_hypotheses(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]
 
 def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opts: dict) -> None:
     """Coordinate search on the coarse key over each map axis's scale and shift (about the
-    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis."""
+    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis.
+
+    The hypotheses' searches are independent: each step scores every hypothesis's trials in one
+    :func:`coarse_scores` call (``block``: each hypothesis's 15 as if alone, the same bits)."""
     rounds = (((0.85, 0.92, 1.0, 1.08, 1.17), 0.08), ((0.96, 0.98, 1.0, 1.02, 1.04), 0.03))
+    frames = []
     for h in hyps:
         angle, bbox = obs.angles[h.angle_index], obs.bboxes[h.angle_index]
         rm = np.eye(3)
         rm[:2, :2] = rot(angle)
-        c = rot(-angle) @ obs.centroid
-        ext = bbox[2:] - bbox[:2]
-        for factors, shift in rounds:
-            for axis in (0, 1):
-                # every (factor, shift) at once: the same products, matrix by matrix
-                f = np.repeat(np.array(factors), 3)
-                sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+        frames.append((rm, rot(-angle) @ obs.centroid, bbox[2:] - bbox[:2]))
+    masks = np.array([h.mask for h in hyps], dtype=np.uint64)
+    for factors, shift in rounds:
+        for axis in (0, 1):
+            # every (factor, shift) at once: the same products, matrix by matrix
+            f = np.repeat(np.array(factors), 3)
+            sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+            trials = []
+            for h, (rm, c, ext) in zip(hyps, frames, strict=True):
                 d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
                 d[:, axis, axis] = f
                 d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
-                mats = rm @ d @ rm.T @ h.matrix
-                iou, key = coarse_scores(
-                    pm, obs, mats, np.full(len(mats), h.mask, dtype=np.uint64), opts["door_width_m"]
-                )
-                top = int(np.argmax(key))  # max()'s choice: the first of equal keys
+                trials.append(rm @ d @ rm.T @ h.matrix)
+            mats = np.concatenate(trials)
+            iou, key = coarse_scores(
+                pm, obs, mats, np.repeat(masks, len(f)), opts["door_width_m"], block=len(f)
+            )
+            for j, h in enumerate(hyps):
+                lo = j * len(f)
+                top = lo + int(np.argmax(key[lo : lo + len(f)]))  # max()'s choice: the first of equal keys
                 if float(key[top]) > h.key:
                     h.matrix, h.key, h.coarse_iou = mats[top], float(key[top]), float(iou[top])
 

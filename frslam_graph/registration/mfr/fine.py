@@ -104,7 +104,7 @@ def placed_rooms_iou(
     on = _label_counts(labels, footprint, n)
     px_area = pm.room_areas * det / frame.resolution**2
     # most maps have no unexplored core: no pixel there, zero counts without the histogram
-    off = _label_counts(labels, unexplored, n) if unexplored.any() else np.zeros(n, np.int64)
+    off = _label_counts(labels, unexplored, n) if obs.any_unexplored else np.zeros(n, np.int64)
     cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:
@@ -115,7 +115,7 @@ def placed_rooms_iou(
     lut = np.zeros(256, np.uint8)
     lut[sel + 1] = 1
     inter = int(on[sel].sum())
-    union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + int(np.count_nonzero(footprint)) - inter
+    union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + obs.footprint_cells - inter
     union -= int(off[sel].sum())
     return (inter / union if union else 0.0), rooms
 
