@@ -21,7 +21,8 @@ into its room, so the unexplored rooms of the plan (and the far side of walls) d
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import operator
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -135,11 +136,25 @@ class RefineResult:
     covariance: np.ndarray | None  # (x, y, theta)
     covariance_full: np.ndarray | None  # (theta, tx, ty, lsx, lsy, delta)
     pre: np.ndarray | None = None  # 3×3 applied to plan points before the parametrised transform
+    # the last matrix and what it was computed from (see :attr:`matrix`)
+    _matrix: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def matrix(self) -> np.ndarray:
-        m = matrix_from_params(self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty)
-        return m if self.pre is None else m @ self.pre
+        """The 3×3 placement (plan -> map) of the parameters, times ``pre``: a new array each time,
+        computed once while the parameters and ``pre`` stay the same objects."""
+        key = (self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty, self.pre)
+        got = self._matrix
+        if got is None or not all(map(operator.is_, got[0], key)):  # identity: -0.0, NaN as they are
+            m = matrix_from_params(*key[:6])
+            got = self._matrix = (key, m if self.pre is None else m @ self.pre)
+        return got[1].copy()
+
+    def __getstate__(self) -> dict:
+        """Pickled without the matrix kept by :attr:`matrix`."""
+        state = dict(self.__dict__)
+        state["_matrix"] = None
+        return state
 
 
 def refine(

@@ -257,4 +257,8 @@ def _fixed_rings(rings: list[np.ndarray], a: np.ndarray, t: np.ndarray) -> list[
     q += t
     q *= FIX
     q = np.round(q).astype(np.int32)
-    return [v.reshape(-1, 1, 2) for v in np.split(q, np.cumsum([len(r) for r in rings])[:-1])]
+    out, at = [], 0  # np.split's pieces (views of q), without its per-piece overhead
+    for r in rings:
+        out.append(q[at : at + len(r)].reshape(-1, 1, 2))
+        at += len(r)
+    return out
