@@ -214,7 +214,7 @@ def exit_share(d: np.ndarray, scale: np.ndarray, tol: float, plan_res: float) ->
     placement (``scale`` metres per plan unit) puts in the plan: 0.5 + 0.5 x the share within
     ``max(tol, 0.3)`` metres plus one plan cell (``plan_res``) of an opening."""
     near = d < (np.maximum(tol, 0.3) / scale + plan_res)[:, None]
-    return 0.5 + 0.5 * (np.count_nonzero(near, axis=1) / near.shape[1])  # near.mean(axis=1)'s values
+    return 0.5 + 0.5 * (near.sum(axis=1) / near.shape[1])  # near.mean(axis=1)'s values
 
 
 # OpenBLAS runs a matrix product of more multiply-adds than about twice this on every core, and
@@ -285,7 +285,9 @@ def coarse_scores(
     inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
     x, y = apply_affine(a, t, inner)
     on = lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
-    frac = room_counts(on, inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    # points per room: the plan model's own sum when all points count (a plan constant)
+    counts = pm.inner_counts if inner_onehot is pm.inner_onehot else inner_onehot.sum(axis=0)
+    frac = room_counts(on, inner_onehot) / np.maximum(counts, 1.0)  # (H, n)
     if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
         member = (frac >= matched_cover).astype(np.float64)
     else:
@@ -322,9 +324,7 @@ def coarse_scores(
     if delta is not None:  # map walls at the wall faces, |delta| from the plan's boundaries
         dp = np.abs(dp - (np.abs(np.asarray(delta, dtype=np.float64)) / np.sqrt(det))[:, None])
     # np.mean's value: the count of a bool row is exact in float64, then divided by the length
-    recall = (
-        np.count_nonzero(dp < tol_plan[:, None], axis=1) / dp.shape[1] if len(edges) else np.zeros(len(mats))
-    )
+    recall = (dp < tol_plan[:, None]).sum(axis=1) / dp.shape[1] if len(edges) else np.zeros(len(mats))
     exits = exit_share(d_exit, np.sqrt(det), tol, pf.resolution) if with_exits else np.ones(len(mats))
     key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)
     return iou, key
@@ -348,7 +348,7 @@ def _placed_mask(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, min_cov
     ``min_cover`` of each room's interior grid points)."""
     x, y = apply_affine(matrix[None, :2, :2], matrix[None, :2, 2], pm.inner)
     on = lookup(obs.coarse_footprint_u8, x, y, obs.coarse_frame.resolution, (0.0, 0.0), 0)
-    frac = (on.astype(np.float32) @ pm.inner_onehot)[0] / np.maximum(pm.inner_onehot.sum(axis=0), 1.0)
+    frac = (on.astype(np.float32) @ pm.inner_onehot)[0] / np.maximum(pm.inner_counts, 1.0)
     return sum(1 << int(i) for i in np.flatnonzero(frac >= min_cover))
 
 
