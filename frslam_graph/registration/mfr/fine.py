@@ -355,47 +355,60 @@ def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict,
     On maps seeing rooms in part the screening refinement stops a few per cent off in scale
     and aspect (a wall of the next room pulls one axis), and a placement shifted by a wall fits
     as well locally; the restarts reach the better basin."""
-    r = h.refined
-    if h.quick <= 0.0 or r is None:
+    polish_scales_many(pm, obs, [h], opts, tol)
+
+
+def polish_scales_many(
+    pm: PlanModel, obs: MapObservation, hs: list[Hypothesis], opts: dict, tol: float
+) -> None:
+    """:func:`polish_scales` of each of ``hs`` (each polished on its own: the same answers), the
+    restarts of all of them refined together (:func:`refine_from_many`)."""
+    todo = [h for h in hs if h.quick > 0.0 and h.refined is not None]
+    moved: list[np.ndarray] = []
+    deltas: list[float] = []
+    for h in todo:
+        m = h.refined.matrix
+        p0 = np.linalg.solve(m, np.append(obs.centroid, 1.0))
+        pre = h.refined.pre if h.refined.pre is not None else np.eye(3)
+        about = np.eye(3)
+        about[:2, 2] = p0[:2]
+        steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
+        for fx in steps:
+            for fy in steps:
+                if fx == 1.0 and fy == 1.0:
+                    continue
+                moved.append(m @ (about @ pre.T @ np.diag([fx, fy, 1.0]) @ pre @ np.linalg.inv(about)))
+                deltas.append(h.refined.delta)
+    if not todo:
         return
-    m = r.matrix
-    p0 = np.linalg.solve(m, np.append(obs.centroid, 1.0))
-    pre = r.pre if r.pre is not None else np.eye(3)
-    about = np.eye(3)
-    about[:2, 2] = p0[:2]
-    steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
-    moved = []
-    for fx in steps:
-        for fy in steps:
-            if fx == 1.0 and fy == 1.0:
-                continue
-            moved.append(m @ (about @ pre.T @ np.diag([fx, fy, 1.0]) @ pre @ np.linalg.inv(about)))
     fits = refine_from_many(
         pm,
         obs,
         moved,
-        [r.delta] * len(moved),
+        deltas,
         opts,
         scales=opts["quick_scales"],
         spacing_px=4.0,
         max_points=opts["quick_points"],
         iterations=opts["quick_iterations"],
     )
-    starts = [rr for rr in fits if plausible(rr, opts)]
-    if not starts:
-        return
-    # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
-    # restart a wall off above one near the truth scoring it half as high. The rooms' IoU (a
-    # full-resolution raster of the plan) only for restarts whose wall part could still win
-    walls = [_wall_part(pm, obs, s, opts, tol) for s in starts]
-    won = best_bounded(
-        [_wall_bound(w) for w in walls],
-        lambda i: _structure_key_with(pm, obs, starts[i], opts, walls[i]),
-        h.quick,
-    )
-    if won is not None:
-        h.refined = starts[won[0]]
-        h.quick, h.placed_iou, h.placed_rooms, h.recall = won[1]
+    per = len(fits) // len(todo)  # eight restarts each
+    for k, h in enumerate(todo):
+        starts = [rr for rr in fits[k * per : (k + 1) * per] if plausible(rr, opts)]
+        if not starts:
+            continue
+        # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
+        # restart a wall off above one near the truth scoring it half as high. The rooms' IoU (a
+        # full-resolution raster of the plan) only for restarts whose wall part could still win
+        walls = [_wall_part(pm, obs, s, opts, tol) for s in starts]
+        won = best_bounded(
+            [_wall_bound(w) for w in walls],
+            lambda i, starts=starts, walls=walls: _structure_key_with(pm, obs, starts[i], opts, walls[i]),
+            h.quick,
+        )
+        if won is not None:
+            h.refined = starts[won[0]]
+            h.quick, h.placed_iou, h.placed_rooms, h.recall = won[1]
 
 
 def refine_final(
