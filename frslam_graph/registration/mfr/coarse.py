@@ -581,50 +581,70 @@ def wide_search(
     door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
     full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
 
-    def score(mats: np.ndarray, pts, tl=None) -> np.ndarray:
-        _, k = coarse_scores(pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover)
+    def score(mats: np.ndarray, pts, tl=None, block: int | None = None) -> np.ndarray:
+        # ``block``: consecutive groups scored as if alone (every seed's or beam's at once)
+        _, k = coarse_scores(
+            pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover, block=block
+        )
         return np.where(_aspect_ok(pm, mats, opts["max_aspect"]), k, 0.0)
 
     width = 1 if check else WIDE_BEAM
     shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
     last_points = opts["quick_points"] if check else None
+    grid = (len(WIDE_FACTORS), len(shifts))
+    frames = [_aligned_frame(obs, seed.angle_index) for seed in seeds]
     found: list[tuple[float, np.ndarray, int]] = []
     beams: list[tuple[float, np.ndarray, int]] = []
-    for si, seed in enumerate(seeds):
-        rm, c, ext = _aligned_frame(obs, seed.angle_index)
-        beam = [(float(score(seed.matrix[None], points)[0]), seed.matrix)]
-        for axis in WIDE_AXES[:2] if check else WIDE_AXES:
-            grown = list(beam)
-            for _, m in beam:
-                mats = _axis_trials(m, rm, c, ext, axis, WIDE_FACTORS, shifts)
-                k = score(mats, points)
-                grown += [
-                    (float(k[i]), mats[i]) for i in _top_cells(k, (len(WIDE_FACTORS), len(shifts)), width)
-                ]
-            grown.sort(key=lambda t: -t[0])
+    # the seeds' grid searches are independent: each round scores every seed's beam at once
+    k0 = score(np.stack([seed.matrix for seed in seeds]), points, block=1) if seeds else []
+    seed_beams = [[(float(k0[si]), seed.matrix)] for si, seed in enumerate(seeds)]
+    for axis in (WIDE_AXES[:2] if check else WIDE_AXES) if seeds else ():
+        trials = [
+            (si, _axis_trials(m, *frames[si], axis, WIDE_FACTORS, shifts))
+            for si, beam in enumerate(seed_beams)
+            for _, m in beam
+        ]
+        n = grid[0] * grid[1]
+        k_all = score(np.concatenate([t for _, t in trials]), points, block=n)
+        grown = [list(beam) for beam in seed_beams]
+        for j, (si, mats) in enumerate(trials):
+            k = k_all[j * n : (j + 1) * n]
+            grown[si] += [(float(k[i]), mats[i]) for i in _top_cells(k, grid, width)]
+        for si, g in enumerate(grown):
+            g.sort(key=lambda t: -t[0])
             beam = []
-            for k_, m in grown:
+            for k_, m in g:
                 if not any(same_placement(m, b, obs) for _, b in beam):
                     beam.append((k_, m))
                 if len(beam) >= width:
                     break
+            seed_beams[si] = beam
+    for si, (seed, beam) in enumerate(zip(seeds, seed_beams, strict=True)):
         if check and np.allclose(beam[0][1], seed.matrix):
             continue  # no other scale or shift on the grid scores better: nothing to polish
         beams.extend((k_, m, si) for k_, m in beam)
     if polish_best is not None:  # only the best placements of all seeds' grids are polished
         beams = sorted(beams, key=lambda t: -t[0])[:polish_best]
-    for _, m, si in beams:
-        rm, c, ext = _aligned_frame(obs, seeds[si].angle_index)
-        for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
-            factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
-            pts = last_points if stage == len(WIDE_POLISH) - 1 else points
-            tl = None if tmul is None else tmul * tol
-            for axis in (0, 1):
-                mats = np.concatenate(
-                    [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
+    ms = [m for _, m, _ in beams]
+    for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
+        factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
+        pts = last_points if stage == len(WIDE_POLISH) - 1 else points
+        tl = None if tmul is None else tmul * tol
+        for axis in (0, 1):
+            if not ms:
+                break
+            trials = [
+                np.concatenate(
+                    [m[None], _axis_trials(m, *frames[si], axis, factors, np.linspace(-shift, shift, ns))]
                 )
-                m = mats[int(np.argmax(score(mats, pts, tl)))]
-        found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
+                for m, (_, _, si) in zip(ms, beams, strict=True)
+            ]
+            n = len(trials[0])
+            k_all = score(np.concatenate(trials), pts, tl, block=n)
+            ms = [mats[int(np.argmax(k_all[j * n : (j + 1) * n]))] for j, mats in enumerate(trials)]
+    if ms:
+        k_last = score(np.stack(ms), last_points, WIDE_POLISH[-1][4] * tol, block=1)
+        found = [(float(k_last[j]), m, si) for j, (m, (_, _, si)) in enumerate(zip(ms, beams, strict=True))]
     found.sort(key=lambda t: -t[0])
     out: list[Hypothesis] = []
     for k_, m, si in found:
