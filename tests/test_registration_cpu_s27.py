@@ -15,6 +15,21 @@ import pytest
 from shapely.geometry import box
 
 from frslam_graph.floorplan import Door, FloorPlan, Room
+from frslam_graph.registration.mfr.coarse import (
+    WIDE_AXES,
+    WIDE_BEAM,
+    WIDE_FACTORS,
+    WIDE_POLISH,
+    WIDE_SHIFTS,
+    Hypothesis,
+    _aligned_frame,
+    _aspect_ok,
+    _axis_trials,
+    _placed_mask,
+    _top_cells,
+    coarse_scores,
+    same_placement,
+)
 
 
 def _grid_plan() -> FloorPlan:
@@ -345,3 +360,110 @@ def test_plan_and_map_constants_kept_are_their_sums(scene) -> None:
     assert pm.inner_counts.tobytes() == pm.inner_onehot.sum(axis=0).tobytes()
     assert obs.footprint_cells == int(np.count_nonzero(obs.footprint))
     assert obs.any_unexplored == bool(obs.unexplored.any())
+
+
+def _old_wide_search(
+    pm,
+    obs,
+    seeds: list[Hypothesis],
+    opts: dict,
+    tol: float,
+    limit: int,
+    check: bool = False,
+    polish_best: int | None = None,
+) -> list[Hypothesis]:
+    """``coarse.wide_search`` as it was (main c7fcc18): seed by seed, beam by beam."""
+    door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
+    full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
+
+    def score(mats: np.ndarray, pts, tl=None) -> np.ndarray:
+        _, k = coarse_scores(pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover)
+        return np.where(_aspect_ok(pm, mats, opts["max_aspect"]), k, 0.0)
+
+    width = 1 if check else WIDE_BEAM
+    shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
+    last_points = opts["quick_points"] if check else None
+    found: list[tuple[float, np.ndarray, int]] = []
+    beams: list[tuple[float, np.ndarray, int]] = []
+    for si, seed in enumerate(seeds):
+        rm, c, ext = _aligned_frame(obs, seed.angle_index)
+        beam = [(float(score(seed.matrix[None], points)[0]), seed.matrix)]
+        for axis in WIDE_AXES[:2] if check else WIDE_AXES:
+            grown = list(beam)
+            for _, m in beam:
+                mats = _axis_trials(m, rm, c, ext, axis, WIDE_FACTORS, shifts)
+                k = score(mats, points)
+                grown += [
+                    (float(k[i]), mats[i]) for i in _top_cells(k, (len(WIDE_FACTORS), len(shifts)), width)
+                ]
+            grown.sort(key=lambda t: -t[0])
+            beam = []
+            for k_, m in grown:
+                if not any(same_placement(m, b, obs) for _, b in beam):
+                    beam.append((k_, m))
+                if len(beam) >= width:
+                    break
+        if check and np.allclose(beam[0][1], seed.matrix):
+            continue  # no other scale or shift on the grid scores better: nothing to polish
+        beams.extend((k_, m, si) for k_, m in beam)
+    if polish_best is not None:  # only the best placements of all seeds' grids are polished
+        beams = sorted(beams, key=lambda t: -t[0])[:polish_best]
+    for _, m, si in beams:
+        rm, c, ext = _aligned_frame(obs, seeds[si].angle_index)
+        for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
+            factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
+            pts = last_points if stage == len(WIDE_POLISH) - 1 else points
+            tl = None if tmul is None else tmul * tol
+            for axis in (0, 1):
+                mats = np.concatenate(
+                    [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
+                )
+                m = mats[int(np.argmax(score(mats, pts, tl)))]
+        found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
+    found.sort(key=lambda t: -t[0])
+    out: list[Hypothesis] = []
+    for k_, m, si in found:
+        if k_ <= 0.0 or any(same_placement(m, h.matrix, obs) for h in out):
+            continue
+        iou, key = coarse_scores(pm, obs, m[None], np.array([full]), door, matched_cover=cover)
+        out.append(
+            Hypothesis(
+                _placed_mask(pm, obs, m, cover),
+                0,
+                False,
+                m,
+                0.0,
+                seeds[si].angle_index,
+                coarse_iou=float(iou[0]),
+                key=float(key[0]),
+            )
+        )
+        if len(out) >= limit:
+            break
+    return out
+
+
+@pytest.mark.parametrize("check", [False, True])
+def test_wide_search_of_all_seeds_together_equals_seed_by_seed(scene, check: bool) -> None:
+    from frslam_graph.registration.mfr import coarse
+    from frslam_graph.registration.mfr.register import DEFAULTS
+    from frslam_graph.registration.subsets import connected_subsets
+
+    pm, obs, _ = scene
+    opts = dict(DEFAULTS)
+    masks = connected_subsets(pm.adjacency, max_per_level=3000)
+    hyps, rotations = coarse.search(pm, obs, masks, opts)
+    seeds = [hyps[0], *rotations[:3]] if not check else [hyps[1]]
+    seeds += coarse.turned_seeds(hyps[0], obs)[:2]
+    for polish_best in (None, 3):
+        got = coarse.wide_search(pm, obs, seeds, opts, 0.15, 3, check=check, polish_best=polish_best)
+        want = _old_wide_search(pm, obs, seeds, opts, 0.15, 3, check=check, polish_best=polish_best)
+        assert len(got) == len(want) > 0
+        for a, b in zip(got, want, strict=True):
+            assert a.matrix.tobytes() == b.matrix.tobytes()
+            assert (a.mask, a.key, a.coarse_iou, a.angle_index) == (
+                b.mask,
+                b.key,
+                b.coarse_iou,
+                b.angle_index,
+            )
