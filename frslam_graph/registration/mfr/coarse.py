@@ -198,21 +198,12 @@ def door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
     return np.exp(-0.5 * (excess / 0.5) ** 2)
 
 
-def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
-    """(H,) 0.5 + 0.5 × share of the map's doorway-like exits (free space running into unobserved
-    space) that land near a plan opening (door or open-plan boundary); 1 without either."""
-    exits = obs.exit_points if exits is None else exits
-    if pm.open_dt is None or len(exits) == 0:
-        return np.ones(len(ainv))
-    x, y = apply_affine(ainv, tinv, exits)
-    pf = pm.plan_frame
-    return exit_share(lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9), scale, tol, pf.resolution)
-
-
 def exit_share(d: np.ndarray, scale: np.ndarray, tol: float, plan_res: float) -> np.ndarray:
-    """(H,) :func:`_exit_factor` from the (H, J) plan distances (plan units) of the exits each
-    placement (``scale`` metres per plan unit) puts in the plan: 0.5 + 0.5 x the share within
-    ``max(tol, 0.3)`` metres plus one plan cell (``plan_res``) of an opening."""
+    """(H,) exit agreement of :func:`coarse_scores`: 0.5 + 0.5 x the share of the map's
+    doorway-like exits (free space running into unobserved space) that land near a plan opening
+    (door or open-plan boundary), from their (H, J) plan distances (plan units) to the nearest
+    opening under each placement (``scale`` metres per plan unit): within ``max(tol, 0.3)``
+    metres plus one plan cell (``plan_res``)."""
     near = d < (np.maximum(tol, 0.3) / scale + plan_res)[:, None]
     return 0.5 + 0.5 * (near.sum(axis=1) / near.shape[1])  # near.mean(axis=1)'s values
 
@@ -576,7 +567,8 @@ def wide_search(
     polish when the grid's best is the placement itself, the last polish on ``quick_points``).
     ``polish_best``: polish only that many of all seeds' beams, best grid key first (many seeds).
     Returns up to ``limit`` distinct hypotheses, best first, each with its coarse key (default
-    tolerance) as ``key``.
+    tolerance) as ``key``. The seeds' searches and the beams' polish are independent: each round
+    scores all of them in one :func:`coarse_scores` call (``block``: each group as if alone).
     """
     door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
     full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
