@@ -21,7 +21,8 @@ into its room, so the unexplored rooms of the plan (and the far side of walls) d
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import operator
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -60,11 +61,9 @@ class DistanceField:
         inv = 1.0 / self.resolution
         # (x - origin) * inv - 0.5, then np.clip's values by maximum / minimum (no -0.0 arises
         # here, NaN propagates alike), in place: the same roundings, less call overhead
-        u = x - self.origin[0]
-        u *= inv
+        u = _offset_scaled(x, self.origin[0], inv)
         u -= 0.5
-        v = y - self.origin[1]
-        v *= inv
+        v = _offset_scaled(y, self.origin[1], inv)
         v -= 0.5
         inside = (u >= 0) & (v >= 0) & (u < w - 1) & (v < h - 1)
         u = np.minimum(np.maximum(u, 0.0, out=u), w - 1.0001, out=u)
@@ -75,8 +74,22 @@ class DistanceField:
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """At points (x, y): bilinear sdf value, its gradient (gx, gy), and 1/0 inside/outside the grid."""
-        w = self.sdf.shape[1]
         k, fx, fy, inside = self._cells(x, y)
+        return (*self._bilinear(k, fx, fy), inside)
+
+    def sample_free(
+        self, x: np.ndarray, y: np.ndarray, fx: np.ndarray, fy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`sample` at (x, y) and :meth:`free_at` at (fx, fy) (arrays of one length), the
+        cells of both found in one pass: the same values, element by element."""
+        n = len(x)
+        k, cx, cy, inside = self._cells(np.concatenate([x, fx]), np.concatenate([y, fy]))
+        val, gx, gy = self._bilinear(k[:n], cx[:n], cy[:n])
+        return val, gx, gy, inside[:n], self._free(k[n:], cx[n:], cy[n:], inside[n:])
+
+    def _bilinear(self, k: np.ndarray, fx: np.ndarray, fy: np.ndarray):
+        """sdf value and gradient at cells ``k`` with fractions (fx, fy) (:meth:`_cells`)."""
+        w = self.sdf.shape[1]
         # the four corner values, each gathered contiguous (a (N, 4) gather left them strided)
         flat = self.sdf.ravel()
         v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
@@ -88,18 +101,30 @@ class DistanceField:
         val = top + fy * d
         gx = (a + fy * (b - a)) * (1.0 / self.resolution)
         gy = d * (1.0 / self.resolution)
-        return val, gx, gy, inside
+        return val, gx, gy
 
-    def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear free indicator at points (x, y) (0 outside the grid)."""
+    def _free(self, k: np.ndarray, fx: np.ndarray, fy: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        """Bilinear free indicator at cells ``k`` with fractions (fx, fy) (:meth:`_cells`)."""
         w = self.sdf.shape[1]
-        k, fx, fy, inside = self._cells(x, y)
-        # the four corner values, each gathered contiguous
         flat = self.known.ravel()
         v00, v10, v01, v11 = flat[k], flat[k + 1], flat[k + w], flat[k + (w + 1)]
         top = v00 + fx * (v10 - v00)
         bot = v01 + fx * (v11 - v01)
         return (top + fy * (bot - top)) * inside
+
+    def free_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear free indicator at points (x, y) (0 outside the grid)."""
+        return self._free(*self._cells(x, y))
+
+
+def _offset_scaled(v: np.ndarray, o: float, inv: float) -> np.ndarray:
+    """``(v - o) * inv`` as a new array; ``v * inv`` when ``o`` is +0.0 (``v - 0.0`` is ``v`` for
+    every float, -0.0 and NaN included: the same values, one pass fewer)."""
+    if o == 0.0 and math.copysign(1.0, o) > 0:
+        return v * inv
+    out = v - o
+    out *= inv
+    return out
 
 
 @dataclass
@@ -119,11 +144,25 @@ class RefineResult:
     covariance: np.ndarray | None  # (x, y, theta)
     covariance_full: np.ndarray | None  # (theta, tx, ty, lsx, lsy, delta)
     pre: np.ndarray | None = None  # 3×3 applied to plan points before the parametrised transform
+    # the last matrix and what it was computed from (see :attr:`matrix`)
+    _matrix: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def matrix(self) -> np.ndarray:
-        m = matrix_from_params(self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty)
-        return m if self.pre is None else m @ self.pre
+        """The 3×3 placement (plan -> map) of the parameters, times ``pre``: a new array each time,
+        computed once while the parameters and ``pre`` stay the same objects."""
+        key = (self.flipped, self.theta, self.sx, self.sy, self.tx, self.ty, self.pre)
+        got = self._matrix
+        if got is None or not all(map(operator.is_, got[0], key)):  # identity: -0.0, NaN as they are
+            m = matrix_from_params(*key[:6])
+            got = self._matrix = (key, m if self.pre is None else m @ self.pre)
+        return got[1].copy()
+
+    def __getstate__(self) -> dict:
+        """Pickled without the matrix kept by :attr:`matrix`."""
+        state = dict(self.__dict__)
+        state["_matrix"] = None
+        return state
 
 
 def refine(
@@ -204,12 +243,15 @@ def refine(
             ny = sth * n0 + cth * n1
             bx = cth * ax - sth * ay
             by = sth * ax + cth * ay
-            qx = bx + x[1] + x[5] * nx
-            qy = by + x[2] + x[5] * ny
+            # the point moved by t, then along its normal: (bx + tx) + delta * nx, as written out
+            mx, my = bx + x[1], by + x[2]
+            qx = mx + x[5] * nx
+            qy = my + x[5] * ny
             if kn is None or it % 3 == 0:  # which points see free space on their room side
                 d = x[5] + probe
-                kn = field.free_at(bx + x[1] + d * nx, by + x[2] + d * ny)
-            r, gx, gy, inside = field.sample(qx, qy)
+                r, gx, gy, inside, kn = field.sample_free(qx, qy, mx + d * nx, my + d * ny)
+            else:
+                r, gx, gy, inside = field.sample(qx, qy)
             w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
             # d q / d theta = J90 (q - t)
             jac[:, 0] = gy * (qx - x[1]) - gx * (qy - x[2])
@@ -235,30 +277,62 @@ def refine(
                 jwm = jm * wm[:, None]
                 jtj = jtj + jm.T @ jwm
                 jtr = jtr + jwm.T @ rm
-            # Gaussian prior on delta, relative to a residual noise of half a pixel
-            jtj[5, 5] += prior_w
-            jtr[5] += prior_w * (x[5] - delta0)
-            if not np.isfinite(jtj).all() or w_all.sum() < 6:
+            x, stop = _lm_step(x, jtj, jtr, w_all, prior_w, delta0, lam, delta_bounds, tol)
+            if stop:
                 break
-            # jtj + lam * np.diag(np.diag(jtj) + 1e-9), without building the diagonal matrix
-            # (+ 0.0 off the diagonal as there: the same bits)
-            dg = jtj.diagonal()
-            a = jtj + 0.0
-            a.ravel()[:: len(a) + 1] = dg + lam * (dg + 1e-9)
-            try:
-                step = -np.linalg.solve(a, jtr)
-            except np.linalg.LinAlgError:
-                break
-            if not np.isfinite(step).all() or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
-                break  # a degenerate system (too few points on walls): keep the last estimate
-            x = x + step
-            x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper
-            if (
-                abs(step[0]) < 2e-6 * tol
-                and abs(step[1]) + abs(step[2]) < 2e-4 * tol
-                and abs(step[3]) + abs(step[4]) < 2e-5 * tol
-            ):
-                break
+    return _result(flipped, x, w_all, r, jtj, res, correlation)
+
+
+def _lm_step(
+    x: np.ndarray,
+    jtj: np.ndarray,
+    jtr: np.ndarray,
+    w_all: np.ndarray,
+    prior_w: float,
+    delta0: float,
+    lam: float,
+    delta_bounds: tuple[float, float],
+    tol: float,
+) -> tuple[np.ndarray, bool]:
+    """One damped Gauss-Newton step of :func:`refine` from the normal equations ``jtj``, ``jtr``
+    (the delta prior added here, in place) and the point weights ``w_all``: (the parameters,
+    whether the iterations stop: a degenerate system, or converged)."""
+    # Gaussian prior on delta, relative to a residual noise of half a pixel
+    jtj[5, 5] += prior_w
+    jtr[5] += prior_w * (x[5] - delta0)
+    if not np.isfinite(jtj).all() or w_all.sum() < 6:
+        return x, True
+    # jtj + lam * np.diag(np.diag(jtj) + 1e-9), without building the diagonal matrix
+    # (+ 0.0 off the diagonal as there: the same bits)
+    dg = jtj.diagonal()
+    a = jtj + 0.0
+    a.ravel()[:: len(a) + 1] = dg + lam * (dg + 1e-9)
+    try:
+        step = -np.linalg.solve(a, jtr)
+    except np.linalg.LinAlgError:
+        return x, True
+    if not np.isfinite(step).all() or abs(step[3]) > 1.0 or abs(step[4]) > 1.0:
+        return x, True  # a degenerate system (too few points on walls): keep the last estimate
+    x = x + step
+    x[5] = min(max(float(x[5]), delta_bounds[0]), delta_bounds[1])  # np.clip's value, cheaper
+    return x, bool(
+        abs(step[0]) < 2e-6 * tol
+        and abs(step[1]) + abs(step[2]) < 2e-4 * tol
+        and abs(step[3]) + abs(step[4]) < 2e-5 * tol
+    )
+
+
+def _result(
+    flipped: bool,
+    x: np.ndarray,
+    w_all: np.ndarray,
+    r: np.ndarray,
+    jtj: np.ndarray | None,
+    res: float,
+    correlation: float,
+) -> RefineResult:
+    """:func:`refine`'s answer from the last iteration's parameters ``x``, point weights, residuals
+    and normal matrix."""
     wsum = float(w_all.sum())
     n_known = int((w_all > 0).sum())
     rms = float(np.sqrt((w_all * r * r).sum() / wsum)) if wsum > 0 else float("inf")
@@ -288,6 +362,132 @@ def refine(
         covariance=cov3,
         covariance_full=covf,
     )
+
+
+@dataclass(frozen=True)
+class FitStart:
+    """One start of :func:`refine_many`: :func:`refine`'s arguments but the shared ones."""
+
+    points: np.ndarray  # (N, 2) plan units
+    normals: np.ndarray  # (N, 2) unit inward normals, plan frame
+    flipped: bool
+    theta: float
+    tx: float
+    ty: float
+    sx: float
+    sy: float
+    delta: float = 0.0
+    correlation: float = 1.0
+
+
+def refine_many(
+    starts: list[FitStart],
+    field: DistanceField,
+    *,
+    delta_sigma: float = 0.1,
+    delta_bounds: tuple[float, float] = (-0.1, 0.25),
+    fixed_delta_stages: int = 1,
+    scales: tuple[float, ...] = (0.4, 0.15, 0.05),
+    iterations: int = 8,
+) -> list[RefineResult]:
+    """:func:`refine` (one-sided: no ``map_walls``) of each start, the same answers, in order.
+
+    The starts iterate together: each iteration's point operations (transform, field lookups,
+    weights, Jacobian) run once on the points of every start still iterating, element by element
+    as :func:`refine` does them; the normal equations (one matrix product per start, its own
+    rows: a BLAS product's bits depend on its shape) and the step per start. A start stops where
+    :func:`refine` stops it; what follows runs on those still going."""
+    res = field.resolution
+    lam = 1e-3
+    prior_w = (0.5 * res / delta_sigma) ** 2
+    probe = 2.0 * res
+    stage_scales = [max(c, 2.0 * res) for c in scales]
+    fits = []
+    for st in starts:
+        p = np.asarray(st.points, dtype=np.float64)
+        nrm = np.asarray(st.normals, dtype=np.float64)
+        f = -1.0 if st.flipped else 1.0
+        fits.append(
+            {
+                "f": f,
+                "x": np.array(
+                    [st.theta, st.tx, st.ty, np.log(st.sx), np.log(st.sy), st.delta], dtype=np.float64
+                ),
+                "delta0": float(st.delta),
+                "cols": (
+                    np.ascontiguousarray(p[:, 0]),
+                    np.ascontiguousarray(p[:, 1]),
+                    np.ascontiguousarray(nrm[:, 0]),
+                    f * nrm[:, 1],
+                ),
+                "w_all": np.zeros(len(p)),
+                "r": np.zeros(len(p)),
+                "jtj": None,
+                "kn": None,
+            }
+        )
+    for stage, c in enumerate(stage_scales):
+        free_delta = stage >= fixed_delta_stages
+        going = list(range(len(fits)))
+        built: list[int] | None = None
+        for it in range(iterations):
+            if not going:
+                break
+            if built != going:  # the points of the starts still iterating
+                lens = [len(fits[i]["r"]) for i in going]
+                ends = np.cumsum(lens).tolist()
+                px, py, n0, n1 = (np.concatenate([fits[i]["cols"][j] for i in going]) for j in range(4))
+                jac = np.empty((len(px), 6))
+                built = list(going)
+            xs = [fits[i]["x"] for i in going]
+            # each start's numbers, once per point: the same operands as refine's scalars
+            cth = np.repeat([math.cos(x[0]) for x in xs], lens)
+            sth = np.repeat([math.sin(x[0]) for x in xs], lens)
+            ax = np.repeat([math.exp(x[3]) for x in xs], lens) * px
+            ay = np.repeat([fits[i]["f"] * math.exp(fits[i]["x"][4]) for i in going], lens) * py
+            tx = np.repeat([x[1] for x in xs], lens)
+            ty = np.repeat([x[2] for x in xs], lens)
+            dl = np.repeat([x[5] for x in xs], lens)
+            nx = cth * n0 - sth * n1
+            ny = sth * n0 + cth * n1
+            bx = cth * ax - sth * ay
+            by = sth * ax + cth * ay
+            mx, my = bx + tx, by + ty
+            qx = mx + dl * nx
+            qy = my + dl * ny
+            if it % 3 == 0:  # which points see free space on their room side
+                d = np.repeat([x[5] + probe for x in xs], lens)
+                r, gx, gy, inside, kn = field.sample_free(qx, qy, mx + d * nx, my + d * ny)
+                for i, lo, hi in zip(going, [0, *ends[:-1]], ends, strict=True):
+                    fits[i]["kn"] = kn[lo:hi]
+            else:
+                r, gx, gy, inside = field.sample(qx, qy)
+                kn = np.concatenate([fits[i]["kn"] for i in going])
+            w_all = kn * inside / (1.0 + (r * (1.0 / c)) ** 2)
+            # d q / d theta = J90 (q - t)
+            jac[:, 0] = gy * (qx - tx) - gx * (qy - ty)
+            jac[:, 1] = gx
+            jac[:, 2] = gy
+            jac[:, 3] = (gx * cth + gy * sth) * ax
+            jac[:, 4] = (gy * cth - gx * sth) * ay
+            jac[:, 5] = (gx * nx + gy * ny) if free_delta else 0.0
+            jw = jac * w_all[:, None]
+            still = []
+            for i, lo, hi in zip(going, [0, *ends[:-1]], ends, strict=True):
+                ft = fits[i]
+                ft["w_all"], ft["r"] = w_all[lo:hi], r[lo:hi]
+                ft["jtj"] = jtj = jac[lo:hi].T @ jw[lo:hi]
+                jtr = jw[lo:hi].T @ r[lo:hi]
+                ft["x"], stop = _lm_step(
+                    ft["x"], jtj, jtr, ft["w_all"], prior_w, ft["delta0"], lam, delta_bounds, 1.0
+                )
+                if not stop:
+                    still.append(i)
+            going = still
+    return [
+        _result(st.flipped, ft["x"], ft["w_all"], ft["r"], ft["jtj"], res, st.correlation)
+        for st, ft in zip(starts, fits, strict=True)
+    ]
 
 
 # the rows / columns (tx, ty, theta) of the full covariance (theta, tx, ty, lsx, lsy, delta)

@@ -198,17 +198,14 @@ def door_prior(pm: PlanModel, scale: np.ndarray, door_width_m) -> np.ndarray:
     return np.exp(-0.5 * (excess / 0.5) ** 2)
 
 
-def _exit_factor(pm: PlanModel, obs: MapObservation, ainv, tinv, scale, tol: float, exits=None) -> np.ndarray:
-    """(H,) 0.5 + 0.5 × share of the map's doorway-like exits (free space running into unobserved
-    space) that land near a plan opening (door or open-plan boundary); 1 without either."""
-    exits = obs.exit_points if exits is None else exits
-    if pm.open_dt is None or len(exits) == 0:
-        return np.ones(len(ainv))
-    x, y = apply_affine(ainv, tinv, exits)
-    pf = pm.plan_frame
-    d = lookup(pm.open_dt, x, y, pf.resolution, pf.origin, 1e9)
-    near = d < (np.maximum(tol, 0.3) / scale + pf.resolution)[:, None]
-    return 0.5 + 0.5 * near.mean(axis=1)
+def exit_share(d: np.ndarray, scale: np.ndarray, tol: float, plan_res: float) -> np.ndarray:
+    """(H,) exit agreement of :func:`coarse_scores`: 0.5 + 0.5 x the share of the map's
+    doorway-like exits (free space running into unobserved space) that land near a plan opening
+    (door or open-plan boundary), from their (H, J) plan distances (plan units) to the nearest
+    opening under each placement (``scale`` metres per plan unit): within ``max(tol, 0.3)``
+    metres plus one plan cell (``plan_res``)."""
+    near = d < (np.maximum(tol, 0.3) / scale + plan_res)[:, None]
+    return 0.5 + 0.5 * (near.sum(axis=1) / near.shape[1])  # near.mean(axis=1)'s values
 
 
 # OpenBLAS runs a matrix product of more multiply-adds than about twice this on every core, and
@@ -231,6 +228,15 @@ def room_counts(on: np.ndarray, onehot: np.ndarray) -> np.ndarray:
     return out
 
 
+def rows_dot(m: np.ndarray, v: np.ndarray, block: int | None = None) -> np.ndarray:
+    """``m @ v`` of an (H, n) matrix and an (n,) vector, as one product per consecutive group
+    of ``block`` rows when given (each group's bits as its own product's: OpenBLAS's matrix-vector
+    product sums a row differently depending on how many rows the product has)."""
+    if block is None or len(m) <= block:
+        return m @ v
+    return np.concatenate([m[i : i + block] @ v for i in range(0, len(m), block)])
+
+
 def coarse_scores(
     pm: PlanModel,
     obs: MapObservation,
@@ -241,6 +247,7 @@ def coarse_scores(
     tol: float | None = None,
     matched_cover: float | None = None,
     delta: np.ndarray | None = None,
+    block: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coarse IoU and structure key of every hypothesis at once (vectorised over hypotheses).
 
@@ -253,6 +260,8 @@ def coarse_scores(
     wall half-thickness (plan room boundary to the map's free-space edge): precision then tests
     the wall faces (boundary samples moved that far into their room) and recall tests map walls
     at that distance from a plan boundary, as :func:`fine.wall_precision_recall` does.
+    ``block``: the hypotheses are consecutive groups of this many, each scored as if alone (the
+    rooms' area sums as one product per group: a BLAS product's bits depend on its shape).
     """
     n = len(pm.ids)
 
@@ -261,18 +270,21 @@ def coarse_scores(
 
     a, t = mats[:, :2, :2], mats[:, :2, 2]
     det = np.abs(np.linalg.det(a))
-    member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
     cf = obs.coarse_frame
     tol = 1.5 * cf.resolution if tol is None else tol
     # IoU
     inner, inner_onehot = sub(pm.inner), sub(pm.inner_onehot)
     x, y = apply_affine(a, t, inner)
     on = lookup(obs.coarse_footprint_u8, x, y, cf.resolution, (0.0, 0.0), 0)
-    frac = room_counts(on, inner_onehot) / np.maximum(inner_onehot.sum(axis=0), 1.0)  # (H, n)
+    # points per room: the plan model's own sum when all points count (a plan constant)
+    counts = pm.inner_counts if inner_onehot is pm.inner_onehot else inner_onehot.sum(axis=0)
+    frac = room_counts(on, inner_onehot) / np.maximum(counts, 1.0)  # (H, n)
     if matched_cover is not None:  # the rooms the placement puts on the footprint, not the subset
         member = (frac >= matched_cover).astype(np.float64)
-    inter = (frac * member) @ pm.room_areas * det
-    area_s = member @ pm.room_areas * det
+    else:
+        member = mask_matrix(np.asarray(masks, dtype=np.uint64), n).astype(np.float64)  # (H, n)
+    inter = rows_dot(frac * member, pm.room_areas, block) * det
+    area_s = rows_dot(member, pm.room_areas, block) * det
     iou = np.clip(inter / np.maximum(area_s + obs.area - inter, 1e-12), 0.0, 1.0)
     # precision: plan walls that land on the observed area must be walls of the map
     samples = sub(pm.coarse_samples)
@@ -287,17 +299,24 @@ def coarse_scores(
     inside = on_fp > 0
     near = (d_edge < tol) & inside
     precision = near.sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
-    # recall
+    # recall; the map's exits go into the plan frame with its wall cells (one transform and one
+    # set of cell coordinates: the same element operations, point by point)
     tinv = -np.einsum("hij,hj->hi", ainv, t)
-    edges = sub(obs.edge_points)
-    x, y = apply_affine(ainv, tinv, edges)
+    edges, exit_pts = sub(obs.edge_points), sub(obs.exit_points)
     pf = pm.plan_frame
-    dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
+    with_exits = pm.open_dt is not None and len(exit_pts) > 0
+    x, y = apply_affine(ainv, tinv, np.concatenate([edges, exit_pts]) if with_exits else edges)
+    if with_exits:
+        dp, d_exit = lookups(((pm.plan_dt, 1e9), (pm.open_dt, 1e9)), x, y, pf.resolution, pf.origin)
+        dp, d_exit = dp[:, : len(edges)], d_exit[:, len(edges) :]
+    else:
+        dp = lookup(pm.plan_dt, x, y, pf.resolution, pf.origin, 1e9)
     tol_plan = tol / np.sqrt(det) + pf.resolution
     if delta is not None:  # map walls at the wall faces, |delta| from the plan's boundaries
         dp = np.abs(dp - (np.abs(np.asarray(delta, dtype=np.float64)) / np.sqrt(det))[:, None])
-    recall = np.mean(dp < tol_plan[:, None], axis=1) if len(edges) else np.zeros(len(mats))
-    exits = _exit_factor(pm, obs, ainv, tinv, np.sqrt(det), tol, sub(obs.exit_points))
+    # np.mean's value: the count of a bool row is exact in float64, then divided by the length
+    recall = (dp < tol_plan[:, None]).sum(axis=1) / dp.shape[1] if len(edges) else np.zeros(len(mats))
+    exits = exit_share(d_exit, np.sqrt(det), tol, pf.resolution) if with_exits else np.ones(len(mats))
     key = iou * precision * recall * exits * door_prior(pm, np.sqrt(det), door_width_m)
     return iou, key
 
@@ -320,7 +339,7 @@ def _placed_mask(pm: PlanModel, obs: MapObservation, matrix: np.ndarray, min_cov
     ``min_cover`` of each room's interior grid points)."""
     x, y = apply_affine(matrix[None, :2, :2], matrix[None, :2, 2], pm.inner)
     on = lookup(obs.coarse_footprint_u8, x, y, obs.coarse_frame.resolution, (0.0, 0.0), 0)
-    frac = (on.astype(np.float32) @ pm.inner_onehot)[0] / np.maximum(pm.inner_onehot.sum(axis=0), 1.0)
+    frac = (on.astype(np.float32) @ pm.inner_onehot)[0] / np.maximum(pm.inner_counts, 1.0)
     return sum(1 << int(i) for i in np.flatnonzero(frac >= min_cover))
 
 
@@ -340,27 +359,36 @@ def _score_hypotheses(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis]
 
 def local_search(pm: PlanModel, obs: MapObservation, hyps: list[Hypothesis], opts: dict) -> None:
     """Coordinate search on the coarse key over each map axis's scale and shift (about the
-    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis."""
+    footprint's centroid, in the map's wall-aligned frame), two rounds, for each hypothesis.
+
+    The hypotheses' searches are independent: each step scores every hypothesis's trials in one
+    :func:`coarse_scores` call (``block``: each hypothesis's 15 as if alone, the same bits)."""
     rounds = (((0.85, 0.92, 1.0, 1.08, 1.17), 0.08), ((0.96, 0.98, 1.0, 1.02, 1.04), 0.03))
+    frames = []
     for h in hyps:
         angle, bbox = obs.angles[h.angle_index], obs.bboxes[h.angle_index]
         rm = np.eye(3)
         rm[:2, :2] = rot(angle)
-        c = rot(-angle) @ obs.centroid
-        ext = bbox[2:] - bbox[:2]
-        for factors, shift in rounds:
-            for axis in (0, 1):
-                # every (factor, shift) at once: the same products, matrix by matrix
-                f = np.repeat(np.array(factors), 3)
-                sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+        frames.append((rm, rot(-angle) @ obs.centroid, bbox[2:] - bbox[:2]))
+    masks = np.array([h.mask for h in hyps], dtype=np.uint64)
+    for factors, shift in rounds:
+        for axis in (0, 1):
+            # every (factor, shift) at once: the same products, matrix by matrix
+            f = np.repeat(np.array(factors), 3)
+            sh = np.tile(np.array([-shift, 0.0, shift]), len(factors))
+            trials = []
+            for h, (rm, c, ext) in zip(hyps, frames, strict=True):
                 d = np.broadcast_to(np.eye(3), (len(f), 3, 3)).copy()
                 d[:, axis, axis] = f
                 d[:, axis, 2] = c[axis] * (1.0 - f) + sh * ext[axis]
-                mats = rm @ d @ rm.T @ h.matrix
-                iou, key = coarse_scores(
-                    pm, obs, mats, np.full(len(mats), h.mask, dtype=np.uint64), opts["door_width_m"]
-                )
-                top = int(np.argmax(key))  # max()'s choice: the first of equal keys
+                trials.append(rm @ d @ rm.T @ h.matrix)
+            mats = np.concatenate(trials)
+            iou, key = coarse_scores(
+                pm, obs, mats, np.repeat(masks, len(f)), opts["door_width_m"], block=len(f)
+            )
+            for j, h in enumerate(hyps):
+                lo = j * len(f)
+                top = lo + int(np.argmax(key[lo : lo + len(f)]))  # max()'s choice: the first of equal keys
                 if float(key[top]) > h.key:
                     h.matrix, h.key, h.coarse_iou = mats[top], float(key[top]), float(iou[top])
 
@@ -539,55 +567,76 @@ def wide_search(
     polish when the grid's best is the placement itself, the last polish on ``quick_points``).
     ``polish_best``: polish only that many of all seeds' beams, best grid key first (many seeds).
     Returns up to ``limit`` distinct hypotheses, best first, each with its coarse key (default
-    tolerance) as ``key``.
+    tolerance) as ``key``. The seeds' searches and the beams' polish are independent: each round
+    scores all of them in one :func:`coarse_scores` call (``block``: each group as if alone).
     """
     door, cover, points = opts["door_width_m"], opts["min_cover"], opts["first_pass_points"]
     full = np.uint64((1 << len(pm.ids)) - 1) if len(pm.ids) < 64 else np.uint64(2**64 - 1)
 
-    def score(mats: np.ndarray, pts, tl=None) -> np.ndarray:
-        _, k = coarse_scores(pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover)
+    def score(mats: np.ndarray, pts, tl=None, block: int | None = None) -> np.ndarray:
+        # ``block``: consecutive groups scored as if alone (every seed's or beam's at once)
+        _, k = coarse_scores(
+            pm, obs, mats, np.full(len(mats), full), door, pts, tl, matched_cover=cover, block=block
+        )
         return np.where(_aspect_ok(pm, mats, opts["max_aspect"]), k, 0.0)
 
     width = 1 if check else WIDE_BEAM
     shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
     last_points = opts["quick_points"] if check else None
+    grid = (len(WIDE_FACTORS), len(shifts))
+    frames = [_aligned_frame(obs, seed.angle_index) for seed in seeds]
     found: list[tuple[float, np.ndarray, int]] = []
     beams: list[tuple[float, np.ndarray, int]] = []
-    for si, seed in enumerate(seeds):
-        rm, c, ext = _aligned_frame(obs, seed.angle_index)
-        beam = [(float(score(seed.matrix[None], points)[0]), seed.matrix)]
-        for axis in WIDE_AXES[:2] if check else WIDE_AXES:
-            grown = list(beam)
-            for _, m in beam:
-                mats = _axis_trials(m, rm, c, ext, axis, WIDE_FACTORS, shifts)
-                k = score(mats, points)
-                grown += [
-                    (float(k[i]), mats[i]) for i in _top_cells(k, (len(WIDE_FACTORS), len(shifts)), width)
-                ]
-            grown.sort(key=lambda t: -t[0])
+    # the seeds' grid searches are independent: each round scores every seed's beam at once
+    k0 = score(np.stack([seed.matrix for seed in seeds]), points, block=1) if seeds else []
+    seed_beams = [[(float(k0[si]), seed.matrix)] for si, seed in enumerate(seeds)]
+    for axis in (WIDE_AXES[:2] if check else WIDE_AXES) if seeds else ():
+        trials = [
+            (si, _axis_trials(m, *frames[si], axis, WIDE_FACTORS, shifts))
+            for si, beam in enumerate(seed_beams)
+            for _, m in beam
+        ]
+        n = grid[0] * grid[1]
+        k_all = score(np.concatenate([t for _, t in trials]), points, block=n)
+        grown = [list(beam) for beam in seed_beams]
+        for j, (si, mats) in enumerate(trials):
+            k = k_all[j * n : (j + 1) * n]
+            grown[si] += [(float(k[i]), mats[i]) for i in _top_cells(k, grid, width)]
+        for si, g in enumerate(grown):
+            g.sort(key=lambda t: -t[0])
             beam = []
-            for k_, m in grown:
+            for k_, m in g:
                 if not any(same_placement(m, b, obs) for _, b in beam):
                     beam.append((k_, m))
                 if len(beam) >= width:
                     break
+            seed_beams[si] = beam
+    for si, (seed, beam) in enumerate(zip(seeds, seed_beams, strict=True)):
         if check and np.allclose(beam[0][1], seed.matrix):
             continue  # no other scale or shift on the grid scores better: nothing to polish
         beams.extend((k_, m, si) for k_, m in beam)
     if polish_best is not None:  # only the best placements of all seeds' grids are polished
         beams = sorted(beams, key=lambda t: -t[0])[:polish_best]
-    for _, m, si in beams:
-        rm, c, ext = _aligned_frame(obs, seeds[si].angle_index)
-        for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
-            factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
-            pts = last_points if stage == len(WIDE_POLISH) - 1 else points
-            tl = None if tmul is None else tmul * tol
-            for axis in (0, 1):
-                mats = np.concatenate(
-                    [m[None], _axis_trials(m, rm, c, ext, axis, factors, np.linspace(-shift, shift, ns))]
+    ms = [m for _, m, _ in beams]
+    for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
+        factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
+        pts = last_points if stage == len(WIDE_POLISH) - 1 else points
+        tl = None if tmul is None else tmul * tol
+        for axis in (0, 1):
+            if not ms:
+                break
+            trials = [
+                np.concatenate(
+                    [m[None], _axis_trials(m, *frames[si], axis, factors, np.linspace(-shift, shift, ns))]
                 )
-                m = mats[int(np.argmax(score(mats, pts, tl)))]
-        found.append((float(score(m[None], last_points, WIDE_POLISH[-1][4] * tol)[0]), m, si))
+                for m, (_, _, si) in zip(ms, beams, strict=True)
+            ]
+            n = len(trials[0])
+            k_all = score(np.concatenate(trials), pts, tl, block=n)
+            ms = [mats[int(np.argmax(k_all[j * n : (j + 1) * n]))] for j, mats in enumerate(trials)]
+    if ms:
+        k_last = score(np.stack(ms), last_points, WIDE_POLISH[-1][4] * tol, block=1)
+        found = [(float(k_last[j]), m, si) for j, (m, (_, _, si)) in enumerate(zip(ms, beams, strict=True))]
     found.sort(key=lambda t: -t[0])
     out: list[Hypothesis] = []
     for k_, m, si in found:

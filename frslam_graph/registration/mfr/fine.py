@@ -20,7 +20,7 @@ from frslam_graph.registration.mfr.coarse import Hypothesis, coarse_scores, door
 from frslam_graph.registration.mfr.geometry import lookups
 from frslam_graph.registration.mfr.map_side import MapObservation
 from frslam_graph.registration.mfr.plan_side import PlanModel, fill_rooms
-from frslam_graph.registration.refine import RefineResult, refine
+from frslam_graph.registration.refine import FitStart, RefineResult, refine, refine_many
 from frslam_graph.registration.result import params_from_matrix
 from frslam_graph.se2 import rot
 
@@ -45,16 +45,74 @@ def refine_from(
     The scales act along the plan's wall directions: the plan is first turned by ``-pm.angle``
     (zero for plans drawn axis-aligned); the result's matrix includes that turn.
     """
+    st, pre = _fit_start(pm, obs, matrix, delta, spacing_px, max_points)
+    r = refine(
+        st.points,
+        st.normals,
+        obs.field,
+        st.flipped,
+        st.theta,
+        st.tx,
+        st.ty,
+        st.sx,
+        st.sy,
+        delta=st.delta,
+        delta_sigma=opts["delta_sigma"],
+        scales=scales,
+        iterations=iterations,
+        # the wall offset trades against the scales under wide robust scales: hold it there
+        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+        correlation=st.correlation,
+        map_walls=obs.edge_points if walls else None,
+    )
+    r.pre = pre
+    return r
+
+
+def refine_from_many(
+    pm: PlanModel,
+    obs: MapObservation,
+    matrices: list[np.ndarray],
+    deltas: list[float],
+    opts: dict,
+    *,
+    scales: tuple,
+    spacing_px: float,
+    max_points: int,
+    iterations: int,
+) -> list[RefineResult]:
+    """:func:`refine_from` (one-sided) of each placement with its wall offset, the same answers,
+    the fits iterated together (:func:`refine_many`)."""
+    starts = [
+        _fit_start(pm, obs, m, d, spacing_px, max_points) for m, d in zip(matrices, deltas, strict=True)
+    ]
+    out = refine_many(
+        [st for st, _ in starts],
+        obs.field,
+        delta_sigma=opts["delta_sigma"],
+        scales=scales,
+        iterations=iterations,
+        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+    )
+    for r, (_, pre) in zip(out, starts, strict=True):
+        r.pre = pre
+    return out
+
+
+def _fit_start(
+    pm: PlanModel, obs: MapObservation, matrix: np.ndarray, delta: float, spacing_px: float, max_points: int
+) -> tuple[FitStart, np.ndarray]:
+    """The refinement's start from the placement ``matrix`` (see :func:`refine_from`) and the turn
+    ``pre`` its parameters follow."""
     pre = np.eye(3)
     pre[:2, :2] = rot(-pm.angle)
     flipped, theta, sx, sy, tx, ty = params_from_matrix(matrix @ pre.T)
     base = pm.sample_step  # plan units between samples
     want = spacing_px * obs.frame.resolution / math.sqrt(sx * sy)
     stride = max(1, int(want / base), int(math.ceil(len(pm.samples) / max_points)))
-    r = refine(
+    start = FitStart(
         pm.samples[::stride] @ pre[:2, :2].T,
         pm.sample_normals[::stride] @ pre[:2, :2].T,
-        obs.field,
         flipped,
         theta,
         tx,
@@ -62,17 +120,10 @@ def refine_from(
         sx,
         sy,
         delta=delta,
-        delta_sigma=opts["delta_sigma"],
-        scales=scales,
-        iterations=iterations,
-        # the wall offset trades against the scales under wide robust scales: hold it there
-        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
         # one independent wall error per 0.5 m of wall
         correlation=0.5 / max(stride * base * math.sqrt(sx * sy), 1e-9),
-        map_walls=obs.edge_points if walls else None,
     )
-    r.pre = pre
-    return r
+    return start, pre
 
 
 def plausible(r: RefineResult, opts: dict) -> bool:
@@ -104,7 +155,7 @@ def placed_rooms_iou(
     on = _label_counts(labels, footprint, n)
     px_area = pm.room_areas * det / frame.resolution**2
     # most maps have no unexplored core: no pixel there, zero counts without the histogram
-    off = _label_counts(labels, unexplored, n) if unexplored.any() else np.zeros(n, np.int64)
+    off = _label_counts(labels, unexplored, n) if obs.any_unexplored else np.zeros(n, np.int64)
     cover = on / np.maximum(px_area - off, 1e-9)
     rooms = tuple(int(i) for i in np.flatnonzero(cover >= min_cover))
     if not rooms:
@@ -115,7 +166,7 @@ def placed_rooms_iou(
     lut = np.zeros(256, np.uint8)
     lut[sel + 1] = 1
     inter = int(on[sel].sum())
-    union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + int(np.count_nonzero(footprint)) - inter
+    union = int(cv2.countNonZero(cv2.LUT(labels, lut))) + obs.footprint_cells - inter
     union -= int(off[sel].sum())
     return (inter / union if union else 0.0), rooms
 
@@ -199,18 +250,19 @@ def screen(pm: PlanModel, obs: MapObservation, chosen: list[Hypothesis], opts: d
     and its ``quick`` key (the coarse key of the refined placement at tolerance ``tol`` metres,
     0 for a degenerate one), and sort ``chosen`` by it, best first."""
     delta0 = float(opts["delta"])
-    for h in chosen:  # screen: coarse robust scales, few points, scored on the coarse grid
-        h.refined = refine_from(
-            pm,
-            obs,
-            h.matrix,
-            delta0,
-            opts,
-            scales=opts["quick_scales"],
-            spacing_px=4.0,
-            max_points=opts["quick_points"],
-            iterations=opts["quick_iterations"],
-        )
+    fits = refine_from_many(  # screen: coarse robust scales, few points, scored on the coarse grid
+        pm,
+        obs,
+        [h.matrix for h in chosen],
+        [delta0] * len(chosen),
+        opts,
+        scales=opts["quick_scales"],
+        spacing_px=4.0,
+        max_points=opts["quick_points"],
+        iterations=opts["quick_iterations"],
+    )
+    for h, r in zip(chosen, fits, strict=True):
+        h.refined = r
     mats = np.stack([h.refined.matrix for h in chosen])
     bad = ~np.all(np.isfinite(mats), axis=(1, 2))
     bad |= ~(np.abs(np.linalg.det(np.where(bad[:, None, None], np.eye(3), mats)[:, :2, :2])) > 1e-12)
@@ -303,48 +355,60 @@ def polish_scales(pm: PlanModel, obs: MapObservation, h: Hypothesis, opts: dict,
     On maps seeing rooms in part the screening refinement stops a few per cent off in scale
     and aspect (a wall of the next room pulls one axis), and a placement shifted by a wall fits
     as well locally; the restarts reach the better basin."""
-    r = h.refined
-    if h.quick <= 0.0 or r is None:
+    polish_scales_many(pm, obs, [h], opts, tol)
+
+
+def polish_scales_many(
+    pm: PlanModel, obs: MapObservation, hs: list[Hypothesis], opts: dict, tol: float
+) -> None:
+    """:func:`polish_scales` of each of ``hs`` (each polished on its own: the same answers), the
+    restarts of all of them refined together (:func:`refine_from_many`)."""
+    todo = [h for h in hs if h.quick > 0.0 and h.refined is not None]
+    moved: list[np.ndarray] = []
+    deltas: list[float] = []
+    for h in todo:
+        m = h.refined.matrix
+        p0 = np.linalg.solve(m, np.append(obs.centroid, 1.0))
+        pre = h.refined.pre if h.refined.pre is not None else np.eye(3)
+        about = np.eye(3)
+        about[:2, 2] = p0[:2]
+        steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
+        for fx in steps:
+            for fy in steps:
+                if fx == 1.0 and fy == 1.0:
+                    continue
+                moved.append(m @ (about @ pre.T @ np.diag([fx, fy, 1.0]) @ pre @ np.linalg.inv(about)))
+                deltas.append(h.refined.delta)
+    if not todo:
         return
-    m = r.matrix
-    p0 = np.linalg.solve(m, np.append(obs.centroid, 1.0))
-    pre = r.pre if r.pre is not None else np.eye(3)
-    about = np.eye(3)
-    about[:2, 2] = p0[:2]
-    steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
-    starts = []
-    for fx in steps:
-        for fy in steps:
-            if fx == 1.0 and fy == 1.0:
-                continue
-            a = about @ pre.T @ np.diag([fx, fy, 1.0]) @ pre @ np.linalg.inv(about)
-            rr = refine_from(
-                pm,
-                obs,
-                m @ a,
-                r.delta,
-                opts,
-                scales=opts["quick_scales"],
-                spacing_px=4.0,
-                max_points=opts["quick_points"],
-                iterations=opts["quick_iterations"],
-            )
-            if plausible(rr, opts):
-                starts.append(rr)
-    if not starts:
-        return
-    # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
-    # restart a wall off above one near the truth scoring it half as high. The rooms' IoU (a
-    # full-resolution raster of the plan) only for restarts whose wall part could still win
-    walls = [_wall_part(pm, obs, s, opts, tol) for s in starts]
-    won = best_bounded(
-        [_wall_bound(w) for w in walls],
-        lambda i: _structure_key_with(pm, obs, starts[i], opts, walls[i]),
-        h.quick,
+    fits = refine_from_many(
+        pm,
+        obs,
+        moved,
+        deltas,
+        opts,
+        scales=opts["quick_scales"],
+        spacing_px=4.0,
+        max_points=opts["quick_points"],
+        iterations=opts["quick_iterations"],
     )
-    if won is not None:
-        h.refined = starts[won[0]]
-        h.quick, h.placed_iou, h.placed_rooms, h.recall = won[1]
+    per = len(fits) // len(todo)  # eight restarts each
+    for k, h in enumerate(todo):
+        starts = [rr for rr in fits[k * per : (k + 1) * per] if plausible(rr, opts)]
+        if not starts:
+            continue
+        # ranked by the gate's measure itself: the coarse key (80-cell footprint, exits) ranked a
+        # restart a wall off above one near the truth scoring it half as high. The rooms' IoU (a
+        # full-resolution raster of the plan) only for restarts whose wall part could still win
+        walls = [_wall_part(pm, obs, s, opts, tol) for s in starts]
+        won = best_bounded(
+            [_wall_bound(w) for w in walls],
+            lambda i, starts=starts, walls=walls: _structure_key_with(pm, obs, starts[i], opts, walls[i]),
+            h.quick,
+        )
+        if won is not None:
+            h.refined = starts[won[0]]
+            h.quick, h.placed_iou, h.placed_rooms, h.recall = won[1]
 
 
 def refine_final(

@@ -50,6 +50,8 @@ class MapObservation:
     edge_points: np.ndarray  # (K, 2) a subsample of those cells' centres, metres
     exit_points: np.ndarray  # (J, 2) free cells next to unobserved space outside the footprint
     unexplored: np.ndarray  # bool: enclosed unobserved regions left out of the footprint
+    footprint_cells: int  # np.count_nonzero(footprint)
+    any_unexplored: bool  # unexplored.any()
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -95,7 +97,8 @@ def observe_map(
         return "map has no observed area"
     main = 1 if n == 2 else 1 + int(np.argmax(np.bincount(labels.ravel(), minlength=n)[1:]))
     footprint = labels == main
-    area = float(np.count_nonzero(footprint)) * res * res
+    footprint_cells = int(np.count_nonzero(footprint))
+    area = float(footprint_cells) * res * res
     if area < min_area_m2:
         return f"observed area too small ({area:.2f} m² < {min_area_m2} m²)"
     free = free & footprint
@@ -186,6 +189,8 @@ def observe_map(
         edge_points=edge_points,
         exit_points=exit_points,
         unexplored=unexplored,
+        footprint_cells=footprint_cells,
+        any_unexplored=bool(unexplored.any()),
     )
 
 

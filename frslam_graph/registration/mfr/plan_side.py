@@ -65,6 +65,7 @@ class PlanModel:
     plan_frame: RasterFrame
     inner: np.ndarray  # (P, 2) grid points inside rooms
     inner_onehot: np.ndarray  # (P, n) their room
+    inner_counts: np.ndarray  # (n,) float32 inner_onehot.sum(axis=0): points per room
     door_width: float  # median door width (plan units), 0 without doors
     coarse_samples: np.ndarray  # (M', 2) a subsample of ``samples``
     coarse_onehot: np.ndarray  # (M', n) their room
@@ -181,6 +182,7 @@ def prepare_plan(
         inner_room = np.concatenate([inner_room, empty])
     eye = np.eye(n)
     cstride = max(1, len(pts) // coarse_samples)
+    inner_onehot = eye[inner_room].astype(np.float32)
     return PlanModel(
         ids=[r.id for r in rooms],
         polygons=polys,
@@ -205,7 +207,8 @@ def prepare_plan(
         open_dt=open_dt,
         plan_frame=pframe,
         inner=inner,
-        inner_onehot=eye[inner_room].astype(np.float32),
+        inner_onehot=inner_onehot,
+        inner_counts=inner_onehot.sum(axis=0),
         door_width=float(np.median(np.hypot(doors[:, 2] - doors[:, 0], doors[:, 3] - doors[:, 1])))
         if len(doors)
         else 0.0,
@@ -257,4 +260,8 @@ def _fixed_rings(rings: list[np.ndarray], a: np.ndarray, t: np.ndarray) -> list[
     q += t
     q *= FIX
     q = np.round(q).astype(np.int32)
-    return [v.reshape(-1, 1, 2) for v in np.split(q, np.cumsum([len(r) for r in rings])[:-1])]
+    out, at = [], 0  # np.split's pieces (views of q), without its per-piece overhead
+    for r in rings:
+        out.append(q[at : at + len(r)].reshape(-1, 1, 2))
+        at += len(r)
+    return out

@@ -323,8 +323,7 @@ def _register(plan, grid, opts: dict, t0: float) -> Registration:
         # compares them) and rank them again. The restarts do not land alike (a best polished
         # further than its runner-ups): the answer stays as doubtful as it was before them
         ambiguity_screened = _ambiguity(chosen, hyps, covered, chosen[0].refined.matrix, obs)
-        for h in chosen:
-            fine.polish_scales(pm, obs, h, opts, tol_f)
+        fine.polish_scales_many(pm, obs, chosen, opts, tol_f)  # each on its own, refined together
         chosen.sort(key=lambda h: -h.quick)
     best = chosen[0]
     r0, r, prec, rec = _final(pm, obs, best, opts, tol_f)
