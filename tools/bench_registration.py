@@ -757,6 +757,7 @@ def main_real(args: argparse.Namespace, argv: list[str] | None) -> int:
         print(f"error: shared data not found at {args.data}", file=sys.stderr)
         return 2
     comps = tuple(int(c) for c in args.completeness.split(",") if int(c) >= 50) or (50, 75, 100)
+    _init_worker()  # the rows run in this process: OpenCV single-threaded, as the quick set's workers
     rows = run_real(
         args.data,
         resolution=args.resolution,
