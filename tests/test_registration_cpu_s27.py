@@ -12,9 +12,7 @@ import pickle
 import cv2
 import numpy as np
 import pytest
-from shapely.geometry import box
 
-from frslam_graph.floorplan import Door, FloorPlan, Room
 from frslam_graph.registration.mfr.coarse import (
     WIDE_AXES,
     WIDE_BEAM,
@@ -30,28 +28,7 @@ from frslam_graph.registration.mfr.coarse import (
     coarse_scores,
     same_placement,
 )
-
-
-def _grid_plan() -> FloorPlan:
-    """Nine rooms on an uneven grid with doors (plan units)."""
-    xs, ys = [0, 4, 7, 12], [0, 3, 8, 10]
-    rooms = [
-        Room(f"r{i}{j}", "room", box(xs[i], ys[j], xs[i + 1], ys[j + 1])) for i in range(3) for j in range(3)
-    ]
-    doors = []
-    for i in range(3):
-        for j in range(3):
-            if i < 2:
-                y = 0.5 * (ys[j] + ys[j + 1])
-                doors.append(
-                    Door(f"h{i}{j}", (xs[i + 1], y - 0.4), (xs[i + 1], y + 0.4), (f"r{i}{j}", f"r{i + 1}{j}"))
-                )
-            if j < 2:
-                x = 0.5 * (xs[i] + xs[i + 1])
-                doors.append(
-                    Door(f"v{i}{j}", (x - 0.4, ys[j + 1]), (x + 0.4, ys[j + 1]), (f"r{i}{j}", f"r{i}{j + 1}"))
-                )
-    return FloorPlan(rooms, doors, units="px", name="grid")
+from tests.test_registration_cpu import _grid_plan
 
 
 @pytest.fixture(scope="module")
