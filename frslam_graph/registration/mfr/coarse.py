@@ -583,14 +583,15 @@ def wide_search(
     width = 1 if check else WIDE_BEAM
     shifts = WIDE_SHIFTS[3:-3] if check else WIDE_SHIFTS  # a refined placement: +-12.5 %
     last_points = opts["quick_points"] if check else None
+    if not seeds:
+        return []
     grid = (len(WIDE_FACTORS), len(shifts))
     frames = [_aligned_frame(obs, seed.angle_index) for seed in seeds]
-    found: list[tuple[float, np.ndarray, int]] = []
     beams: list[tuple[float, np.ndarray, int]] = []
     # the seeds' grid searches are independent: each round scores every seed's beam at once
-    k0 = score(np.stack([seed.matrix for seed in seeds]), points, block=1) if seeds else []
+    k0 = score(np.stack([seed.matrix for seed in seeds]), points, block=1)
     seed_beams = [[(float(k0[si]), seed.matrix)] for si, seed in enumerate(seeds)]
-    for axis in (WIDE_AXES[:2] if check else WIDE_AXES) if seeds else ():
+    for axis in WIDE_AXES[:2] if check else WIDE_AXES:
         trials = [
             (si, _axis_trials(m, *frames[si], axis, WIDE_FACTORS, shifts))
             for si, beam in enumerate(seed_beams)
@@ -617,14 +618,14 @@ def wide_search(
         beams.extend((k_, m, si) for k_, m in beam)
     if polish_best is not None:  # only the best placements of all seeds' grids are polished
         beams = sorted(beams, key=lambda t: -t[0])[:polish_best]
+    if not beams:
+        return []
     ms = [m for _, m, _ in beams]
     for stage, (half, nf, shift, ns, tmul) in enumerate(WIDE_POLISH):
         factors = np.exp(np.linspace(-math.log(half), math.log(half), nf))
         pts = last_points if stage == len(WIDE_POLISH) - 1 else points
         tl = None if tmul is None else tmul * tol
         for axis in (0, 1):
-            if not ms:
-                break
             trials = [
                 np.concatenate(
                     [m[None], _axis_trials(m, *frames[si], axis, factors, np.linspace(-shift, shift, ns))]
@@ -634,9 +635,8 @@ def wide_search(
             n = len(trials[0])
             k_all = score(np.concatenate(trials), pts, tl, block=n)
             ms = [mats[int(np.argmax(k_all[j * n : (j + 1) * n]))] for j, mats in enumerate(trials)]
-    if ms:
-        k_last = score(np.stack(ms), last_points, WIDE_POLISH[-1][4] * tol, block=1)
-        found = [(float(k_last[j]), m, si) for j, (m, (_, _, si)) in enumerate(zip(ms, beams, strict=True))]
+    k_last = score(np.stack(ms), last_points, WIDE_POLISH[-1][4] * tol, block=1)
+    found = [(float(k_last[j]), m, si) for j, (m, (_, _, si)) in enumerate(zip(ms, beams, strict=True))]
     found.sort(key=lambda t: -t[0])
     out: list[Hypothesis] = []
     for k_, m, si in found:

@@ -60,8 +60,7 @@ def refine_from(
         delta_sigma=opts["delta_sigma"],
         scales=scales,
         iterations=iterations,
-        # the wall offset trades against the scales under wide robust scales: hold it there
-        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+        fixed_delta_stages=_fixed_delta_stages(scales),
         correlation=st.correlation,
         map_walls=obs.edge_points if walls else None,
     )
@@ -92,11 +91,17 @@ def refine_from_many(
         delta_sigma=opts["delta_sigma"],
         scales=scales,
         iterations=iterations,
-        fixed_delta_stages=sum(1 for c in scales if c > 0.16),
+        fixed_delta_stages=_fixed_delta_stages(scales),
     )
     for r, (_, pre) in zip(out, starts, strict=True):
         r.pre = pre
     return out
+
+
+def _fixed_delta_stages(scales: tuple) -> int:
+    """The refinement's first stages that hold the wall offset: the wall offset trades against
+    the scales under wide robust scales (above 0.16 m)."""
+    return sum(1 for c in scales if c > 0.16)
 
 
 def _fit_start(
@@ -364,6 +369,9 @@ def polish_scales_many(
     """:func:`polish_scales` of each of ``hs`` (each polished on its own: the same answers), the
     restarts of all of them refined together (:func:`refine_from_many`)."""
     todo = [h for h in hs if h.quick > 0.0 and h.refined is not None]
+    if not todo:
+        return
+    steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
     moved: list[np.ndarray] = []
     deltas: list[float] = []
     for h in todo:
@@ -372,15 +380,12 @@ def polish_scales_many(
         pre = h.refined.pre if h.refined.pre is not None else np.eye(3)
         about = np.eye(3)
         about[:2, 2] = p0[:2]
-        steps = (1.0 / (1.0 + POLISH_STEP), 1.0, 1.0 + POLISH_STEP)
         for fx in steps:
             for fy in steps:
                 if fx == 1.0 and fy == 1.0:
                     continue
                 moved.append(m @ (about @ pre.T @ np.diag([fx, fy, 1.0]) @ pre @ np.linalg.inv(about)))
                 deltas.append(h.refined.delta)
-    if not todo:
-        return
     fits = refine_from_many(
         pm,
         obs,

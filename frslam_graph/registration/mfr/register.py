@@ -511,10 +511,10 @@ def _determined(n_rooms: int, n_points: int, recall: float, turned: float = math
 def _turned_ratio(pm: PlanModel, obs: MapObservation, best: Hypothesis, opts: dict, tol_f: float) -> float:
     """The best of ``best``'s seven other dihedral turns about its room's centre
     (:func:`coarse.turned_seeds` of its screened placement), screened as every placement is
-    (:func:`fine.screen`), over ``best``'s screened measure: near 1 for a room whose shape (as far as the map shows it) is symmetric
-    under a turn, a rectangle's 180 degrees or mirror image; low for an asymmetric one. The best
-    turn is scale-polished too (:func:`fine.polish_scales`), as ``best`` may have been: a turn
-    is never judged worse for having been refined less."""
+    (:func:`fine.screen`), over ``best``'s screened measure: near 1 for a room whose shape (as far
+    as the map shows it) is symmetric under a turn, a rectangle's 180 degrees or mirror image; low
+    for an asymmetric one. The best turn is scale-polished too (:func:`fine.polish_scales`), as
+    ``best`` may have been: a turn is never judged worse for having been refined less."""
     if best.quick <= 0.0:
         return 1.0
     # turned about the room's own centre: the map may hold more than that room
