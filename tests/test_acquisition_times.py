@@ -79,10 +79,11 @@ def test_carmen_odom_records_follow_the_laser_lines_pairing(test_data):
     assert np.mean(np.hypot(*(np.array(paired)[:, :2] - np.array(laser)[:, :2]).T)) < 0.004
 
 
-def _bag_from_carmen(path, out):
+def _bag_from_carmen(path, out, ros1=True):
     """A ROS 1 bag as intel.bag was made: /scan and /odom with the CARMEN stamps, ``header.seq`` in
-    file order per topic, stored in stamp order."""
-    m = Msgs(ros1=True)
+    file order per topic, stored in stamp order (``ros1`` False: a ROS 2 bag, whose headers carry
+    no seq, as ``rosbags-convert`` makes of intel.bag)."""
+    m = Msgs(ros1=ros1)
     msgs, seqs = [], {"/scan": 0, "/odom": 0}
     for line in _lines(path):
         tok = line.split()
@@ -95,11 +96,12 @@ def _bag_from_carmen(path, out):
             msg = m.scan(stamp, [float(v) for v in tok[2 : 2 + n]], -np.pi / 2, np.pi / 180, 0.0, 81.9)
         else:
             continue
-        msg.header.seq = seqs[topic]
-        seqs[topic] += 1
+        if ros1:
+            msg.header.seq = seqs[topic]
+            seqs[topic] += 1
         msgs.append((topic, LASER if topic == "/scan" else ODOM, stamp, msg))
     msgs.sort(key=lambda x: x[2])
-    return write_bag(out, msgs)
+    return write_bag(out, msgs, ros1=ros1)
 
 
 def _lines(path):
@@ -122,6 +124,28 @@ def test_bag_odometry_follows_the_laser_lines_pairing(test_data, tmp_path):
     assert _disagreement(before, laser) > 0.5  # 0.55° a scan
     assert _disagreement(paired, laser) < 0.3
     assert any("stamped on arrival in bursts" in str(w.message) for w in caught)
+
+
+def test_a_bursty_ros2_bag_says_its_scan_order_is_unknown(test_data, tmp_path):
+    """Stamped on arrival, the excerpt's scans are stored out of the order they were taken in;
+    a ROS 1 bag puts them back by header.seq, a ROS 2 bag has none: its bag order is yielded
+    as it is (nothing in it tells the order), and the reader says so."""
+    path = test_data / "intel_turns.clf.bz2"
+    file_order = _scan_stamps(path)
+    said = {}
+    for ros1, name in ((True, "excerpt.bag"), (False, "excerpt_ros2")):
+        bag = _bag_from_carmen(path, tmp_path / name, ros1=ros1)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RecordingWarning)
+            stamps = [s.stamp for s in open_recording(bag)]
+        said[ros1] = " ".join(str(w.message) for w in caught)
+        assert sorted(stamps) == pytest.approx(sorted(file_order), abs=1e-6)  # every scan kept
+        if ros1:
+            assert stamps == pytest.approx(file_order, abs=1e-6)
+        else:
+            assert stamps != pytest.approx(file_order, abs=1e-6)  # the bag (stamp) order
+    assert "stamped on arrival in bursts" in said[True] and "without header.seq" not in said[True]
+    assert "stamped on arrival without header.seq (ROS 2)" in said[False]
 
 
 def _scan_stamps(path):
