@@ -13,18 +13,22 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from frslam_graph.atomic import save_figure
-from frslam_graph.floorplan.render import draw_grid, draw_plan
+from frslam_graph.floorplan.render import draw_grid, draw_plan, known_bounds
 from frslam_graph.occupancy import OccupancyGrid
 
 
 def save_grid_png(grid: OccupancyGrid, out: str | Path, title: str = "") -> Path:
-    """Write a PNG of the grid with metric axes."""
+    """Write a PNG of the grid with metric axes, framed on its known cells (:func:`known_bounds`)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    aspect = grid.height / max(grid.width, 1)
+    box = known_bounds(grid)
+    aspect = grid.height / max(grid.width, 1) if box is None else (box[3] - box[2]) / (box[1] - box[0])
     fig = Figure(figsize=(8, max(3.0, 8 * aspect)))
     ax = fig.add_subplot(1, 1, 1)
     draw_grid(ax, grid)
+    if box is not None:
+        ax.set_xlim(box[0], box[1])
+        ax.set_ylim(box[2], box[3])
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")

@@ -38,6 +38,21 @@ def refused_placement(reg) -> bool:
     return not reg.ok and reg.placed
 
 
+def _frame(grid, plan_m) -> tuple[float, float, float, float] | None:
+    """(xmin, xmax, ymin, ymax) of what the overlay shows: the map's known cells and the placed
+    plan's rooms (a metre around each), not the map image's unknown border."""
+    from frslam_graph.floorplan.render import known_bounds
+
+    boxes = [b for b in [known_bounds(grid)] if b is not None]
+    if plan_m is not None and plan_m.rooms:
+        x0, y0, x1, y1 = np.array([r.polygon.bounds for r in plan_m.rooms]).T
+        boxes.append((x0.min() - 1.0, x1.max() + 1.0, y0.min() - 1.0, y1.max() + 1.0))
+    if not boxes:
+        return None
+    box = np.array(boxes)
+    return float(box[:, 0].min()), float(box[:, 1].max()), float(box[:, 2].min()), float(box[:, 3].max())
+
+
 def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     """Map (free white, occupied black, unknown grey) with the registered rooms on top (a refused
     or doubtful placement: dashed outlines, no fill)."""
@@ -55,7 +70,9 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     x0, y0, yaw = grid.origin
     h, w = grid.shape
     res = grid.resolution
-    fig, ax = plt.subplots(figsize=(9, 9 * h / max(w, 1) if w else 9), dpi=100)
+    frame = _frame(grid, plan_m)
+    ratio = h / max(w, 1) if frame is None else (frame[3] - frame[2]) / (frame[1] - frame[0])
+    fig, ax = plt.subplots(figsize=(9, min(max(9 * ratio, 3.0), 18.0)), dpi=100)
     if yaw == 0.0:
         ax.imshow(
             img, origin="lower", cmap="gray", vmin=0, vmax=1, extent=(x0, x0 + w * res, y0, y0 + h * res)
@@ -81,7 +98,11 @@ def _overlay(grid, plan_m, reg, out: Path, title: str) -> None:
     for d in plan_m.doors if plan_m is not None else []:
         ax.plot([d.a[0], d.b[0]], [d.a[1], d.b[1]], "-", color="tab:green", lw=2)
     ax.set_aspect("equal")
-    ax.autoscale_view()
+    if frame is not None:
+        ax.set_xlim(frame[0], frame[1])
+        ax.set_ylim(frame[2], frame[3])
+    else:
+        ax.autoscale_view()
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title, fontsize=9)

@@ -75,6 +75,21 @@ def draw_grid(ax: Any, grid: Any, cmap: str = "gray") -> None:
     )
 
 
+def known_bounds(grid: Any, margin: float = 1.0) -> tuple[float, float, float, float] | None:
+    """(xmin, xmax, ymin, ymax), map metres, of the grid's known cells (``data`` >= 0: free or
+    occupied) widened by ``margin`` m, or None when no cell is known: the part of a map worth
+    drawing (a sensor map's image is often mostly unknown border). The box's corners go through
+    the grid's origin, its yaw too."""
+    known = np.asarray(grid.data) >= 0
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    if not len(rows):
+        return None
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    xy = grid.cell_to_world(np.array([[c0, r0], [c1, r0], [c0, r1], [c1, r1]], dtype=np.float64))
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
 def draw_plan(
     ax: Any,
     plan: FloorPlan,
