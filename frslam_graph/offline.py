@@ -416,11 +416,11 @@ def plan_acceptance(result: SlamResult) -> dict[str, Any] | None:
 def _map_metrics(slam: FRSlam, grid) -> dict[str, Any]:
     """The written map against the keyframe scans at the final estimates: share of end points on
     or next to (8-neighbourhood) an occupied cell, and the occupied / free cell counts."""
-    from frslam_graph.backend.mapping import endpoint_share, scan_points_in_map
+    from frslam_graph.backend.mapping import scans_endpoint_share
 
     pts, _ = slam.keyframe_scans()
     return {
-        "endpoints_on_wall": endpoint_share(grid, scan_points_in_map(slam.graph.estimates(), pts)),
+        "endpoints_on_wall": scans_endpoint_share(grid, slam.graph.estimates(), pts),
         "occupied_cells": int(grid.occupied_mask().sum()),
         "free_cells": int(grid.free_mask().sum()),
     }

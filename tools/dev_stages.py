@@ -176,7 +176,7 @@ def instrument(st: Stages) -> None:
     st.wrap(fa, "align_passes", "final: glue")
     st.wrap(slam.FRSlam, "finish", "finish: glue")
     st.wrap(context.BackendContext, "occupancy_grid", "outputs: occupancy grid")
-    st.wrap(mapping, "endpoint_share", "outputs: endpoint share")
+    st.wrap(mapping, "scans_endpoint_share", "outputs: endpoint share")
     st.wrap(offline, "_run_metrics", "outputs: metrics")
 
 
