@@ -198,7 +198,7 @@ def wrap_property(st: Stages, cls: Any, name: str, label: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("log", choices=sorted(LOGS))
+    ap.add_argument("log", help=f"one of {', '.join(sorted(LOGS))}, or a recording's path (no relations)")
     ap.add_argument("--serial", action="store_true", help="odometry in this process (stages + streaming CPU)")
     ap.add_argument("--json", type=Path, help="write the stage table and per-scan figures here")
     ap.add_argument(
@@ -230,7 +230,12 @@ def main() -> None:
             st.mark()
 
     slam.FRSlam._record = record_and_mark
-    path, rel_path = (DATA / p for p in LOGS[args.log])
+    if args.log in LOGS:
+        path, rel_path = (DATA / p for p in LOGS[args.log])
+    elif Path(args.log).exists():  # e.g. bench_slam.py --long's simulated recording
+        path, rel_path = Path(args.log), None
+    else:
+        ap.error(f"log: {args.log!r} is neither one of {', '.join(sorted(LOGS))} nor a path")
     rec = open_recording(path)
 
     class Timed:  # the reader's iteration as a stage
@@ -270,17 +275,18 @@ def main() -> None:
                 print(f"| {label} | {n / 1e3:.0f} | {st.calls.get(label, '')} |")
         print(f"| (unwrapped) | {(faults - sum(st.total.values())) / 1e3:.0f} | |")
         return
-    write_outputs(run, Path("/tmp") / f"dev_stages_{args.log}", relations=load_relations(rel_path))
+    relations = load_relations(rel_path) if rel_path is not None else None
+    write_outputs(run, Path("/tmp") / f"dev_stages_{Path(args.log).name}", relations=relations)
     cpu_all = time.process_time() - c0
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     child = kids.ru_utime + kids.ru_stime
     res = run.result
-    rel = run.metrics["relations"]
+    rel = run.metrics.get("relations")
+    rel_text = f"relations {rel.trans_mean:.4f} m / {rel.rot_mean:.3f} deg" if rel is not None else "no relations"
     print(
         f"{args.log}: {'serial' if args.serial else 'worker'}; {res.duration:.0f} s of log; run wall "
         f"{wall_run:.1f} s ({res.duration / wall_run:.1f}x RT), run CPU here {c_run:.1f} s, with "
-        f"outputs {cpu_all:.1f} s; children (worker + forked alignment half) {child:.1f} s; "
-        f"relations {rel.trans_mean:.4f} m / {rel.rot_mean:.3f} deg"
+        f"outputs {cpu_all:.1f} s; children (worker + forked alignment half) {child:.1f} s; {rel_text}"
     )
     total = sum(st.total.values())
     print("\n| stage | CPU s | share | calls |\n|---|---:|---:|---:|")
