@@ -210,24 +210,33 @@ def _grid_plan() -> FloorPlan:
     return FloorPlan(rooms, doors, units="px", name="grid")
 
 
-@pytest.mark.parametrize("yaw", [0.0, 0.35])
-def test_coarse_hypotheses_stacked_equal_case_by_case(yaw: float) -> None:
+def _seen_grid(yaw: float):
+    """:func:`_grid_plan` placed in metres (x0.4 / x0.45, turned by ``yaw``, shifted) and a map
+    showing four of its rooms: (the plan, its placement plan -> map, the OccupancyGrid)."""
     from frslam_graph.occupancy import OccupancyGrid
     from frslam_graph.raster import RasterFrame, rasterise_plan
-    from frslam_graph.registration.mfr import coarse
-    from frslam_graph.registration.mfr.map_side import observe_map
-    from frslam_graph.registration.mfr.plan_side import prepare_plan
-    from frslam_graph.registration.subsets import connected_subsets
     from frslam_graph.se2 import to_matrix
 
     plan = _grid_plan()
-    house = plan.transformed(to_matrix((1.0, -2.0, yaw)) @ np.diag([0.4, 0.45, 1.0]), units="m")
+    truth = to_matrix((1.0, -2.0, yaw)) @ np.diag([0.4, 0.45, 1.0])
+    house = plan.transformed(truth, units="m")
     seen = ["r00", "r10", "r11", "r21"]
     frame = RasterFrame.around(house.subset(seen).bounds, 0.05, margin=0.6)
     lab = rasterise_plan(house, frame, rooms=seen, labels=True)
     free = cv2.erode((lab > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     occ = (lab > 0) & ~free
     grid = OccupancyGrid.from_masks(free, occ, 0.05, (frame.origin[0], frame.origin[1], 0.0))
+    return plan, truth, grid
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.35])
+def test_coarse_hypotheses_stacked_equal_case_by_case(yaw: float) -> None:
+    from frslam_graph.registration.mfr import coarse
+    from frslam_graph.registration.mfr.map_side import observe_map
+    from frslam_graph.registration.mfr.plan_side import prepare_plan
+    from frslam_graph.registration.subsets import connected_subsets
+
+    plan, _, grid = _seen_grid(yaw)
     obs, pm = observe_map(grid), prepare_plan(plan)
     masks = connected_subsets(pm.adjacency, max_per_level=3000)
     cases = coarse.dihedral_cases(coarse.subset_geometry(pm, masks))

@@ -9,7 +9,6 @@ import dataclasses
 import math
 import pickle
 
-import cv2
 import numpy as np
 import pytest
 
@@ -28,27 +27,16 @@ from frslam_graph.registration.mfr.coarse import (
     coarse_scores,
     same_placement,
 )
-from tests.test_registration_cpu import _grid_plan
+from tests.test_registration_cpu import _seen_grid
 
 
 @pytest.fixture(scope="module")
 def scene():
     """A plan model and the observation of a map showing four of its rooms (scaled, turned)."""
-    from frslam_graph.occupancy import OccupancyGrid
-    from frslam_graph.raster import RasterFrame, rasterise_plan
     from frslam_graph.registration.mfr.map_side import observe_map
     from frslam_graph.registration.mfr.plan_side import prepare_plan
-    from frslam_graph.se2 import to_matrix
 
-    plan = _grid_plan()
-    truth = to_matrix((1.0, -2.0, 0.35)) @ np.diag([0.4, 0.45, 1.0])
-    house = plan.transformed(truth, units="m")
-    seen = ["r00", "r10", "r11", "r21"]
-    frame = RasterFrame.around(house.subset(seen).bounds, 0.05, margin=0.6)
-    lab = rasterise_plan(house, frame, rooms=seen, labels=True)
-    free = cv2.erode((lab > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    occ = (lab > 0) & ~free
-    grid = OccupancyGrid.from_masks(free, occ, 0.05, (frame.origin[0], frame.origin[1], 0.0))
+    plan, truth, grid = _seen_grid(0.35)
     obs = observe_map(grid)
     # the truth in the observation's grid frame (plan -> grid metres)
     to_grid = np.linalg.inv(obs.to_map) @ truth
