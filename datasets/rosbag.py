@@ -625,7 +625,6 @@ class RosBag(Recording):
         (:func:`ros1_odometry_pose`)."""
         if self.odom_topic is None:
             self._odom, self._odom_track, self._acquired = np.zeros((0, 4)), np.zeros((0, 4)), None
-            self._unordered = False
             return
         odom = _OdometryColumns()
         scan_seq, scan_stamp = array("q"), array("d")  # header.seq (-1: none), stamp (NaN: undecodable)
